@@ -1,0 +1,286 @@
+"""Typed, validated configuration.
+
+Configuration is data: TOML files (``configs/default.toml`` documents every key)
+are read once, at the edge, into frozen dataclasses; the rest of the code
+receives typed objects and never sees raw dictionaries. Precedence, lowest
+first: built-in defaults, the ``--config`` file, ``--set section.key=value``
+overrides. Any unknown key or wrong value stops the run before any work, with a
+message naming the key, where it came from and what is allowed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, get_args, get_origin, get_type_hints
+
+from .errors import ConfigError
+
+
+def _opt(default: Any, doc: str, **rules: Any) -> Any:
+    """A config field: its default, a one-line description and validation rules.
+
+    Rules: ``choices`` (allowed values), ``gt``/``ge`` (lower bounds),
+    ``item_range`` (bounds of each list item).
+    """
+    if isinstance(default, list):
+        return field(default_factory=lambda: list(default), metadata={"doc": doc, **rules})
+    return field(default=default, metadata={"doc": doc, **rules})
+
+
+@dataclass(frozen=True)
+class GridConfig:
+    """The global raster grid and the cells it is cut into."""
+
+    resolution_m: float = _opt(1.0, "DSM pixel size in metres (converted to the CRS unit).", gt=0)
+    cell_size_m: float = _opt(
+        250.0, "Side of a square processing cell in metres; a multiple of resolution_m.", gt=0
+    )
+    halo_px: int = _opt(8, "Pixels of neighbouring cells read around each cell.", ge=0)
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Which points enter the rasters."""
+
+    drop_classes: list[int] = _opt(
+        [7, 18], "ASPRS classes never used (7 low noise, 18 high noise).", item_range=(0, 255)
+    )
+    keep_classes: list[int] = _opt(
+        [], "If not empty, only these classes are used (a DTM: [2]).", item_range=(0, 255)
+    )
+    drop_withheld: bool = _opt(True, "Drop points flagged withheld.")
+
+
+@dataclass(frozen=True)
+class RasterizeConfig:
+    """Stage 1: binning points into per-pixel statistics."""
+
+    chunk_points: int = _opt(
+        1_000_000, "Points decoded per chunk; bounds the memory of a tile task.", ge=10_000
+    )
+    voxel_height_m: float = _opt(
+        0.5, "Voxel height in metres for the occupied-voxel count (vertical holes).", gt=0
+    )
+
+
+@dataclass(frozen=True)
+class DaskConfig:
+    """The Dask cluster a run uses when no --scheduler is given."""
+
+    workers: int = _opt(0, "Worker processes; 0 means one per CPU core.", ge=0)
+    memory_limit: str = _opt(
+        "auto", "Memory limit per worker, e.g. '2GB', or 'auto' to share the machine's memory."
+    )
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    """How rasters are written."""
+
+    compress: str = _opt(
+        "deflate", "COG compression.", choices=("deflate", "zstd", "lzw", "none")
+    )
+    blocksize: int = _opt(256, "COG internal tile size in pixels.", choices=(128, 256, 512, 1024))
+    overview_resampling: str = _opt(
+        "average", "Resampling of COG overviews.", choices=("average", "nearest", "bilinear")
+    )
+    keep_intermediate: bool = _opt(
+        False, "Keep the per-tile and per-cell statistic rasters under OUT/work/."
+    )
+
+
+@dataclass(frozen=True)
+class SurveyConfig:
+    """How inputs are interpreted."""
+
+    crs: str = _opt("", "CRS for tiles that have none (e.g. 'EPSG:28992'); empty: none assumed.")
+    target_crs: str = _opt(
+        "", "Reproject every tile to this CRS while streaming; needed for mixed-CRS surveys."
+    )
+    on_error: str = _opt(
+        "fail", "What a bad tile does: stop the run, or be skipped and listed.", choices=("fail", "skip")
+    )
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole resolved configuration of a run."""
+
+    grid: GridConfig = field(default_factory=GridConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    rasterize: RasterizeConfig = field(default_factory=RasterizeConfig)
+    dask: DaskConfig = field(default_factory=DaskConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    survey: SurveyConfig = field(default_factory=SurveyConfig)
+
+    @property
+    def cell_size_px(self) -> int:
+        """Cell side in pixels (validated to be a whole number)."""
+        return round(self.grid.cell_size_m / self.grid.resolution_m)
+
+    def replace(self, section: str, **values: Any) -> Config:
+        """Return a copy with some keys of one section changed (validated)."""
+        merged = to_dict(self)
+        merged[section].update(values)
+        return _build(merged, {f"{section}.{k}": "replace()" for k in values})
+
+    def to_toml(self) -> str:
+        """The configuration as a TOML document (what ``holefill config --show`` prints)."""
+        lines: list[str] = []
+        for section in dataclasses.fields(self):
+            sub = getattr(self, section.name)
+            lines.append(f"[{section.name}]")
+            for f in dataclasses.fields(sub):
+                lines.append(f"{f.name} = {_toml_value(getattr(sub, f.name))}  # {f.metadata['doc']}")
+            lines.append("")
+        return "\n".join(lines)
+
+
+SECTIONS: dict[str, type] = {
+    f.name: get_type_hints(Config)[f.name] for f in dataclasses.fields(Config)
+}
+
+
+def to_dict(config: Config) -> dict[str, dict[str, Any]]:
+    """The configuration as nested plain dictionaries."""
+    return {name: dataclasses.asdict(getattr(config, name)) for name in SECTIONS}
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    """Read, merge and validate the configuration.
+
+    Parameters
+    ----------
+    path : path-like, optional
+        A TOML file whose keys override the defaults.
+    overrides : list of str
+        ``section.key=value`` strings (``--set``); the value is parsed as TOML,
+        or taken as a plain string when it is not valid TOML.
+
+    Raises
+    ------
+    ConfigError
+        Naming the key, the file (or ``--set``) and the allowed values.
+    """
+    merged = to_dict(Config())
+    sources: dict[str, str] = {}
+    if path is not None:
+        path = Path(path)
+        try:
+            with path.open("rb") as fh:
+                data = tomllib.load(fh)
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: configuration file not found") from None
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(f"{path}: not valid TOML: {e}") from None
+        for section, table in data.items():
+            if section not in SECTIONS:
+                raise ConfigError(
+                    f"{path}: unknown section [{section}]; allowed sections: {', '.join(SECTIONS)}"
+                )
+            if not isinstance(table, dict):
+                raise ConfigError(f"{path}: '{section}' must be a table ([{section}])")
+            for key, value in table.items():
+                _check_key(section, key, str(path))
+                merged[section][key] = value
+                sources[f"{section}.{key}"] = str(path)
+    for item in overrides:
+        section, key, value = _parse_override(item)
+        merged[section][key] = value
+        sources[f"{section}.{key}"] = f"--set {item}"
+    return _build(merged, sources)
+
+
+def _parse_override(item: str) -> tuple[str, str, Any]:
+    if "=" not in item or "." not in item.split("=", 1)[0]:
+        raise ConfigError(f"--set {item}: expected section.key=value, e.g. grid.resolution_m=0.5")
+    dotted, raw = item.split("=", 1)
+    section, key = dotted.strip().split(".", 1)
+    if section not in SECTIONS:
+        raise ConfigError(
+            f"--set {item}: unknown section '{section}'; allowed sections: {', '.join(SECTIONS)}"
+        )
+    _check_key(section, key, f"--set {item}")
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    return section, key, value
+
+
+def _check_key(section: str, key: str, source: str) -> None:
+    allowed = [f.name for f in dataclasses.fields(SECTIONS[section])]
+    if key not in allowed:
+        raise ConfigError(
+            f"{source}: unknown key '{section}.{key}'; allowed keys in [{section}]: {', '.join(allowed)}"
+        )
+
+
+def _build(merged: dict[str, dict[str, Any]], sources: dict[str, str]) -> Config:
+    sections = {}
+    for name, cls in SECTIONS.items():
+        hints = get_type_hints(cls)
+        values = {}
+        for f in dataclasses.fields(cls):
+            where = sources.get(f"{name}.{f.name}", "default")
+            values[f.name] = _validate(f"{name}.{f.name}", merged[name][f.name], hints[f.name], f.metadata, where)
+        sections[name] = cls(**values)
+    config = Config(**sections)
+    ratio = config.grid.cell_size_m / config.grid.resolution_m
+    if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 16:
+        where = sources.get("grid.cell_size_m", sources.get("grid.resolution_m", "default"))
+        raise ConfigError(
+            f"{where}: grid.cell_size_m ({config.grid.cell_size_m}) must be a whole multiple "
+            f"(at least 16) of grid.resolution_m ({config.grid.resolution_m})"
+        )
+    return config
+
+
+def _validate(key: str, value: Any, kind: Any, rules: dict[str, Any], where: str) -> Any:
+    def fail(expected: str) -> ConfigError:
+        return ConfigError(f"{where}: {key} = {value!r} is invalid; expected {expected}")
+
+    if get_origin(kind) is list:
+        item_kind = get_args(kind)[0]
+        if not isinstance(value, list) or not all(_is(v, item_kind) for v in value):
+            raise fail(f"a list of {item_kind.__name__}")
+        low, high = rules.get("item_range", (-math.inf, math.inf))
+        if any(not low <= v <= high for v in value):
+            raise fail(f"items between {low} and {high}")
+        return list(value)
+    if not _is(value, kind):
+        raise fail(f"a {kind.__name__}")
+    value = kind(value)
+    if "choices" in rules and value not in rules["choices"]:
+        raise fail("one of " + ", ".join(repr(c) for c in rules["choices"]))
+    if "gt" in rules and not value > rules["gt"]:
+        raise fail(f"a number > {rules['gt']}")
+    if "ge" in rules and not value >= rules["ge"]:
+        raise fail(f"a number >= {rules['ge']}")
+    if kind is float and not math.isfinite(value):
+        raise fail("a finite number")
+    return value
+
+
+def _is(value: Any, kind: type) -> bool:
+    if kind is bool:
+        return isinstance(value, bool)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if kind is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, kind)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)

@@ -1,0 +1,230 @@
+"""The survey's global raster grid, its cells, halos and pixel windows.
+
+Every pixel of every output lives on one absolute lattice: pixel column
+``floor(x / resolution)`` and row ``floor(y / resolution)`` in the survey CRS,
+so a point always lands in the same pixel whatever the tiling of the inputs or
+the cell size. The survey grid is the part of that lattice covering the union of
+the tile extents; cells are the squares of ``cell_px`` pixels aligned to
+multiples of the cell size in world coordinates (so cell names are stable), and
+clipped to the grid. Rows count downwards from the top (north-up rasters).
+
+Pure geometry: no I/O, no Dask.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterator
+
+import numpy as np
+from affine import Affine
+
+
+@dataclass(frozen=True, order=True)
+class PixelWindow:
+    """A rectangle of grid pixels: rows ``[row_off, row_off+height)``, columns likewise."""
+
+    row_off: int
+    col_off: int
+    height: int
+    width: int
+
+    @property
+    def row_end(self) -> int:
+        return self.row_off + self.height
+
+    @property
+    def col_end(self) -> int:
+        return self.col_off + self.width
+
+    @property
+    def is_empty(self) -> bool:
+        return self.height <= 0 or self.width <= 0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.height, self.width)
+
+    def intersection(self, other: PixelWindow) -> PixelWindow:
+        """The overlap of two windows (possibly empty, with zero height/width)."""
+        r0, c0 = max(self.row_off, other.row_off), max(self.col_off, other.col_off)
+        r1, c1 = min(self.row_end, other.row_end), min(self.col_end, other.col_end)
+        return PixelWindow(r0, c0, max(0, r1 - r0), max(0, c1 - c0))
+
+    def expand(self, pixels: int) -> PixelWindow:
+        """The window grown by ``pixels`` on every side (not clipped)."""
+        return PixelWindow(
+            self.row_off - pixels, self.col_off - pixels, self.height + 2 * pixels, self.width + 2 * pixels
+        )
+
+    def slices_within(self, outer: PixelWindow) -> tuple[slice, slice]:
+        """Array slices selecting this window inside an array covering ``outer``."""
+        return (
+            slice(self.row_off - outer.row_off, self.row_end - outer.row_off),
+            slice(self.col_off - outer.col_off, self.col_end - outer.col_off),
+        )
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One processing cell: its core window and the halo window read around it."""
+
+    id: str
+    index_x: int
+    index_y: int
+    window: PixelWindow
+    halo_window: PixelWindow
+
+
+@dataclass(frozen=True)
+class Grid:
+    """The survey grid on the absolute lattice.
+
+    Attributes
+    ----------
+    resolution : float
+        Pixel size in CRS units.
+    col_min : int
+        Absolute lattice column of the grid's first column (``x_left = col_min * resolution``).
+    row_top : int
+        Absolute lattice row (counting up from y = 0) of the grid's top row.
+    width, height : int
+        Grid size in pixels.
+    cell_px : int
+        Cell side in pixels; cells are aligned to absolute multiples of it.
+    halo_px : int
+        Pixels read around each cell.
+    crs_wkt : str
+        The survey CRS.
+    """
+
+    resolution: float
+    col_min: int
+    row_top: int
+    width: int
+    height: int
+    cell_px: int
+    halo_px: int
+    crs_wkt: str
+
+    @classmethod
+    def covering(
+        cls,
+        bounds: list[tuple[float, float, float, float]] | np.ndarray,
+        *,
+        resolution: float,
+        cell_px: int,
+        halo_px: int,
+        crs_wkt: str,
+    ) -> Grid:
+        """The smallest grid on the lattice that covers every (minx, miny, maxx, maxy) box."""
+        b = np.asarray(bounds, dtype=np.float64).reshape(-1, 4)
+        col_min = math.floor(b[:, 0].min() / resolution)
+        col_max = math.floor(b[:, 2].max() / resolution)
+        row_bottom = math.floor(b[:, 1].min() / resolution)
+        row_top = math.floor(b[:, 3].max() / resolution)
+        return cls(
+            resolution=float(resolution),
+            col_min=col_min,
+            row_top=row_top,
+            width=col_max - col_min + 1,
+            height=row_top - row_bottom + 1,
+            cell_px=int(cell_px),
+            halo_px=int(halo_px),
+            crs_wkt=crs_wkt,
+        )
+
+    # -- geometry -----------------------------------------------------------------
+    @property
+    def window(self) -> PixelWindow:
+        return PixelWindow(0, 0, self.height, self.width)
+
+    @property
+    def x_left(self) -> float:
+        return self.col_min * self.resolution
+
+    @property
+    def y_top(self) -> float:
+        return (self.row_top + 1) * self.resolution
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        return (
+            self.x_left,
+            self.y_top - self.height * self.resolution,
+            self.x_left + self.width * self.resolution,
+            self.y_top,
+        )
+
+    @property
+    def transform(self) -> Affine:
+        return Affine(self.resolution, 0.0, self.x_left, 0.0, -self.resolution, self.y_top)
+
+    def window_transform(self, window: PixelWindow) -> Affine:
+        """The affine transform of a window's top-left pixel."""
+        return self.transform * Affine.translation(window.col_off, window.row_off)
+
+    def window_bounds(self, window: PixelWindow) -> tuple[float, float, float, float]:
+        r = self.resolution
+        return (
+            self.x_left + window.col_off * r,
+            self.y_top - window.row_end * r,
+            self.x_left + window.col_end * r,
+            self.y_top - window.row_off * r,
+        )
+
+    def pixel_rows_cols(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Grid row and column of world points (may fall outside the grid).
+
+        This is the one formula that places points; the compiled kernel in
+        ``rasterize`` uses the same expression.
+        """
+        cols = np.floor(np.asarray(x) / self.resolution).astype(np.int64) - self.col_min
+        rows = self.row_top - np.floor(np.asarray(y) / self.resolution).astype(np.int64)
+        return rows, cols
+
+    def window_of_bounds(self, minx: float, miny: float, maxx: float, maxy: float) -> PixelWindow:
+        """The pixels touched by a world box (inclusive of its max edge), clipped to the grid."""
+        r = self.resolution
+        c0 = math.floor(minx / r) - self.col_min
+        c1 = math.floor(maxx / r) - self.col_min
+        r0 = self.row_top - math.floor(maxy / r)
+        r1 = self.row_top - math.floor(miny / r)
+        return PixelWindow(r0, c0, r1 - r0 + 1, c1 - c0 + 1).intersection(self.window)
+
+    # -- cells --------------------------------------------------------------------
+    def cells(self) -> list[Cell]:
+        """All cells overlapping the grid, west to east within north to south."""
+        return list(self._iter_cells())
+
+    def _iter_cells(self) -> Iterator[Cell]:
+        n = self.cell_px
+        # absolute lattice row (upwards) of the top grid row is row_top; cell index_y counts upwards
+        top_index = math.floor(self.row_top / n)
+        bottom_index = math.floor((self.row_top - self.height + 1) / n)
+        left_index = math.floor(self.col_min / n)
+        right_index = math.floor((self.col_min + self.width - 1) / n)
+        for index_y in range(top_index, bottom_index - 1, -1):
+            # absolute rows index_y*n .. index_y*n+n-1 (upwards) -> grid rows
+            row_off = self.row_top - (index_y * n + n - 1)
+            for index_x in range(left_index, right_index + 1):
+                col_off = index_x * n - self.col_min
+                core = PixelWindow(row_off, col_off, n, n).intersection(self.window)
+                halo = core.expand(self.halo_px).intersection(self.window)
+                x0 = index_x * n * self.resolution
+                y0 = index_y * n * self.resolution
+                yield Cell(
+                    id=f"{_coordinate_name(x0)}_{_coordinate_name(y0)}",
+                    index_x=index_x,
+                    index_y=index_y,
+                    window=core,
+                    halo_window=halo,
+                )
+
+
+def _coordinate_name(value: float) -> str:
+    rounded = round(value)
+    if abs(value - rounded) < 1e-6:
+        return str(rounded)
+    return f"{value:.2f}".replace(".", "p")

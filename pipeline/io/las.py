@@ -1,0 +1,158 @@
+"""Reading LAS/LAZ/COPC: headers for the survey scan, points in bounded chunks.
+
+The only module that imports laspy. Every failure is turned into an
+:class:`~pipeline.errors.InputDataError` that names the file and what is wrong.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import laspy
+import numpy as np
+
+from ..errors import CRSError, InputDataError
+
+logger = logging.getLogger(__name__)
+
+LAS_SIGNATURE = b"LASF"
+
+
+@dataclass(frozen=True)
+class TileHeader:
+    """What the header of one LAS/LAZ/COPC file says (nothing is decoded)."""
+
+    path: str
+    format: str  # "LAS", "LAZ" or "COPC"
+    version: str
+    point_format: int
+    point_count: int
+    bounds: tuple[float, float, float, float]  # minx, miny, maxx, maxy in the file's CRS
+    z_range: tuple[float, float]
+    crs_wkt: str | None
+    crs_problem: str | None  # why a CRS record could not be used, if there is one
+    file_size: int
+
+
+@dataclass(frozen=True)
+class PointChunk:
+    """Decoded points of one chunk: coordinates in file units and what filters need."""
+
+    x: np.ndarray  # float64
+    y: np.ndarray
+    z: np.ndarray
+    classification: np.ndarray  # uint8
+    withheld: np.ndarray  # bool
+
+
+def read_header(path: str | os.PathLike) -> TileHeader:
+    """Read and check one file's header.
+
+    Raises
+    ------
+    InputDataError
+        The file is missing, not a LAS file, or its header contradicts the file
+        (e.g. an uncompressed file shorter than its declared point count needs).
+    """
+    path = Path(path)
+    try:
+        file_size = path.stat().st_size
+        with path.open("rb") as fh:
+            signature = fh.read(4)
+    except OSError as e:
+        raise InputDataError(path, f"cannot be read: {e.strerror or e}") from None
+    if signature != LAS_SIGNATURE:
+        raise InputDataError(path, f"not a LAS/LAZ file: file signature is {signature!r}, expected b'LASF'")
+    try:
+        with laspy.open(path) as reader:
+            header = reader.header
+            is_copc = any(getattr(v, "user_id", "") == "copc" for v in header.vlrs)
+    except Exception as e:  # laspy raises several unrelated types for corrupt headers
+        raise InputDataError(path, f"header cannot be read: {e}") from None
+
+    compressed = header.are_points_compressed if hasattr(header, "are_points_compressed") else path.suffix.lower() == ".laz"
+    count = int(header.point_count)
+    if not compressed:
+        record_length = header.point_format.size
+        data_end = header.offset_to_point_data + count * record_length
+        if file_size < data_end:
+            held = max(0, (file_size - header.offset_to_point_data) // record_length)
+            raise InputDataError(
+                path,
+                f"header point count is {count:,} but the file holds only {held:,} complete point "
+                f"records (file truncated or header wrong)",
+            )
+    elif file_size <= header.offset_to_point_data:
+        raise InputDataError(path, "LAZ file ends before its point data starts (truncated)")
+
+    crs_wkt, crs_problem = None, None
+    try:
+        crs = header.parse_crs()
+        if crs is not None:
+            crs_wkt = crs.to_wkt()
+    except Exception as e:
+        crs_problem = f"its CRS record cannot be parsed ({e})"
+    mins, maxs = header.mins, header.maxs
+    return TileHeader(
+        path=str(path),
+        format="COPC" if is_copc else ("LAZ" if compressed else "LAS"),
+        version=f"{header.version.major}.{header.version.minor}",
+        point_format=int(header.point_format.id),
+        point_count=count,
+        bounds=(float(mins[0]), float(mins[1]), float(maxs[0]), float(maxs[1])),
+        z_range=(float(mins[2]), float(maxs[2])),
+        crs_wkt=crs_wkt,
+        crs_problem=crs_problem,
+        file_size=file_size,
+    )
+
+
+def iter_point_chunks(path: str | os.PathLike, chunk_points: int) -> Iterator[PointChunk]:
+    """Decode a file once, ``chunk_points`` points at a time.
+
+    Memory is bounded by the chunk size, never the whole tile. A file that ends
+    early, or decodes fewer points than its header declares, raises
+    :class:`InputDataError`.
+    """
+    path = Path(path)
+    decoded = 0
+    expected = None
+    try:
+        with laspy.open(path, laz_backend=laspy.LazBackend.Lazrs if laspy.LazBackend.Lazrs.is_available() else None) as reader:
+            expected = int(reader.header.point_count)
+            for chunk in reader.chunk_iterator(chunk_points):
+                n = len(chunk)
+                if n == 0:
+                    break
+                decoded += n
+                yield PointChunk(
+                    x=np.asarray(chunk.x, dtype=np.float64),
+                    y=np.asarray(chunk.y, dtype=np.float64),
+                    z=np.asarray(chunk.z, dtype=np.float64),
+                    classification=np.asarray(chunk.classification, dtype=np.uint8),
+                    withheld=np.asarray(chunk.withheld, dtype=bool),
+                )
+    except InputDataError:
+        raise
+    except Exception as e:
+        where = f"after {decoded:,} of {expected:,} points" if expected is not None else "while opening"
+        raise InputDataError(path, f"point data cannot be decoded {where}: {e} (file corrupt or truncated)") from None
+    if expected is not None and decoded < expected:
+        raise InputDataError(
+            path, f"header point count is {expected:,} but only {decoded:,} points could be decoded"
+        )
+
+
+def decode_only(path: str | os.PathLike, chunk_points: int) -> int:
+    """Decode every point of a file and drop it: the baseline of the benchmark."""
+    total = 0
+    for chunk in iter_point_chunks(path, chunk_points):
+        total += len(chunk.x)
+    return total
+
+
+__all__ = ["CRSError", "PointChunk", "TileHeader", "decode_only", "iter_point_chunks", "read_header"]

@@ -1,0 +1,170 @@
+"""Writing rasters: Cloud-optimized GeoTIFF tiles and the VRT that mosaics them.
+
+Internally rasters are float32 with NaN for "no value"; the conversion to an
+explicit nodata value happens here and only here. Every file is written under a
+temporary name in the same folder and renamed when complete, so a crash never
+leaves a half-written product.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from xml.sax.saxutils import escape
+
+import numpy as np
+import rasterio
+import rasterio.shutil
+from affine import Affine
+from rasterio.enums import Resampling
+from rasterio.io import MemoryFile
+
+from ..errors import OutputError
+
+#: The nodata value of float rasters on disk (NaN inside the pipeline).
+NODATA = -9999.0
+
+
+@dataclass(frozen=True)
+class RasterOptions:
+    """How COGs are written (from the ``[output]`` configuration)."""
+
+    compress: str = "deflate"
+    blocksize: int = 256
+    overview_resampling: str = "average"
+
+
+def write_cog(
+    path: str | os.PathLike,
+    array: np.ndarray,
+    *,
+    transform: Affine,
+    crs_wkt: str,
+    options: RasterOptions = RasterOptions(),
+    nodata: float | None = NODATA,
+    description: str = "",
+    tags: dict[str, str] | None = None,
+) -> Path:
+    """Write one band as a Cloud-optimized GeoTIFF with overviews.
+
+    Parameters
+    ----------
+    path : path-like
+        Destination; written under a temporary name, then renamed.
+    array : ndarray of shape (M, N)
+        Float arrays use NaN for no value (written as ``nodata``); integer
+        arrays are written as they are.
+    transform, crs_wkt
+        Georeferencing of the array's top-left pixel.
+    """
+    path = Path(path)
+    data = np.asarray(array)
+    if np.issubdtype(data.dtype, np.floating):
+        data = np.where(np.isnan(data), np.float32(nodata), data).astype(np.float32)
+    height, width = data.shape
+    # at least one overview level, down to about 64 pixels on the longer side
+    overview_count = max(1, math.ceil(math.log2(max(height, width, 128) / 64)))
+    profile = {
+        "driver": "GTiff",
+        "height": height,
+        "width": width,
+        "count": 1,
+        "dtype": data.dtype.name,
+        "crs": crs_wkt or None,
+        "transform": transform,
+        "nodata": nodata,
+    }
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        with MemoryFile() as memory:
+            with memory.open(**profile) as dataset:
+                dataset.write(data, 1)
+                if description:
+                    dataset.set_band_description(1, description)
+                if tags:
+                    dataset.update_tags(**tags)
+            with memory.open() as source:
+                rasterio.shutil.copy(
+                    source,
+                    tmp,
+                    driver="COG",
+                    COMPRESS=options.compress.upper(),
+                    BLOCKSIZE=options.blocksize,
+                    OVERVIEWS="IGNORE_EXISTING",
+                    OVERVIEW_COUNT=overview_count,
+                    RESAMPLING=options.overview_resampling.upper(),
+                    PREDICTOR="YES" if options.compress != "none" else "NO",
+                    BIGTIFF="IF_SAFER",
+                )
+        os.replace(tmp, path)
+    except (OSError, rasterio.errors.RasterioError) as e:
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"{path}: cannot write raster: {e}") from None
+    return path
+
+
+def write_vrt(
+    path: str | os.PathLike,
+    sources: list[tuple[str | os.PathLike, int, int, int, int]],
+    *,
+    width: int,
+    height: int,
+    transform: Affine,
+    crs_wkt: str,
+    dtype: str = "Float32",
+    nodata: float | None = NODATA,
+    description: str = "",
+) -> Path:
+    """Write a VRT mosaicking tiles of one grid.
+
+    Parameters
+    ----------
+    sources : list of (path, row_off, col_off, height, width)
+        Each tile and where it lies in the mosaic; paths are stored relative to
+        the VRT so the output folder can be moved.
+    """
+    path = Path(path)
+    lines = [
+        f'<VRTDataset rasterXSize="{width}" rasterYSize="{height}">',
+        f"  <SRS dataAxisToSRSAxisMapping=\"1,2\">{escape(crs_wkt)}</SRS>",
+        "  <GeoTransform>" + ", ".join(repr(v) for v in transform.to_gdal()) + "</GeoTransform>",
+        f'  <VRTRasterBand dataType="{dtype}" band="1">',
+    ]
+    if nodata is not None:
+        lines.append(f"    <NoDataValue>{nodata!r}</NoDataValue>")
+    if description:
+        lines.append(f"    <Description>{escape(description)}</Description>")
+    for source, row_off, col_off, tile_height, tile_width in sources:
+        relative = os.path.relpath(source, path.parent)
+        lines += [
+            "    <ComplexSource>",
+            f'      <SourceFilename relativeToVRT="1">{escape(relative)}</SourceFilename>',
+            "      <SourceBand>1</SourceBand>",
+            f'      <SrcRect xOff="0" yOff="0" xSize="{tile_width}" ySize="{tile_height}" />',
+            f'      <DstRect xOff="{col_off}" yOff="{row_off}" xSize="{tile_width}" ySize="{tile_height}" />',
+        ]
+        if nodata is not None:
+            lines.append(f"      <NODATA>{nodata!r}</NODATA>")
+        lines.append("    </ComplexSource>")
+    lines += ["  </VRTRasterBand>", "</VRTDataset>", ""]
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_text("\n".join(lines))
+        os.replace(tmp, path)
+    except OSError as e:
+        raise OutputError(f"{path}: cannot write VRT: {e}") from None
+    return path
+
+
+def read_raster(path: str | os.PathLike) -> tuple[np.ndarray, Affine, str]:
+    """Read band 1 as float32 with NaN for nodata (tests and evaluation)."""
+    with rasterio.open(path) as dataset:
+        data = dataset.read(1, masked=True)
+        array = data.astype(np.float32).filled(np.nan) if np.ma.is_masked(data) else np.asarray(data, np.float32)
+        return array, dataset.transform, dataset.crs.to_wkt() if dataset.crs else ""
+
+
+__all__ = ["NODATA", "RasterOptions", "Resampling", "read_raster", "write_cog", "write_vrt"]

@@ -1,0 +1,63 @@
+"""Writing GeoPackage layers (pyogrio through geopandas).
+
+Layers are written into a GeoPackage inside the run's staging folder; the whole
+file is moved into place when the run succeeds (see ``pipeline.run``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import geopandas as gpd
+import pyogrio
+import shapely
+
+from ..errors import OutputError
+
+
+def write_layer(
+    path: str | os.PathLike,
+    layer: str,
+    records: list[dict[str, Any]],
+    geometries: list[shapely.Geometry],
+    *,
+    crs_wkt: str,
+    geometry_type: str | None = None,
+) -> Path:
+    """Write (or replace) one layer of a GeoPackage.
+
+    Parameters
+    ----------
+    records : list of dict
+        One attribute dictionary per feature (the same keys in each).
+    geometries : list of shapely geometries
+        One per record, in the layer's CRS.
+    geometry_type : str, optional
+        Forced OGR geometry type (e.g. "Polygon") so that empty layers are typed.
+    """
+    path = Path(path)
+    frame = gpd.GeoDataFrame(records, geometry=list(geometries), crs=crs_wkt or None)
+    try:
+        pyogrio.write_dataframe(
+            frame,
+            path,
+            layer=layer,
+            driver="GPKG",
+            geometry_type=geometry_type,
+            promote_to_multi=False,
+        )
+    except Exception as e:
+        raise OutputError(f"{path}: cannot write layer '{layer}': {e}") from None
+    return path
+
+
+def read_layer(path: str | os.PathLike, layer: str) -> gpd.GeoDataFrame:
+    """Read one layer back (tests, evaluation)."""
+    return pyogrio.read_dataframe(path, layer=layer)
+
+
+def list_layers(path: str | os.PathLike) -> list[str]:
+    """Layer names of a GeoPackage."""
+    return [name for name, _ in pyogrio.list_layers(path)]

@@ -1,0 +1,376 @@
+"""Points -> per-pixel statistics: the hot kernel of stage 1, and the stage-2 merge.
+
+For every pixel of a window this keeps the height-map statistics of the UAS
+paper (hole-detection-and-reflight-uas.txt, "Preprocessing"): the maximum and
+minimum z, the number of points, and the number of occupied voxels (distinct
+``floor(z / voxel_height)`` levels), which equation 2 compares with the height
+range to find vertical holes.
+
+Counting *distinct* voxels exactly, whatever the tiling, needs more than a sum:
+a voxel hit by two chunks (or two overlapping tiles) must count once. Within a
+tile each pixel keeps a 64-bit mask of the voxel levels around the height of
+its first point (``VOXEL_SPAN`` levels, cache-local like the other
+accumulators); the rare levels outside that span go to an open-addressing hash
+set of voxel keys. Both are compiled with numba and cost a few nanoseconds a
+point, where ``np.unique`` per chunk would cost more than the LAZ decoding
+itself (see docs/performance.md). Across tiles, the keys of pixels that another
+tile's window also covers are kept and united in stage 2; every other pixel's
+count is final after stage 1.
+
+Pure: arrays in, arrays out; no I/O, no Dask.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from .grid import PixelWindow
+
+#: A voxel key is ``grid_pixel << LEVEL_BITS | (level + LEVEL_OFFSET)``.
+LEVEL_BITS = 20
+LEVEL_OFFSET = 1 << (LEVEL_BITS - 1)
+_LEVEL_MAX = (1 << LEVEL_BITS) - 1
+_EMPTY_KEY = -1
+#: Voxel levels a pixel's bit mask holds, centred on the level of its first point.
+VOXEL_SPAN = 64
+_SPAN_BELOW = VOXEL_SPAN // 2
+
+
+@dataclass
+class PixelStatistics:
+    """Height-map statistics of a window of the grid.
+
+    Attributes
+    ----------
+    window : PixelWindow
+        Where the arrays lie in the grid.
+    zmax, zmin : ndarray of float32, shape (M, N)
+        Highest and lowest point per pixel; NaN where the pixel is empty.
+    count : ndarray of uint32, shape (M, N)
+        Points per pixel.
+    voxels : ndarray of uint16, shape (M, N)
+        Occupied voxels per pixel.
+    """
+
+    window: PixelWindow
+    zmax: np.ndarray
+    zmin: np.ndarray
+    count: np.ndarray
+    voxels: np.ndarray
+
+    @classmethod
+    def empty(cls, window: PixelWindow) -> PixelStatistics:
+        shape = window.shape
+        return cls(
+            window=window,
+            zmax=np.full(shape, np.nan, np.float32),
+            zmin=np.full(shape, np.nan, np.float32),
+            count=np.zeros(shape, np.uint32),
+            voxels=np.zeros(shape, np.uint16),
+        )
+
+    def crop(self, window: PixelWindow) -> PixelStatistics:
+        """The statistics of a sub-window (views, not copies)."""
+        rows, cols = window.slices_within(self.window)
+        return PixelStatistics(
+            window, self.zmax[rows, cols], self.zmin[rows, cols], self.count[rows, cols], self.voxels[rows, cols]
+        )
+
+
+class VoxelSet:
+    """A growable open-addressing hash set of int64 voxel keys (the overflow of the bit masks)."""
+
+    def __init__(self, capacity: int = 1 << 10) -> None:
+        self.table = np.full(_next_power_of_two(capacity), _EMPTY_KEY, np.int64)
+        self.size = 0
+
+    def reserve(self, additional: int) -> None:
+        """Make room for ``additional`` new keys at a load factor of at most 1/2."""
+        needed = 2 * (self.size + additional)
+        if needed > len(self.table):
+            new = np.full(_next_power_of_two(needed), _EMPTY_KEY, np.int64)
+            _rehash(self.table, new)
+            self.table = new
+
+    def keys(self) -> np.ndarray:
+        return self.table[self.table != _EMPTY_KEY]
+
+
+class HeightMapAccumulator:
+    """Stage-1 accumulators of one tile's window: statistics plus distinct voxels.
+
+    Parameters
+    ----------
+    window : PixelWindow
+        The grid pixels the tile can touch.
+    resolution, col_min, row_top, grid_width
+        The grid (see :class:`pipeline.grid.Grid`); a point goes to grid column
+        ``floor(x / resolution) - col_min`` and row ``row_top - floor(y / resolution)``.
+    voxel_height : float
+        In z units.
+    """
+
+    def __init__(
+        self,
+        window: PixelWindow,
+        *,
+        resolution: float,
+        col_min: int,
+        row_top: int,
+        grid_width: int,
+        voxel_height: float,
+    ) -> None:
+        self.statistics = PixelStatistics.empty(window)
+        self.voxel_base = np.zeros(window.shape, np.int64)
+        self.voxel_bits = np.zeros(window.shape, np.uint64)
+        self.overflow = VoxelSet()
+        self._geometry = (float(resolution), int(col_min), int(row_top), int(grid_width))
+        self.voxel_height = float(voxel_height)
+
+    @property
+    def window(self) -> PixelWindow:
+        return self.statistics.window
+
+    def add(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, keep: np.ndarray) -> tuple[int, int]:
+        """Bin a chunk of points, in place.
+
+        Parameters
+        ----------
+        x, y, z : ndarray of float64, shape (P,)
+            Point coordinates in the survey CRS.
+        keep : ndarray of bool, shape (P,)
+            Points that passed the class/withheld filters.
+
+        Returns
+        -------
+        used, outside : int
+            Points binned, and kept points that fell outside the window.
+        """
+        self.overflow.reserve(int(len(x)))
+        w = self.window
+        s = self.statistics
+        used, outside, added = _bin_points_kernel(
+            x, y, z, keep,
+            *self._geometry,
+            w.row_off, w.col_off, w.height, w.width,
+            self.voxel_height,
+            s.zmax.reshape(-1), s.zmin.reshape(-1), s.count.reshape(-1), s.voxels.reshape(-1),
+            self.voxel_base.reshape(-1), self.voxel_bits.reshape(-1),
+            self.overflow.table,
+        )  # fmt: skip
+        self.overflow.size += added
+        return int(used), int(outside)
+
+    def voxel_keys(self, windows: tuple[PixelWindow, ...]) -> np.ndarray:
+        """Sorted distinct voxel keys of the pixels inside ``windows`` (shared with other tiles)."""
+        grid_width = self._geometry[3]
+        parts = [keys_in_windows(self.overflow.keys(), windows, grid_width)]
+        for window in windows:
+            overlap = window.intersection(self.window)
+            if overlap.is_empty:
+                continue
+            sl = overlap.slices_within(self.window)
+            bits = np.ascontiguousarray(self.voxel_bits[sl]).reshape(-1)
+            base = self.voxel_base[sl].reshape(-1)
+            occupied = bits != 0
+            if not occupied.any():
+                continue
+            rows, cols = np.divmod(np.flatnonzero(occupied), overlap.width)
+            pixel = (rows + overlap.row_off) * grid_width + (cols + overlap.col_off)
+            set_bits = np.unpackbits(bits[occupied].view(np.uint8).reshape(-1, 8), axis=1, bitorder="little")
+            which, bit = np.nonzero(set_bits)
+            levels = base[occupied][which] + bit + LEVEL_OFFSET
+            parts.append((pixel[which] << LEVEL_BITS) | np.clip(levels, 0, _LEVEL_MAX))
+        return np.unique(np.concatenate(parts))
+
+
+def point_filter_mask(
+    classification: np.ndarray,
+    withheld: np.ndarray,
+    *,
+    drop_classes: tuple[int, ...],
+    keep_classes: tuple[int, ...],
+    drop_withheld: bool,
+) -> np.ndarray:
+    """Which points enter the rasters: a 256-entry lookup on the class, and the withheld flag."""
+    allowed = np.zeros(256, bool)
+    if keep_classes:
+        allowed[list(keep_classes)] = True
+    else:
+        allowed[:] = True
+    allowed[list(drop_classes)] = False
+    keep = allowed[classification]
+    if drop_withheld:
+        keep &= ~withheld
+    return keep
+
+
+def keys_in_windows(keys: np.ndarray, windows: tuple[PixelWindow, ...], grid_width: int) -> np.ndarray:
+    """The sorted subset of voxel keys whose pixel lies in any of ``windows``."""
+    if len(keys) == 0 or not windows:
+        return np.empty(0, np.int64)
+    pixel = keys >> LEVEL_BITS
+    rows, cols = np.divmod(pixel, grid_width)
+    inside = np.zeros(len(keys), bool)
+    for w in windows:
+        inside |= (rows >= w.row_off) & (rows < w.row_end) & (cols >= w.col_off) & (cols < w.col_end)
+    return np.sort(keys[inside])
+
+
+def shared_pixel_mask(window: PixelWindow, tile_windows: list[PixelWindow] | tuple[PixelWindow, ...]) -> np.ndarray:
+    """Pixels of ``window`` that two or more tile windows cover."""
+    coverage = np.zeros(window.shape, np.uint16)
+    for w in tile_windows:
+        overlap = w.intersection(window)
+        if not overlap.is_empty:
+            coverage[overlap.slices_within(window)] += 1
+    return coverage >= 2
+
+
+def merge_statistics(
+    window: PixelWindow,
+    parts: list[tuple[PixelStatistics, np.ndarray]],
+    *,
+    shared: np.ndarray,
+    grid_width: int,
+) -> PixelStatistics:
+    """Merge the statistics several tiles hold for one window (stage 2).
+
+    Parameters
+    ----------
+    window : PixelWindow
+        The window to produce (a cell and its halo).
+    parts : list of (PixelStatistics, keys)
+        Each tile's statistics (any window overlapping ``window``) and its sorted
+        voxel keys of shared pixels.
+    shared : ndarray of bool, shape of ``window``
+        Pixels covered by more than one tile window: their voxel count comes
+        from the union of keys, every other pixel's from the one tile covering it.
+    grid_width : int
+        To decode pixel positions from keys.
+    """
+    merged = PixelStatistics.empty(window)
+    key_parts = []
+    for stats, keys in parts:
+        overlap = stats.window.intersection(window)
+        if overlap.is_empty:
+            continue
+        src = stats.crop(overlap)
+        dst = merged.crop(overlap)
+        np.fmax(dst.zmax, src.zmax, out=dst.zmax)
+        np.fmin(dst.zmin, src.zmin, out=dst.zmin)
+        dst.count += src.count
+        local_shared = shared[overlap.slices_within(window)]
+        dst.voxels += np.where(local_shared, 0, src.voxels).astype(np.uint16)
+        if len(keys):
+            key_parts.append(keys_in_windows(keys, (overlap,), grid_width))
+    if key_parts:
+        keys = np.unique(np.concatenate(key_parts))
+        rows, cols = np.divmod(keys >> LEVEL_BITS, grid_width)
+        local = (rows - window.row_off) * window.width + (cols - window.col_off)
+        union_counts = np.bincount(local, minlength=window.height * window.width).reshape(window.shape)
+        merged.voxels += np.where(shared, union_counts, 0).astype(np.uint16)
+    return merged
+
+
+# -- compiled kernels --------------------------------------------------------------------
+
+
+def _next_power_of_two(n: int) -> int:
+    return 1 << max(4, int(n - 1).bit_length())
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _slot(key, mask):
+    """fmix64 of MurmurHash3: voxel keys are highly structured, so mix every bit."""
+    h = np.uint64(key)
+    h ^= h >> np.uint64(33)
+    h *= np.uint64(0xFF51AFD7ED558CCD)
+    h ^= h >> np.uint64(33)
+    h *= np.uint64(0xC4CEB9FE1A85EC53)
+    h ^= h >> np.uint64(33)
+    return np.int64(h & np.uint64(mask))
+
+
+@numba.njit(cache=True, nogil=True)
+def _insert(table, key):
+    """Insert ``key``; return True if it was not there yet (linear probing)."""
+    mask = len(table) - 1
+    slot = _slot(key, mask)
+    while True:
+        current = table[slot]
+        if current == key:
+            return False
+        if current == -1:
+            table[slot] = key
+            return True
+        slot = (slot + 1) & mask
+
+
+@numba.njit(cache=True, nogil=True)
+def _rehash(old, new):
+    for i in range(len(old)):
+        if old[i] != -1:
+            _insert(new, old[i])
+
+
+@numba.njit(cache=True, nogil=True)
+def _bin_points_kernel(
+    x, y, z, keep,
+    resolution, col_min, row_top, grid_width,
+    win_row_off, win_col_off, win_height, win_width,
+    voxel_height,
+    zmax, zmin, count, voxels, voxel_base, voxel_bits,
+    table,
+):  # fmt: skip
+    used = 0
+    outside = 0
+    added = 0
+    for i in range(len(x)):
+        if not keep[i]:
+            continue
+        col = np.int64(np.floor(x[i] / resolution)) - col_min
+        row = row_top - np.int64(np.floor(y[i] / resolution))
+        local_row = row - win_row_off
+        local_col = col - win_col_off
+        if local_row < 0 or local_row >= win_height or local_col < 0 or local_col >= win_width:
+            outside += 1
+            continue
+        p = local_row * win_width + local_col
+        height = np.float32(z[i])
+        level = np.int64(np.floor(z[i] / voxel_height))
+        if level < -LEVEL_OFFSET:
+            level = -LEVEL_OFFSET
+        elif level > _LEVEL_MAX - LEVEL_OFFSET:
+            level = _LEVEL_MAX - LEVEL_OFFSET
+        used += 1
+        if count[p] == 0:
+            count[p] = 1
+            zmax[p] = height
+            zmin[p] = height
+            voxel_base[p] = level - _SPAN_BELOW
+            voxel_bits[p] = np.uint64(1) << np.uint64(_SPAN_BELOW)
+            voxels[p] = 1
+            continue
+        count[p] += 1
+        if height > zmax[p]:
+            zmax[p] = height
+        if height < zmin[p]:
+            zmin[p] = height
+        offset = level - voxel_base[p]
+        if offset >= 0 and offset < VOXEL_SPAN:
+            bit = np.uint64(1) << np.uint64(offset)
+            if (voxel_bits[p] & bit) == 0:
+                voxel_bits[p] |= bit
+                if voxels[p] < 65535:
+                    voxels[p] += 1
+        else:
+            key = ((row * grid_width + col) << LEVEL_BITS) | (level + LEVEL_OFFSET)
+            if _insert(table, key):
+                added += 1
+                if voxels[p] < 65535:
+                    voxels[p] += 1
+    return used, outside, added

@@ -1,0 +1,495 @@
+"""Building and running the Dask graph: the only module that knows about Dask.
+
+A run is: scan headers -> plan the grid, cells and tile windows -> stage 1 (one
+task per tile: decode once, bin) -> stage 2 (one task per cell: merge, write the
+DSM tile) -> mosaic and vector layers -> manifest. Every product is written into
+a staging folder inside OUT and moved into place only when the whole run has
+succeeded, so a failed run leaves no half-written output.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import shutil
+import socket
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import shapely
+from pyproj import CRS, Transformer
+
+from . import __version__
+from .config import Config, to_dict
+from .errors import CRSError, InputDataError, OutputError
+from .grid import Cell, Grid, PixelWindow
+from .io.raster import RasterOptions, write_vrt
+from .io.vector import write_layer
+from .survey import Survey, scan_survey, source_crs_for_task, tile_index_records
+from .tasks import CellResult, CellTask, PointFilter, TileResult, TileTask, merge_cell, rasterize_tile
+
+logger = logging.getLogger(__name__)
+
+#: Products a run moves from the staging folder into OUT (and replaces there).
+PRODUCTS = ("dsm", "dsm.vrt", "holes.gpkg", "manifest.json")
+
+
+@dataclass
+class RunSummary:
+    """What a run did; also written to ``manifest.json``."""
+
+    out_dir: str
+    tiles: int
+    cells: int
+    points_read: int
+    points_used: int
+    seconds: float
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+    skipped: list[dict[str, str]] = field(default_factory=list)
+    dsm_tiles: list[str] = field(default_factory=list)
+
+    @property
+    def points_per_second(self) -> float:
+        return self.points_read / self.seconds if self.seconds else 0.0
+
+
+@dataclass(frozen=True)
+class SurveyPlan:
+    """Everything decided before any point is decoded."""
+
+    survey: Survey
+    grid: Grid
+    cells: list[Cell]
+    tile_windows: list[PixelWindow]
+    survey_area: shapely.Geometry
+
+    def tile_tasks(self, config: Config, work_dir: Path) -> list[TileTask]:
+        f = config.filter
+        point_filter = PointFilter(tuple(f.drop_classes), tuple(f.keep_classes), f.drop_withheld)
+        voxel_height = config.rasterize.voxel_height_m / self.survey.vertical_unit_m
+        tasks = []
+        for tile, window in zip(self.survey.tiles, self.tile_windows):
+            shared = tuple(
+                overlap
+                for other_index, other in enumerate(self.tile_windows)
+                if other_index != tile.index and not (overlap := window.intersection(other)).is_empty
+            )
+            tasks.append(
+                TileTask(
+                    tile_index=tile.index,
+                    path=tile.path,
+                    window=window,
+                    shared_windows=shared,
+                    grid=self.grid,
+                    source_crs_wkt=source_crs_for_task(tile, self.survey),
+                    point_filter=point_filter,
+                    chunk_points=config.rasterize.chunk_points,
+                    voxel_height=voxel_height,
+                    output_dir=str(work_dir / "tiles" / f"tile_{tile.index:05d}"),
+                )
+            )
+        return tasks
+
+
+def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None = None) -> SurveyPlan:
+    """Lay the global grid over the survey and cut it into cells."""
+    resolution = config.grid.resolution_m / survey.horizontal_unit_m
+    grid = Grid.covering(
+        [t.bounds for t in survey.tiles],
+        resolution=resolution,
+        cell_px=config.cell_size_px,
+        halo_px=config.grid.halo_px,
+        crs_wkt=survey.crs_wkt,
+    )
+    tile_windows = [grid.window_of_bounds(*t.bounds) for t in survey.tiles]
+    if aoi is not None:
+        survey_area = read_survey_area(aoi, survey.crs)
+    else:
+        survey_area = shapely.union_all([shapely.box(*t.bounds) for t in survey.tiles])
+    cells = []
+    for cell in grid.cells():
+        touches_tile = any(not w.intersection(cell.window).is_empty for w in tile_windows)
+        if touches_tile and shapely.intersects(shapely.box(*grid.window_bounds(cell.window)), survey_area):
+            cells.append(cell)
+    return SurveyPlan(survey, grid, cells, tile_windows, survey_area)
+
+
+def read_survey_area(path: str | os.PathLike, crs: CRS) -> shapely.Geometry:
+    """The union of the polygons of a vector file, in the survey CRS."""
+    import pyogrio
+
+    try:
+        frame = pyogrio.read_dataframe(path)
+    except Exception as e:
+        raise InputDataError(path, f"AOI file cannot be read: {e}") from None
+    polygons = [g for g in frame.geometry if g is not None and g.geom_type in ("Polygon", "MultiPolygon")]
+    if not polygons:
+        raise InputDataError(path, "AOI file holds no polygon")
+    if frame.crs is None:
+        raise CRSError(path, "AOI file has no CRS")
+    area = shapely.union_all(polygons)
+    if not CRS.from_user_input(frame.crs).equals(crs, ignore_axis_order=True):
+        transformer = Transformer.from_crs(frame.crs, crs, always_xy=True)
+        area = shapely.transform(area, lambda xy: _transform_xy(transformer, xy))
+    return shapely.make_valid(area)
+
+
+def _transform_xy(transformer: Transformer, xy):
+    import numpy as np
+
+    x, y = transformer.transform(xy[:, 0], xy[:, 1])
+    return np.column_stack([x, y])
+
+
+def run_survey(
+    inputs: list[str] | tuple[str, ...],
+    out_dir: str | os.PathLike,
+    config: Config,
+    *,
+    scheduler: str | None = None,
+    client: Any = None,
+    aoi: str | os.PathLike | None = None,
+    progress: bool = False,
+) -> RunSummary:
+    """Run the pipeline on a survey and write the products into ``out_dir``.
+
+    Parameters
+    ----------
+    inputs : list of str
+        Files, folders or globs of LAS/LAZ/COPC tiles.
+    out_dir : path-like
+        Output folder (created if needed); existing products are replaced.
+    config : Config
+        The validated configuration.
+    scheduler : str, optional
+        Address of a running Dask scheduler; default: a local cluster sized by
+        ``config.dask``.
+    client : distributed.Client, optional
+        An existing client (takes precedence over ``scheduler``).
+    aoi : path-like, optional
+        A polygon file: the survey area, instead of the union of tile extents.
+    progress : bool
+        Show a progress bar on stderr.
+    """
+    started = time.perf_counter()
+    stage_seconds: dict[str, float] = {}
+    out = Path(out_dir)
+    survey = scan_survey(
+        inputs, crs=config.survey.crs, target_crs=config.survey.target_crs, on_error=config.survey.on_error
+    )
+    plan = plan_survey(survey, config, aoi=aoi)
+    stage_seconds["scan"] = time.perf_counter() - started
+    staging = _make_staging(out)
+    try:
+        with _dask_client(client, scheduler, config) as dask_client, _Progress(progress) as bar:
+            t0 = time.perf_counter()
+            tile_results, failed = _run_stage_one(dask_client, plan, config, staging / "work", bar)
+            stage_seconds["rasterize"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            cell_results = _run_stage_two(dask_client, plan, config, staging, tile_results, bar)
+            stage_seconds["merge"] = time.perf_counter() - t0
+        skipped = survey.skipped + failed
+        _write_outputs(staging, plan, tile_results, cell_results, skipped)
+        summary = RunSummary(
+            out_dir=str(out),
+            tiles=len(tile_results),
+            cells=len(cell_results),
+            points_read=sum(r.points_read for r in tile_results),
+            points_used=sum(r.points_used for r in tile_results),
+            seconds=time.perf_counter() - started,
+            stage_seconds=stage_seconds,
+            skipped=skipped,
+            dsm_tiles=sorted(os.path.relpath(r.dsm_path, staging) for r in cell_results if r.dsm_path),
+        )
+        _write_manifest(staging / "manifest.json", summary, plan, config, tile_results, cell_results)
+        _commit(staging, out, keep_work=config.output.keep_intermediate)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return summary
+
+
+# -- stages ---------------------------------------------------------------------------
+
+
+def _run_stage_one(client, plan: SurveyPlan, config: Config, work_dir: Path, bar: _Progress):
+    from distributed import as_completed
+
+    tasks = plan.tile_tasks(config, work_dir)
+    bar.start("decode + bin tiles", total=len(tasks), points=plan.survey.point_count)
+    futures = {client.submit(rasterize_tile, task, pure=False, key=f"rasterize-{uuid.uuid4().hex[:6]}-{task.tile_index}"): task for task in tasks}
+    results: list[TileResult] = []
+    failed: list[dict[str, str]] = []
+    for future in as_completed(futures):
+        task = futures[future]
+        try:
+            result = future.result()
+        except InputDataError as e:
+            if config.survey.on_error != "skip":
+                for other in futures:
+                    other.cancel()
+                raise
+            logger.warning("skipping %s", e)
+            failed.append({"path": task.path, "reason": e.reason})
+            bar.advance(points=0)
+            continue
+        results.append(result)
+        if result.points_outside:
+            logger.warning(
+                "%s: %d points lie outside the bounds its header declares; they were not used",
+                result.path,
+                result.points_outside,
+            )
+        bar.advance(points=result.points_read)
+    if not results:
+        raise InputDataError("INPUT", "no tile could be decoded: every tile failed")
+    results.sort(key=lambda r: r.tile_index)
+    return results, failed
+
+
+def _run_stage_two(client, plan: SurveyPlan, config: Config, staging: Path, tile_results: list[TileResult], bar: _Progress):
+    from distributed import as_completed
+
+    options = RasterOptions(
+        compress=config.output.compress,
+        blocksize=config.output.blocksize,
+        overview_resampling=config.output.overview_resampling,
+    )
+    tasks = []
+    for cell in plan.cells:
+        outputs = tuple(
+            (r.output_dir, r.window) for r in tile_results if not r.window.intersection(cell.halo_window).is_empty
+        )
+        if not outputs:
+            continue
+        planned = tuple(w for w in plan.tile_windows if not w.intersection(cell.halo_window).is_empty)
+        tasks.append(
+            CellTask(
+                cell=cell,
+                grid=plan.grid,
+                tile_outputs=outputs,
+                planned_windows=planned,
+                dsm_path=str(staging / "dsm" / f"dsm_{cell.id}.tif"),
+                statistics_path=str(staging / "work" / "cells" / f"cell_{cell.id}.npz"),
+                raster_options=options,
+            )
+        )
+    bar.start("merge cells + write DSM", total=len(tasks))
+    futures = [client.submit(merge_cell, task, pure=False) for task in tasks]
+    results: list[CellResult] = []
+    for future in as_completed(futures):
+        results.append(future.result())
+        bar.advance()
+    order = {cell.id: i for i, cell in enumerate(plan.cells)}
+    results.sort(key=lambda r: order[r.cell_id])
+    return results
+
+
+# -- outputs --------------------------------------------------------------------------
+
+
+def _write_outputs(staging: Path, plan: SurveyPlan, tile_results, cell_results, skipped) -> None:
+    grid = plan.grid
+    cells_by_id = {c.id: c for c in plan.cells}
+    sources = []
+    for r in cell_results:
+        if r.dsm_path:
+            w = cells_by_id[r.cell_id].window
+            sources.append((r.dsm_path, w.row_off, w.col_off, w.height, w.width))
+    if sources:
+        write_vrt(
+            staging / "dsm.vrt",
+            sources,
+            width=grid.width,
+            height=grid.height,
+            transform=grid.transform,
+            crs_wkt=grid.crs_wkt,
+            description="DSM: highest point per pixel",
+        )
+    gpkg = staging / "holes.gpkg"
+    done = {r.tile_index: r for r in tile_results}
+    skipped_paths = {s["path"] for s in skipped}
+    tile_records, tile_geometries = [], []
+    for record in tile_index_records(plan.survey):
+        bounds = record.pop("bounds")
+        result = done.get(record["tile_id"])
+        record["points_used"] = result.points_used if result else 0
+        record["status"] = "ok" if result else ("skipped" if record["path"] in skipped_paths else "failed")
+        tile_records.append(record)
+        tile_geometries.append(shapely.box(*bounds))
+    write_layer(gpkg, "tiles", tile_records, tile_geometries, crs_wkt=grid.crs_wkt, geometry_type="Polygon")
+    cell_records, cell_geometries = [], []
+    for r in cell_results:
+        cell = cells_by_id[r.cell_id]
+        cell_records.append(
+            {
+                "cell_id": cell.id,
+                "index_x": cell.index_x,
+                "index_y": cell.index_y,
+                "row_off": cell.window.row_off,
+                "col_off": cell.window.col_off,
+                "width_px": cell.window.width,
+                "height_px": cell.window.height,
+                "points": r.points,
+                "empty_pixels": r.empty_pixels,
+                "empty_fraction": r.empty_pixels / r.pixels if r.pixels else 0.0,
+                "dsm_file": os.path.relpath(r.dsm_path, staging) if r.dsm_path else None,
+            }
+        )
+        cell_geometries.append(shapely.box(*grid.window_bounds(cell.window)))
+    write_layer(gpkg, "cells", cell_records, cell_geometries, crs_wkt=grid.crs_wkt, geometry_type="Polygon")
+    write_layer(
+        gpkg,
+        "survey_area",
+        [{"source": "aoi" if plan.survey_area is not None else "tiles"}],
+        [plan.survey_area],
+        crs_wkt=grid.crs_wkt,
+    )
+
+
+def _write_manifest(path: Path, summary: RunSummary, plan: SurveyPlan, config: Config, tile_results, cell_results) -> None:
+    grid = plan.grid
+    manifest = {
+        "holefill_version": __version__,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "host": socket.gethostname(),
+        "config": to_dict(config),
+        "crs": {"wkt": grid.crs_wkt, "name": CRS.from_wkt(grid.crs_wkt).name},
+        "grid": {
+            "resolution": grid.resolution,
+            "resolution_unit_m": plan.survey.horizontal_unit_m,
+            "width": grid.width,
+            "height": grid.height,
+            "bounds": grid.bounds,
+            "cell_px": grid.cell_px,
+            "halo_px": grid.halo_px,
+        },
+        "inputs": [
+            {"path": r.path, "points_read": r.points_read, "points_used": r.points_used, "seconds": round(r.seconds, 3)}
+            for r in tile_results
+        ],
+        "skipped": summary.skipped,
+        "outputs": {
+            "dsm_vrt": "dsm.vrt" if summary.dsm_tiles else None,
+            "dsm_tiles": summary.dsm_tiles,
+            "holes_gpkg": "holes.gpkg",
+        },
+        "summary": {
+            "tiles": summary.tiles,
+            "cells": summary.cells,
+            "points_read": summary.points_read,
+            "points_used": summary.points_used,
+            "seconds": round(summary.seconds, 3),
+            "points_per_second": round(summary.points_per_second),
+            "stage_seconds": {k: round(v, 3) for k, v in summary.stage_seconds.items()},
+            "empty_pixels": sum(r.empty_pixels for r in cell_results),
+        },
+    }
+    path.write_text(json.dumps(manifest, indent=2, default=str))
+
+
+def _make_staging(out: Path) -> Path:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        staging = out / f".holefill-partial-{uuid.uuid4().hex[:10]}"
+        staging.mkdir()
+        probe = staging / ".write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise OutputError(f"{out}: output folder cannot be created or written: {e.strerror or e}") from None
+    return staging
+
+
+def _commit(staging: Path, out: Path, *, keep_work: bool) -> None:
+    """Move every product from the staging folder into OUT, replacing older ones."""
+    for name in PRODUCTS + (("work",) if keep_work else ()):
+        source = staging / name
+        if not source.exists():
+            continue
+        target = out / name
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        elif target.exists():
+            target.unlink()
+        os.replace(source, target)
+    shutil.rmtree(staging, ignore_errors=True)
+
+
+# -- Dask and progress ----------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def _dask_client(client, scheduler: str | None, config: Config) -> Iterator[Any]:
+    if client is not None:
+        yield client
+        return
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        with Client(scheduler) as remote:
+            yield remote
+        return
+    workers = config.dask.workers or os.cpu_count() or 1
+    with LocalCluster(
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        memory_limit=config.dask.memory_limit,
+        dashboard_address=None,
+        silence_logs=logging.ERROR,
+    ) as cluster, Client(cluster) as local:
+        yield local
+
+
+class _Progress:
+    """A rich progress bar on stderr: tasks done, points per second, time left."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled
+        self._progress = None
+        self._task = None
+        self._points = 0
+        self._started = 0.0
+
+    def __enter__(self) -> _Progress:
+        if self.enabled:
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self._progress = Progress(
+                TextColumn("{task.description:<24}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("{task.fields[rate]}"),
+                TimeRemainingColumn(),
+                console=Console(stderr=True),
+                transient=False,
+            )
+            self._progress.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._progress is not None:
+            self._progress.__exit__(*exc)
+
+    def start(self, description: str, *, total: int, points: int = 0) -> None:
+        self._points = 0
+        self._started = time.perf_counter()
+        if self._progress is not None:
+            self._task = self._progress.add_task(description, total=total, rate="")
+
+    def advance(self, *, points: int = 0) -> None:
+        self._points += points
+        if self._progress is not None and self._task is not None:
+            elapsed = max(time.perf_counter() - self._started, 1e-9)
+            rate = f"{self._points / elapsed / 1e6:6.2f} M pts/s" if self._points else ""
+            self._progress.update(self._task, advance=1, rate=rate)
+
+
+

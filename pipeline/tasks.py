@@ -1,0 +1,216 @@
+"""The functions Dask runs on workers, and the recipes they receive.
+
+Each task receives a frozen dataclass describing its work (paths, windows,
+parameters: never open files or configuration objects), opens what it needs,
+calls the pure kernels, writes its one output under a name no other task uses,
+and returns a small result. Functions live at module level so they pickle by
+reference; any task may run twice without harm.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from pyproj import Transformer
+
+from .grid import Cell, Grid, PixelWindow
+from .io.las import iter_point_chunks
+from .io.raster import RasterOptions, write_cog
+from .rasterize import (
+    HeightMapAccumulator,
+    PixelStatistics,
+    merge_statistics,
+    point_filter_mask,
+    shared_pixel_mask,
+)
+
+STATISTIC_NAMES = ("zmax", "zmin", "count", "voxels")
+
+
+@dataclass(frozen=True)
+class PointFilter:
+    """Which points enter the rasters (from ``[filter]``)."""
+
+    drop_classes: tuple[int, ...] = (7, 18)
+    keep_classes: tuple[int, ...] = ()
+    drop_withheld: bool = True
+
+
+@dataclass(frozen=True)
+class TileTask:
+    """Stage 1: decode one tile once and bin its points into the global grid."""
+
+    tile_index: int
+    path: str
+    window: PixelWindow
+    shared_windows: tuple[PixelWindow, ...]
+    grid: Grid
+    source_crs_wkt: str | None  # reproject from this CRS to the grid's, or None
+    point_filter: PointFilter
+    chunk_points: int
+    voxel_height: float  # z units
+    output_dir: str
+
+
+@dataclass(frozen=True)
+class TileResult:
+    tile_index: int
+    path: str
+    output_dir: str
+    window: PixelWindow
+    points_read: int
+    points_used: int
+    points_outside: int
+    seconds: float
+
+
+@dataclass(frozen=True)
+class CellTask:
+    """Stage 2: merge the statistics of the tiles touching one cell; write its DSM tile."""
+
+    cell: Cell
+    grid: Grid
+    tile_outputs: tuple[tuple[str, PixelWindow], ...]  # stage-1 folder and window of each tile read
+    planned_windows: tuple[PixelWindow, ...]  # windows of every planned tile touching the cell
+    dsm_path: str
+    statistics_path: str
+    raster_options: RasterOptions
+
+
+@dataclass(frozen=True)
+class CellResult:
+    cell_id: str
+    dsm_path: str | None
+    statistics_path: str
+    points: int
+    pixels: int
+    empty_pixels: int
+
+
+def rasterize_tile(task: TileTask) -> TileResult:
+    """Stream one tile's points in chunks into per-pixel statistics (stage 1)."""
+    started = time.perf_counter()
+    grid = task.grid
+    accumulator = HeightMapAccumulator(
+        task.window,
+        resolution=grid.resolution,
+        col_min=grid.col_min,
+        row_top=grid.row_top,
+        grid_width=grid.width,
+        voxel_height=task.voxel_height,
+    )
+    transformer = (
+        Transformer.from_crs(task.source_crs_wkt, grid.crs_wkt, always_xy=True)
+        if task.source_crs_wkt
+        else None
+    )
+    read = used = outside = 0
+    f = task.point_filter
+    for chunk in iter_point_chunks(task.path, task.chunk_points):
+        keep = point_filter_mask(
+            chunk.classification,
+            chunk.withheld,
+            drop_classes=f.drop_classes,
+            keep_classes=f.keep_classes,
+            drop_withheld=f.drop_withheld,
+        )
+        x, y = chunk.x, chunk.y
+        if transformer is not None:
+            x, y = transformer.transform(x, y)
+        n_used, n_outside = accumulator.add(x, y, chunk.z, keep)
+        read += len(chunk.x)
+        used += n_used
+        outside += n_outside
+    out = Path(task.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    stats = accumulator.statistics
+    for name in STATISTIC_NAMES:
+        _save(out / f"{name}.npy", getattr(stats, name))
+    _save(out / "shared_keys.npy", accumulator.voxel_keys(task.shared_windows))
+    return TileResult(
+        tile_index=task.tile_index,
+        path=task.path,
+        output_dir=task.output_dir,
+        window=task.window,
+        points_read=read,
+        points_used=used,
+        points_outside=outside,
+        seconds=time.perf_counter() - started,
+    )
+
+
+def merge_cell(task: CellTask) -> CellResult:
+    """Merge tile statistics over a cell and its halo, and write the cell's DSM COG (stage 2)."""
+    cell, grid = task.cell, task.grid
+    window = cell.halo_window
+    parts = []
+    for output_dir, tile_window in task.tile_outputs:
+        overlap = tile_window.intersection(window)
+        if overlap.is_empty:
+            continue
+        parts.append((load_tile_statistics(output_dir, tile_window, overlap), _load(Path(output_dir) / "shared_keys.npy")))
+    shared = shared_pixel_mask(window, task.planned_windows)
+    merged = merge_statistics(window, parts, shared=shared, grid_width=grid.width)
+    Path(task.statistics_path).parent.mkdir(parents=True, exist_ok=True)
+    save_cell_statistics(task.statistics_path, merged)
+    core = merged.crop(cell.window)
+    points = int(core.count.sum())
+    dsm_path = None
+    if points:
+        Path(task.dsm_path).parent.mkdir(parents=True, exist_ok=True)
+        write_cog(
+            task.dsm_path,
+            core.zmax,
+            transform=grid.window_transform(cell.window),
+            crs_wkt=grid.crs_wkt,
+            options=task.raster_options,
+            description="DSM: highest point per pixel",
+        )
+        dsm_path = task.dsm_path
+    return CellResult(
+        cell_id=cell.id,
+        dsm_path=dsm_path,
+        statistics_path=task.statistics_path,
+        points=points,
+        pixels=cell.window.height * cell.window.width,
+        empty_pixels=int((core.count == 0).sum()),
+    )
+
+
+def load_tile_statistics(output_dir: str, tile_window: PixelWindow, window: PixelWindow) -> PixelStatistics:
+    """Read the part of a tile's stage-1 statistics inside ``window`` (memory-mapped)."""
+    rows, cols = window.slices_within(tile_window)
+    arrays = {name: np.asarray(_load(Path(output_dir) / f"{name}.npy", mmap=True)[rows, cols]) for name in STATISTIC_NAMES}
+    return PixelStatistics(window=window, **arrays)
+
+
+def save_cell_statistics(path: str | os.PathLike, statistics: PixelStatistics) -> None:
+    """Store a cell's merged statistics (core + halo) for the later stages."""
+    w = statistics.window
+    tmp = f"{path}.tmp.npz"
+    np.savez(
+        tmp,
+        window=np.array([w.row_off, w.col_off, w.height, w.width]),
+        **{name: getattr(statistics, name) for name in STATISTIC_NAMES},
+    )
+    os.replace(tmp, path)
+
+
+def load_cell_statistics(path: str | os.PathLike) -> PixelStatistics:
+    with np.load(path) as data:
+        window = PixelWindow(*(int(v) for v in data["window"]))
+        return PixelStatistics(window=window, **{name: data[name] for name in STATISTIC_NAMES})
+
+
+def _save(path: Path, array: np.ndarray) -> None:
+    tmp = path.with_name(path.name + ".tmp.npy")
+    np.save(tmp, array)
+    os.replace(tmp, path)
+
+
+def _load(path: Path, mmap: bool = False) -> np.ndarray:
+    return np.load(path, mmap_mode="r" if mmap else None)
