@@ -184,6 +184,7 @@ def run_survey(
     )
     plan = plan_survey(survey, config, aoi=aoi)
     stage_seconds["scan"] = time.perf_counter() - started
+    created_out = not out.exists()
     staging = _make_staging(out)
     try:
         with _dask_client(client, scheduler, config) as dask_client, _Progress(progress) as bar:
@@ -209,7 +210,10 @@ def run_survey(
         _write_manifest(staging / "manifest.json", summary, plan, config, tile_results, cell_results)
         _commit(staging, out, keep_work=config.output.keep_intermediate)
     except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
+        _remove_staging(staging)
+        if created_out:
+            with contextlib.suppress(OSError):
+                out.rmdir()  # only if still empty
         raise
     return summary
 
@@ -394,10 +398,13 @@ def _write_manifest(path: Path, summary: RunSummary, plan: SurveyPlan, config: C
 
 
 def _make_staging(out: Path) -> Path:
+    """The run's private folder inside OUT; tasks write only into its subfolders made here."""
     try:
         out.mkdir(parents=True, exist_ok=True)
         staging = out / f".holefill-partial-{uuid.uuid4().hex[:10]}"
         staging.mkdir()
+        for sub in ("work/tiles", "work/cells", "dsm"):
+            (staging / sub).mkdir(parents=True)
         probe = staging / ".write-test"
         probe.write_bytes(b"")
         probe.unlink()
@@ -421,6 +428,15 @@ def _commit(staging: Path, out: Path, *, keep_work: bool) -> None:
     shutil.rmtree(staging, ignore_errors=True)
 
 
+def _remove_staging(staging: Path) -> None:
+    """Delete a failed run's staging folder; a task still finishing may race the first try."""
+    for _ in range(5):
+        shutil.rmtree(staging, ignore_errors=True)
+        if not staging.exists():
+            return
+        time.sleep(0.2)
+
+
 # -- Dask and progress ----------------------------------------------------------------
 
 
@@ -436,13 +452,14 @@ def _dask_client(client, scheduler: str | None, config: Config) -> Iterator[Any]
             yield remote
         return
     workers = config.dask.workers or os.cpu_count() or 1
+    verbose = logging.getLogger("distributed").isEnabledFor(logging.INFO)
     with LocalCluster(
         n_workers=workers,
         threads_per_worker=1,
         processes=True,
         memory_limit=config.dask.memory_limit,
-        dashboard_address=None,
-        silence_logs=logging.ERROR,
+        dashboard_address=":0",  # any free port: never collide with another cluster
+        silence_logs=logging.INFO if verbose else logging.CRITICAL,  # task errors reach the client anyway
     ) as cluster, Client(cluster) as local:
         yield local
 

@@ -126,7 +126,7 @@ def rasterize_tile(task: TileTask) -> TileResult:
         used += n_used
         outside += n_outside
     out = Path(task.output_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out.mkdir(exist_ok=True)  # never parents: a cancelled run's staging folder must stay deleted
     stats = accumulator.statistics
     for name in STATISTIC_NAMES:
         _save(out / f"{name}.npy", getattr(stats, name))
@@ -155,13 +155,11 @@ def merge_cell(task: CellTask) -> CellResult:
         parts.append((load_tile_statistics(output_dir, tile_window, overlap), _load(Path(output_dir) / "shared_keys.npy")))
     shared = shared_pixel_mask(window, task.planned_windows)
     merged = merge_statistics(window, parts, shared=shared, grid_width=grid.width)
-    Path(task.statistics_path).parent.mkdir(parents=True, exist_ok=True)
     save_cell_statistics(task.statistics_path, merged)
     core = merged.crop(cell.window)
     points = int(core.count.sum())
     dsm_path = None
     if points:
-        Path(task.dsm_path).parent.mkdir(parents=True, exist_ok=True)
         write_cog(
             task.dsm_path,
             core.zmax,

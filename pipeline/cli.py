@@ -1,0 +1,174 @@
+"""The ``holefill`` command line: thin commands over library functions.
+
+Commands parse options, turn them into configuration overrides (validated once
+by :func:`pipeline.config.load_config`), call one library function and map its
+exceptions to exit codes in one place (:data:`EXIT_CODES`). Logging is
+configured here and nowhere else.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import click
+
+from . import __version__
+from .errors import ConfigError, CRSError, HolefillError, InputDataError, OutputError
+
+#: Exit status per error class (the first matching class wins).
+EXIT_CODES: tuple[tuple[type[BaseException], int], ...] = (
+    (ConfigError, 2),
+    (CRSError, 3),
+    (InputDataError, 3),
+    (OutputError, 4),
+    (HolefillError, 1),
+)
+
+
+class _Group(click.Group):
+    """Turn holefill's exceptions into one clear line on stderr and an exit status."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except HolefillError as e:
+            click.echo(f"holefill: error: {e}", err=True)
+            code = next(code for cls, code in EXIT_CODES if isinstance(e, cls))
+            ctx.exit(code)
+
+
+def _configure_logging(verbose: int, quiet: int) -> None:
+    level = max(logging.DEBUG, logging.WARNING - 10 * (verbose - quiet))
+    logging.basicConfig(level=level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s", force=True)
+    import distributed  # noqa: F401  (it installs its own handlers on import: override them after)
+
+    quiet_level = logging.INFO if verbose >= 2 else logging.ERROR
+    for noisy in ("distributed", "tornado", "asyncio", "numba", "rasterio", "pyogrio", "bokeh"):
+        logging.getLogger(noisy).setLevel(max(level, quiet_level))
+
+
+config_option = click.option(
+    "--config", "config_path", type=click.Path(dir_okay=False), help="TOML configuration file."
+)
+set_option = click.option(
+    "--set",
+    "overrides",
+    multiple=True,
+    metavar="SECTION.KEY=VALUE",
+    help="Override one configuration key (repeatable), e.g. --set grid.resolution_m=0.5.",
+)
+
+
+@click.group(cls=_Group)
+@click.version_option(__version__, prog_name="holefill")
+@click.option("-v", "--verbose", count=True, help="More log output (repeatable).")
+@click.option("-q", "--quiet", count=True, help="Less log output (repeatable).")
+def main(verbose: int, quiet: int) -> None:
+    """Complete DSMs from airborne lidar surveys: find, explain and fill the holes."""
+    _configure_logging(verbose, quiet)
+
+
+@main.command()
+@click.argument("inputs", nargs=-1, required=True)
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output folder.")
+@config_option
+@set_option
+@click.option("--scheduler", help="Address of a running Dask scheduler (default: a local cluster).")
+@click.option("--workers", type=int, help="Local worker processes (dask.workers).")
+@click.option("--crs", help="CRS of tiles that have none, e.g. EPSG:28992 (survey.crs).")
+@click.option("--target-crs", help="Reproject every tile to this CRS while streaming (survey.target_crs).")
+@click.option("--aoi", type=click.Path(dir_okay=False), help="Polygon file: the survey area.")
+@click.option("--on-error", type=click.Choice(["fail", "skip"]), help="What a bad tile does (survey.on_error).")
+@click.option("--progress/--no-progress", default=None, help="Progress bar (default: when stderr is a terminal).")
+def run(inputs, out_dir, config_path, overrides, scheduler, workers, crs, target_crs, aoi, on_error, progress):
+    """Build the DSM of a survey. INPUT may be files, folders or globs of LAS/LAZ/COPC."""
+    from .config import load_config
+    from .run import run_survey
+
+    extra = _option_overrides(workers=workers, crs=crs, target_crs=target_crs, on_error=on_error)
+    config = load_config(config_path, [*overrides, *extra])
+    if aoi is not None and not Path(aoi).exists():
+        raise InputDataError(aoi, "AOI file not found")
+    summary = run_survey(
+        inputs,
+        out_dir,
+        config,
+        scheduler=scheduler,
+        aoi=aoi,
+        progress=sys.stderr.isatty() if progress is None else progress,
+    )
+    _report(summary)
+
+
+@main.command()
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output folder.")
+@click.option(
+    "--size", type=click.Choice(["unit", "demo"]), default="demo", show_default=True, help="Synthetic survey preset."
+)
+@config_option
+@set_option
+@click.option("--workers", type=int, help="Local worker processes (dask.workers).")
+@click.option("--scheduler", help="Address of a running Dask scheduler.")
+@click.option("--progress/--no-progress", default=None, help="Progress bar (default: when stderr is a terminal).")
+def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
+    """Generate a synthetic survey with known holes and run the pipeline on it."""
+    from .config import load_config
+    from .run import run_survey
+    from .synth import generate_survey, preset
+
+    config = load_config(config_path, [*overrides, *_option_overrides(workers=workers)])
+    out = Path(out_dir)
+    survey_dir = out / "survey"
+    click.echo(f"generating a synthetic survey ({size}) in {survey_dir} ...", err=True)
+    synthetic = generate_survey(survey_dir, preset(size))
+    click.echo(f"{len(synthetic.tiles)} LAZ tiles, {synthetic.n_points:,} points", err=True)
+    summary = run_survey(
+        [str(survey_dir)],
+        out,
+        config,
+        scheduler=scheduler,
+        progress=sys.stderr.isatty() if progress is None else progress,
+    )
+    _report(summary)
+
+
+@main.command("config")
+@click.option("--show", is_flag=True, help="Print the resolved configuration as TOML.")
+@config_option
+@set_option
+def config_command(show, config_path, overrides):
+    """Validate a configuration (and print it with --show)."""
+    from .config import load_config
+
+    config = load_config(config_path, list(overrides))
+    if show:
+        click.echo(config.to_toml())
+    else:
+        click.echo("configuration is valid", err=True)
+
+
+def _option_overrides(**options) -> list[str]:
+    keys = {"workers": "dask.workers", "crs": "survey.crs", "target_crs": "survey.target_crs", "on_error": "survey.on_error"}
+    out = []
+    for name, value in options.items():
+        if value is None:
+            continue
+        out.append(f"{keys[name]}={value}" if isinstance(value, int) else f'{keys[name]}="{value}"')
+    return out
+
+
+def _report(summary) -> None:
+    click.echo(
+        f"{summary.tiles} tiles, {summary.points_read:,} points "
+        f"({summary.points_per_second / 1e6:.2f} M/s), {summary.cells} cells, "
+        f"{len(summary.dsm_tiles)} DSM tiles in {summary.seconds:.1f} s -> {summary.out_dir}",
+        err=True,
+    )
+    for item in summary.skipped:
+        click.echo(f"skipped {item['path']}: {item['reason']}", err=True)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

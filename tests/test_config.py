@@ -1,0 +1,91 @@
+from __future__ import annotations
+
+import dataclasses
+import re
+import tomllib
+
+import pytest
+
+from pipeline.config import SECTIONS, Config, load_config, to_dict
+from pipeline.errors import ConfigError
+
+from .conftest import REPO
+
+DEFAULT_TOML = REPO / "configs" / "default.toml"
+
+
+def test_default_toml_matches_the_built_in_defaults():
+    with DEFAULT_TOML.open("rb") as fh:
+        assert tomllib.load(fh) == to_dict(Config())
+    assert load_config(DEFAULT_TOML) == Config()
+
+
+def test_every_key_is_documented_in_default_toml():
+    text = DEFAULT_TOML.read_text()
+    for section, cls in SECTIONS.items():
+        for f in dataclasses.fields(cls):
+            assert f.metadata.get("doc"), f"{section}.{f.name} has no description in pipeline/config.py"
+            # the line before each key in configs/default.toml is a comment
+            match = re.search(rf"#[^\n]*\n{f.name} = ", text)
+            assert match, f"configs/default.toml: document [{section}] {f.name} with a comment line above it"
+
+
+def test_overrides_are_typed_and_validated():
+    config = load_config(overrides=["grid.resolution_m=0.5", "filter.keep_classes=[2]", 'survey.crs=EPSG:28992'])
+    assert config.grid.resolution_m == 0.5
+    assert config.filter.keep_classes == [2]
+    assert config.survey.crs == "EPSG:28992"
+    assert config.cell_size_px == 500
+
+
+@pytest.mark.parametrize(
+    "override, words",
+    [
+        ("grid.resolution=1", ["unknown key 'grid.resolution'", "resolution_m"]),
+        ("gird.resolution_m=1", ["unknown section 'gird'", "grid"]),
+        ("grid.resolution_m=-2", ["grid.resolution_m", "> 0"]),
+        ("output.compress=jpeg", ["output.compress", "'deflate'", "'zstd'"]),
+        ("filter.drop_classes=7", ["filter.drop_classes", "list of int"]),
+        ("filter.drop_classes=[7, 300]", ["between 0 and 255"]),
+        ("grid.cell_size_m=100.25", ["whole multiple"]),
+        ("survey.on_error=ignore", ["'fail'", "'skip'"]),
+        ("dask.workers=1.5", ["dask.workers", "int"]),
+        ("noequals", ["section.key=value"]),
+    ],
+)
+def test_bad_overrides_name_the_key_and_allowed_values(override, words):
+    with pytest.raises(ConfigError) as info:
+        load_config(overrides=[override])
+    message = str(info.value)
+    assert f"--set {override}" in message
+    for word in words:
+        assert word in message
+
+
+def test_bad_file_names_the_file_and_key(tmp_path):
+    path = tmp_path / "my.toml"
+    path.write_text("[grid]\nresolution_m = 1.0\ncel_size_m = 100\n")
+    with pytest.raises(ConfigError, match=r"my\.toml: unknown key 'grid\.cel_size_m'.*cell_size_m"):
+        load_config(path)
+    path.write_text("[grid\n")
+    with pytest.raises(ConfigError, match=r"my\.toml: not valid TOML"):
+        load_config(path)
+    path.write_text('[output]\nblocksize = 300\n')
+    with pytest.raises(ConfigError, match=r"my\.toml: output\.blocksize = 300 is invalid; expected one of 128, 256"):
+        load_config(path)
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "missing.toml")
+
+
+def test_precedence_file_then_set(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("[grid]\nresolution_m = 2.0\ncell_size_m = 200.0\n")
+    config = load_config(path, ["grid.resolution_m=0.5"])
+    assert config.grid.resolution_m == 0.5 and config.grid.cell_size_m == 200.0
+
+
+def test_to_toml_round_trips(tmp_path):
+    config = load_config(overrides=["grid.resolution_m=0.25", "filter.keep_classes=[2, 9]"])
+    path = tmp_path / "shown.toml"
+    path.write_text(config.to_toml())
+    assert load_config(path) == config

@@ -1,0 +1,54 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.grid import Grid, PixelWindow
+
+
+def make_grid(resolution=0.5, cell_px=100, bounds=((770500.0, 6277500.0, 770649.99, 6277599.99),)):
+    return Grid.covering(list(bounds), resolution=resolution, cell_px=cell_px, halo_px=4, crs_wkt="")
+
+
+def test_grid_snaps_to_the_absolute_lattice():
+    grid = make_grid()
+    assert grid.bounds == (770500.0, 6277500.0, 770650.0, 6277600.0)
+    assert (grid.width, grid.height) == (300, 200)
+    assert grid.transform.a == 0.5 and grid.transform.e == -0.5
+
+
+def test_cells_tile_the_grid_exactly_and_are_world_aligned():
+    grid = make_grid(cell_px=64)
+    cover = np.zeros((grid.height, grid.width), int)
+    for cell in grid.cells():
+        cover[cell.window.slices_within(grid.window)] += 1
+        x0, y0, _, _ = grid.window_bounds(cell.window)
+        # interior cells start on multiples of the cell size (32 m)
+        if cell.window.width == 64 and cell.window.height == 64:
+            assert x0 % 32 == 0 and y0 % 32 == 0
+        assert not cell.halo_window.intersection(grid.window).is_empty
+    assert np.all(cover == 1)
+
+
+@pytest.mark.parametrize("cell_px", [16, 64, 100, 1000])
+def test_pixel_of_a_point_does_not_depend_on_cell_size(cell_px, rng):
+    x = rng.uniform(770500, 770650, 1000)
+    y = rng.uniform(6277500, 6277600, 1000)
+    reference = make_grid(cell_px=16).pixel_rows_cols(x, y)
+    rows, cols = make_grid(cell_px=cell_px).pixel_rows_cols(x, y)
+    assert np.array_equal(rows, reference[0]) and np.array_equal(cols, reference[1])
+
+
+def test_window_of_bounds_and_intersections():
+    grid = make_grid()
+    w = grid.window_of_bounds(770500, 6277550, 770550, 6277599.99)
+    assert w == PixelWindow(0, 0, 100, 101)
+    assert w.intersection(PixelWindow(50, 50, 500, 500)) == PixelWindow(50, 50, 50, 51)
+    assert PixelWindow(0, 0, 5, 5).intersection(PixelWindow(10, 10, 5, 5)).is_empty
+    assert grid.window_of_bounds(0, 0, 1, 1).is_empty
+
+
+def test_cell_ids_are_lower_left_corners():
+    grid = make_grid(resolution=1.0, cell_px=50)
+    ids = {cell.id for cell in grid.cells()}
+    assert "770500_6277500" in ids and "770600_6277550" in ids

@@ -1,0 +1,127 @@
+"""The stage-1 kernel and the stage-2 merge against a plain numpy reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.grid import Grid, PixelWindow
+from pipeline.rasterize import (
+    LEVEL_BITS,
+    LEVEL_OFFSET,
+    HeightMapAccumulator,
+    merge_statistics,
+    point_filter_mask,
+    shared_pixel_mask,
+)
+
+
+def reference_statistics(grid: Grid, x, y, z, voxel_height):
+    """Plain numpy: max/min/count per pixel and distinct voxel levels per pixel."""
+    rows, cols = grid.pixel_rows_cols(x, y)
+    inside = (rows >= 0) & (rows < grid.height) & (cols >= 0) & (cols < grid.width)
+    pixel = rows[inside] * grid.width + cols[inside]
+    zi = z[inside].astype(np.float32)
+    n = grid.width * grid.height
+    count = np.bincount(pixel, minlength=n)
+    zmax = np.full(n, -np.inf, np.float32)
+    zmin = np.full(n, np.inf, np.float32)
+    np.maximum.at(zmax, pixel, zi)
+    np.minimum.at(zmin, pixel, zi)
+    levels = np.floor(z[inside] / voxel_height).astype(np.int64) + LEVEL_OFFSET
+    voxels = np.bincount(np.unique((pixel << LEVEL_BITS) | levels) >> LEVEL_BITS, minlength=n)
+    empty = count == 0
+    zmax[empty] = np.nan
+    zmin[empty] = np.nan
+    shape = (grid.height, grid.width)
+    return zmax.reshape(shape), zmin.reshape(shape), count.reshape(shape), voxels.reshape(shape)
+
+
+def make_points(rng, n):
+    x = rng.uniform(100.0, 160.0, n)
+    y = rng.uniform(200.0, 250.0, n)
+    # most heights within a few metres, some far outside a pixel's 64-level span
+    z = np.where(rng.random(n) < 0.05, rng.uniform(-80, 300, n), rng.normal(20, 3, n))
+    return x, y, z
+
+
+def accumulate(grid, window, x, y, z, keep, chunk, voxel_height=0.5):
+    acc = HeightMapAccumulator(
+        window,
+        resolution=grid.resolution,
+        col_min=grid.col_min,
+        row_top=grid.row_top,
+        grid_width=grid.width,
+        voxel_height=voxel_height,
+    )
+    used = outside = 0
+    for start in range(0, len(x), chunk):
+        s = slice(start, start + chunk)
+        u, o = acc.add(x[s], y[s], z[s], keep[s])
+        used += u
+        outside += o
+    return acc, used, outside
+
+
+@pytest.mark.parametrize("resolution", [0.5, 1.0, 0.3048])
+@pytest.mark.parametrize("chunk", [997, 100_000])
+def test_kernel_matches_numpy_reference(rng, resolution, chunk):
+    x, y, z = make_points(rng, 40_000)
+    grid = Grid.covering([(100, 200, 160, 250)], resolution=resolution, cell_px=32, halo_px=2, crs_wkt="")
+    acc, used, outside = accumulate(grid, grid.window, x, y, z, np.ones(len(x), bool), chunk)
+    zmax, zmin, count, voxels = reference_statistics(grid, x, y, z, 0.5)
+    stats = acc.statistics
+    assert used == len(x) and outside == 0
+    np.testing.assert_array_equal(stats.count, count)
+    np.testing.assert_array_equal(stats.zmax, zmax)
+    np.testing.assert_array_equal(stats.zmin, zmin)
+    np.testing.assert_array_equal(stats.voxels, voxels)
+    # the keys of any window are exactly the distinct voxels there
+    window = PixelWindow(5, 7, 20, 30)
+    keys = acc.voxel_keys((window,))
+    rows, cols = np.divmod(keys >> LEVEL_BITS, grid.width)
+    assert np.all((rows >= 5) & (rows < 25) & (cols >= 7) & (cols < 37))
+    assert len(keys) == voxels[5:25, 7:37].sum()
+
+
+def test_points_outside_the_window_are_counted_not_binned(rng):
+    x, y, z = make_points(rng, 5_000)
+    grid = Grid.covering([(100, 200, 160, 250)], resolution=1.0, cell_px=32, halo_px=2, crs_wkt="")
+    window = PixelWindow(0, 0, 20, 20)
+    acc, used, outside = accumulate(grid, window, x, y, z, np.ones(len(x), bool), 1000)
+    assert used + outside == len(x)
+    assert acc.statistics.count.sum() == used
+
+
+def test_filter_drops_noise_withheld_and_keeps_only_requested():
+    classification = np.array([1, 2, 7, 18, 6, 2], np.uint8)
+    withheld = np.array([0, 0, 0, 0, 0, 1], bool)
+    keep = point_filter_mask(classification, withheld, drop_classes=(7, 18), keep_classes=(), drop_withheld=True)
+    assert keep.tolist() == [True, True, False, False, True, False]
+    ground = point_filter_mask(classification, withheld, drop_classes=(7, 18), keep_classes=(2,), drop_withheld=False)
+    assert ground.tolist() == [False, True, False, False, False, True]
+
+
+def test_merge_of_overlapping_tiles_equals_one_tile(rng):
+    """Two overlapping tiles (like flight strips) merge to exactly the statistics of all points."""
+    x, y, z = make_points(rng, 30_000)
+    grid = Grid.covering([(100, 200, 160, 250)], resolution=1.0, cell_px=32, halo_px=2, crs_wkt="")
+    # tile A: x < 135, tile B: x >= 120 (15 m of overlap, points in the overlap go to both at random)
+    in_a = (x < 135) & ((x < 120) | (rng.random(len(x)) < 0.5))
+    in_b = ~in_a
+    windows, parts = [], []
+    for select, bounds in ((in_a, (100, 200, 135, 250)), (in_b, (120, 200, 160, 250))):
+        windows.append(grid.window_of_bounds(*bounds))
+    for select, window in zip((in_a, in_b), windows):
+        other = windows[1] if window is windows[0] else windows[0]
+        acc, _, outside = accumulate(grid, window, x[select], y[select], z[select], np.ones(select.sum(), bool), 4096)
+        assert outside == 0
+        parts.append((acc.statistics, acc.voxel_keys((window.intersection(other),))))
+    target = PixelWindow(3, 10, 40, 45)
+    merged = merge_statistics(target, parts, shared=shared_pixel_mask(target, windows), grid_width=grid.width)
+    zmax, zmin, count, voxels = reference_statistics(grid, x, y, z, 0.5)
+    rows, cols = target.slices_within(grid.window)
+    np.testing.assert_array_equal(merged.count, count[rows, cols])
+    np.testing.assert_array_equal(merged.zmax, zmax[rows, cols])
+    np.testing.assert_array_equal(merged.zmin, zmin[rows, cols])
+    np.testing.assert_array_equal(merged.voxels, voxels[rows, cols])

@@ -1,0 +1,150 @@
+"""End to end on small LAZ surveys: the DSM must not depend on how the survey is cut."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+
+from pipeline.config import load_config
+from pipeline.errors import InputDataError, OutputError
+from pipeline.io.raster import NODATA, read_raster
+from pipeline.io.vector import list_layers, read_layer
+from pipeline.run import run_survey
+from pipeline.tasks import load_cell_statistics
+
+from .lasfiles import random_points, write_points
+
+BOUNDS = (1000.0, 2000.0, 1100.0, 2080.0)
+
+
+@pytest.fixture(scope="module")
+def survey_points():
+    rng = np.random.default_rng(7)
+    return random_points(rng, 40_000, BOUNDS)
+
+
+def write_tiling(folder: Path, points, tiling: str) -> list[str]:
+    """Write the same points cut in different ways."""
+    x, y, z = points
+    folder.mkdir(parents=True, exist_ok=True)
+    if tiling == "one":
+        groups = [np.ones(len(x), bool)]
+    elif tiling == "quadrants":  # boundaries not on the pixel lattice
+        groups = [
+            (x < 1047.3) & (y < 2041.7), (x >= 1047.3) & (y < 2041.7),
+            (x < 1047.3) & (y >= 2041.7), (x >= 1047.3) & (y >= 2041.7),
+        ]  # fmt: skip
+    elif tiling == "strips":  # overlapping flight strips: points in the overlap split between them
+        rng = np.random.default_rng(3)
+        first = (x < 1040) | ((x < 1065) & (rng.random(len(x)) < 0.5))
+        groups = [first, ~first]
+    paths = []
+    for i, select in enumerate(groups):
+        paths.append(str(write_points(folder / f"{tiling}_{i}.laz", x[select], y[select], z[select])))
+    return paths
+
+
+def assemble_cells(out: Path, grid_shape) -> dict[str, np.ndarray]:
+    """The merged statistics of every cell core, put back together over the whole grid."""
+    manifest = json.loads((out / "manifest.json").read_text())
+    width, height = manifest["grid"]["width"], manifest["grid"]["height"]
+    full = {name: None for name in ("zmax", "zmin", "count", "voxels")}
+    for path in sorted((out / "work" / "cells").glob("*.npz")):
+        stats = load_cell_statistics(path)
+        for name in full:
+            if full[name] is None:
+                full[name] = np.zeros((height, width), getattr(stats, name).dtype)
+        # cores do not overlap; halos do and agree
+        w = stats.window
+        for name in full:
+            full[name][w.row_off : w.row_end, w.col_off : w.col_end] = getattr(stats, name)
+    return full
+
+
+def run(inputs, out, client, *overrides):
+    config = load_config(overrides=["grid.resolution_m=1.0", "output.keep_intermediate=true", *overrides])
+    return run_survey(inputs, out, config, client=client)
+
+
+@pytest.mark.slow
+def test_dsm_does_not_depend_on_cell_size_or_tiling(tmp_path, survey_points, dask_client):
+    results = {}
+    for tiling, cell_m in [("one", 1000.0), ("one", 16.0), ("quadrants", 32.0), ("strips", 20.0)]:
+        inputs = write_tiling(tmp_path / "in" / tiling, survey_points, tiling)
+        out = tmp_path / f"out_{tiling}_{cell_m:g}"
+        run(inputs, out, dask_client, f"grid.cell_size_m={cell_m}")
+        dsm, transform, _ = read_raster(out / "dsm.vrt")
+        results[(tiling, cell_m)] = (dsm, transform, assemble_cells(out, dsm.shape))
+    (reference, ref_transform, ref_stats) = results[("one", 1000.0)]
+    assert np.isfinite(reference).sum() > 0.8 * reference.size
+    assert np.isnan(reference).sum() > 400  # the circular hole and empty pixels stay nodata
+    for key, (dsm, transform, stats) in results.items():
+        assert transform == ref_transform, key
+        np.testing.assert_array_equal(dsm, reference, err_msg=str(key))
+        for name in ("zmax", "zmin", "count", "voxels"):
+            np.testing.assert_array_equal(stats[name], ref_stats[name], err_msg=f"{key} {name}")
+
+
+@pytest.mark.slow
+def test_outputs_are_valid_cogs_and_layers(tmp_path, survey_points, dask_client):
+    inputs = write_tiling(tmp_path / "in", survey_points, "quadrants")
+    digests = {p: hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in inputs}
+    out = tmp_path / "out"
+    summary = run(inputs, out, dask_client, "grid.cell_size_m=25")
+    assert summary.points_read == len(survey_points[0])
+    assert sorted(p.name for p in out.iterdir()) == ["dsm", "dsm.vrt", "holes.gpkg", "manifest.json", "work"]
+    tiles = sorted((out / "dsm").glob("*.tif"))
+    assert len(tiles) == len(summary.dsm_tiles) > 1
+    for tif in tiles:
+        with rasterio.open(tif) as ds:
+            assert ds.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
+            assert ds.crs.to_epsg() == 2154
+            assert ds.nodata == NODATA
+            assert ds.overviews(1), "COG must carry overviews"
+            assert ds.profile["tiled"] and ds.compression is not None
+    with rasterio.open(out / "dsm.vrt") as ds:
+        assert ds.crs.to_epsg() == 2154 and ds.nodata == NODATA
+    assert {"tiles", "cells"} <= set(list_layers(out / "holes.gpkg"))
+    tiles_layer = read_layer(out / "holes.gpkg", "tiles")
+    assert len(tiles_layer) == 4 and tiles_layer.crs.to_epsg() == 2154
+    assert tiles_layer["points_used"].sum() == summary.points_used
+    cells_layer = read_layer(out / "holes.gpkg", "cells")
+    assert cells_layer["points"].sum() == summary.points_used
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["summary"]["points_read"] == summary.points_read
+    # inputs are never modified
+    assert digests == {p: hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in inputs}
+
+
+@pytest.mark.slow
+def test_bad_tile_fails_cleanly_or_is_skipped(tmp_path, survey_points, dask_client):
+    inputs = write_tiling(tmp_path / "in", survey_points, "quadrants")
+    data = Path(inputs[1]).read_bytes()
+    Path(inputs[1]).write_bytes(data[: len(data) // 2])
+    out = tmp_path / "out"
+    with pytest.raises(InputDataError, match="strips|quadrants_1.laz"):
+        run(inputs, out, dask_client)
+    assert not out.exists(), "a failed run leaves no output behind"
+    (tmp_path / "existing").mkdir()
+    with pytest.raises(InputDataError):
+        run(inputs, tmp_path / "existing", dask_client)
+    assert list((tmp_path / "existing").iterdir()) == []
+    summary = run(inputs, out, dask_client, "survey.on_error=skip")
+    assert [s["path"] for s in summary.skipped] == [inputs[1]]
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["skipped"][0]["path"] == inputs[1]
+    status = dict(zip(*read_layer(out / "holes.gpkg", "tiles")[["name", "status"]].values.T))
+    assert status["quadrants_1.laz"] == "skipped"
+
+
+def test_unwritable_output_folder(tmp_path, survey_points):
+    inputs = write_tiling(tmp_path / "in", survey_points, "one")
+    blocker = tmp_path / "file"
+    blocker.write_text("a file where a folder should be")
+    with pytest.raises(OutputError, match="output folder cannot be created"):
+        run(inputs, blocker / "out", None)
