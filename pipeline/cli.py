@@ -9,6 +9,7 @@ configured here and nowhere else.
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -42,9 +43,9 @@ class _Group(click.Group):
 def _configure_logging(verbose: int, quiet: int) -> None:
     level = max(logging.DEBUG, logging.WARNING - 10 * (verbose - quiet))
     logging.basicConfig(level=level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s", force=True)
-    import distributed  # noqa: F401  (it installs its own handlers on import: override them after)
-
     quiet_level = logging.INFO if verbose >= 2 else logging.ERROR
+    # distributed installs its own handlers when imported; its configuration says at which level
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", logging.getLevelName(max(level, quiet_level)).lower())
     for noisy in ("distributed", "tornado", "asyncio", "numba", "rasterio", "pyogrio", "bokeh"):
         logging.getLogger(noisy).setLevel(max(level, quiet_level))
 

@@ -1,0 +1,66 @@
+"""The command line through click's runner, on a real Dask cluster (--scheduler)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from pipeline.cli import main
+
+from .lasfiles import random_points, write_points
+
+
+@pytest.fixture
+def runner():
+    return CliRunner()
+
+
+def test_config_show_prints_resolved_toml(runner):
+    result = runner.invoke(main, ["config", "--show", "--set", "grid.resolution_m=0.25"])
+    assert result.exit_code == 0
+    assert "resolution_m = 0.25" in result.output and "[survey]" in result.output
+
+
+def test_bad_override_exits_2_with_one_line(runner, tmp_path):
+    result = runner.invoke(main, ["run", str(tmp_path), "--out", str(tmp_path / "o"), "--set", "grid.pixel=1"])
+    assert result.exit_code == 2
+    assert result.output.strip().splitlines() == [
+        "holefill: error: --set grid.pixel=1: unknown key 'grid.pixel'; allowed keys in [grid]: "
+        "resolution_m, cell_size_m, halo_px"
+    ]
+    assert not (tmp_path / "o").exists()
+
+
+def test_missing_crs_exits_3_naming_the_file(runner, tmp_path, rng):
+    path = write_points(tmp_path / "nocrs.laz", *random_points(rng, 500), crs=None)
+    result = runner.invoke(main, ["run", str(path), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 3
+    assert "nocrs.laz" in result.output and "--crs" in result.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_empty_input_folder_exits_3(runner, tmp_path):
+    (tmp_path / "in").mkdir()
+    result = runner.invoke(main, ["run", str(tmp_path / "in"), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 3 and "holds no .las or .laz" in result.output
+
+
+@pytest.mark.slow
+def test_run_with_crs_override_on_a_running_scheduler(runner, tmp_path, rng, dask_client):
+    points = random_points(rng, 5000)
+    path = write_points(tmp_path / "nocrs.laz", *points, crs=None)
+    out = tmp_path / "o"
+    result = runner.invoke(
+        main,
+        [
+            "run", str(path), "--out", str(out), "--crs", "EPSG:28992",
+            "--scheduler", dask_client.scheduler.address, "--set", "grid.cell_size_m=50", "--no-progress",
+        ],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert "Amersfoort" in manifest["crs"]["name"]
+    assert manifest["config"]["survey"]["crs"] == "EPSG:28992"
+    assert manifest["summary"]["points_read"] == len(points[0])
