@@ -134,15 +134,29 @@ class HeightMapAccumulator:
     def window(self) -> PixelWindow:
         return self.statistics.window
 
-    def add(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, keep: np.ndarray) -> tuple[int, int]:
+    def add(
+        self,
+        x: np.ndarray,
+        y: np.ndarray,
+        z: np.ndarray,
+        keep: np.ndarray,
+        *,
+        scales: tuple[float, float, float] = (1.0, 1.0, 1.0),
+        offsets: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> tuple[int, int]:
         """Bin a chunk of points, in place.
 
         Parameters
         ----------
-        x, y, z : ndarray of float64, shape (P,)
-            Point coordinates in the survey CRS.
+        x, y, z : ndarray, shape (P,)
+            Point coordinates: float64 in the survey CRS, or the integer
+            coordinates of a LAS record with their ``scales`` and ``offsets``
+            (the kernel then computes ``X * scale + offset`` exactly as laspy
+            does, without materialising float arrays).
         keep : ndarray of bool, shape (P,)
             Points that passed the class/withheld filters.
+        scales, offsets : tuple of 3 floats
+            Of the integer coordinates; the defaults leave floats unchanged.
 
         Returns
         -------
@@ -154,6 +168,8 @@ class HeightMapAccumulator:
         s = self.statistics
         used, outside, added = _bin_points_kernel(
             x, y, z, keep,
+            float(scales[0]), float(scales[1]), float(scales[2]),
+            float(offsets[0]), float(offsets[1]), float(offsets[2]),
             *self._geometry,
             w.row_off, w.col_off, w.height, w.width,
             self.voxel_height,
@@ -320,6 +336,7 @@ def _rehash(old, new):
 @numba.njit(cache=True, nogil=True)
 def _bin_points_kernel(
     x, y, z, keep,
+    scale_x, scale_y, scale_z, offset_x, offset_y, offset_z,
     resolution, col_min, row_top, grid_width,
     win_row_off, win_col_off, win_height, win_width,
     voxel_height,
@@ -332,16 +349,19 @@ def _bin_points_kernel(
     for i in range(len(x)):
         if not keep[i]:
             continue
-        col = np.int64(np.floor(x[i] / resolution)) - col_min
-        row = row_top - np.int64(np.floor(y[i] / resolution))
+        px = np.float64(x[i]) * scale_x + offset_x
+        py = np.float64(y[i]) * scale_y + offset_y
+        pz = np.float64(z[i]) * scale_z + offset_z
+        col = np.int64(np.floor(px / resolution)) - col_min
+        row = row_top - np.int64(np.floor(py / resolution))
         local_row = row - win_row_off
         local_col = col - win_col_off
         if local_row < 0 or local_row >= win_height or local_col < 0 or local_col >= win_width:
             outside += 1
             continue
         p = local_row * win_width + local_col
-        height = np.float32(z[i])
-        level = np.int64(np.floor(z[i] / voxel_height))
+        height = np.float32(pz)
+        level = np.int64(np.floor(pz / voxel_height))
         if level < -LEVEL_OFFSET:
             level = -LEVEL_OFFSET
         elif level > _LEVEL_MAX - LEVEL_OFFSET:

@@ -31,7 +31,17 @@ from .grid import Cell, Grid, PixelWindow
 from .io.raster import RasterOptions, write_vrt
 from .io.vector import write_layer
 from .survey import Survey, scan_survey, source_crs_for_task, tile_index_records
-from .tasks import CellResult, CellTask, PointFilter, TileResult, TileTask, merge_cell, rasterize_tile
+from .tasks import (
+    CellResult,
+    CellTask,
+    PointFilter,
+    TileFailure,
+    TileResult,
+    TileTask,
+    merge_cell,
+    rasterize_tile,
+    rasterize_tile_or_skip,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -188,12 +198,8 @@ def run_survey(
     staging = _make_staging(out)
     try:
         with _dask_client(client, scheduler, config) as dask_client, _Progress(progress) as bar:
-            t0 = time.perf_counter()
-            tile_results, failed = _run_stage_one(dask_client, plan, config, staging / "work", bar)
-            stage_seconds["rasterize"] = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            cell_results = _run_stage_two(dask_client, plan, config, staging, tile_results, bar)
-            stage_seconds["merge"] = time.perf_counter() - t0
+            tile_results, failed, cell_results = _run_stages(dask_client, plan, config, staging, bar, stage_seconds)
+        t0 = time.perf_counter()
         skipped = survey.skipped + failed
         _write_outputs(staging, plan, tile_results, cell_results, skipped)
         summary = RunSummary(
@@ -207,6 +213,7 @@ def run_survey(
             skipped=skipped,
             dsm_tiles=sorted(os.path.relpath(r.dsm_path, staging) for r in cell_results if r.dsm_path),
         )
+        stage_seconds["outputs"] = time.perf_counter() - t0
         _write_manifest(staging / "manifest.json", summary, plan, config, tile_results, cell_results)
         _commit(staging, out, keep_work=config.output.keep_intermediate)
     except BaseException:
@@ -221,77 +228,83 @@ def run_survey(
 # -- stages ---------------------------------------------------------------------------
 
 
-def _run_stage_one(client, plan: SurveyPlan, config: Config, work_dir: Path, bar: _Progress):
+def _run_stages(client, plan: SurveyPlan, config: Config, staging: Path, bar: _Progress, stage_seconds: dict):
+    """Submit stage 1 (per tile) and stage 2 (per cell) as one graph.
+
+    Each cell depends on the tiles touching it and has a higher priority, so it
+    runs as soon as they are done, while other tiles are still decoding; tiles
+    are submitted in row-major order so that cells complete early.
+    """
     from distributed import as_completed
 
-    tasks = plan.tile_tasks(config, work_dir)
-    bar.start("decode + bin tiles", total=len(tasks), points=plan.survey.point_count)
-    futures = {client.submit(rasterize_tile, task, pure=False, key=f"rasterize-{uuid.uuid4().hex[:6]}-{task.tile_index}"): task for task in tasks}
-    results: list[TileResult] = []
-    failed: list[dict[str, str]] = []
-    for future in as_completed(futures):
-        task = futures[future]
-        try:
-            result = future.result()
-        except InputDataError as e:
-            if config.survey.on_error != "skip":
-                for other in futures:
-                    other.cancel()
-                raise
-            logger.warning("skipping %s", e)
-            failed.append({"path": task.path, "reason": e.reason})
-            bar.advance(points=0)
-            continue
-        results.append(result)
-        if result.points_outside:
-            logger.warning(
-                "%s: %d points lie outside the bounds its header declares; they were not used",
-                result.path,
-                result.points_outside,
-            )
-        bar.advance(points=result.points_read)
-    if not results:
-        raise InputDataError("INPUT", "no tile could be decoded: every tile failed")
-    results.sort(key=lambda r: r.tile_index)
-    return results, failed
-
-
-def _run_stage_two(client, plan: SurveyPlan, config: Config, staging: Path, tile_results: list[TileResult], bar: _Progress):
-    from distributed import as_completed
-
+    started = time.perf_counter()
+    skip = config.survey.on_error == "skip"
+    tile_tasks = sorted(plan.tile_tasks(config, staging / "work"), key=lambda t: (t.window.row_off, t.window.col_off))
     options = RasterOptions(
         compress=config.output.compress,
         blocksize=config.output.blocksize,
         overview_resampling=config.output.overview_resampling,
     )
-    tasks = []
+    run_id = uuid.uuid4().hex[:8]
+    tile_function = rasterize_tile_or_skip if skip else rasterize_tile
+    tile_futures = {
+        task.tile_index: client.submit(tile_function, task, pure=False, key=f"rasterize-{run_id}-{task.tile_index}")
+        for task in tile_tasks
+    }
+    cell_futures = []
     for cell in plan.cells:
-        outputs = tuple(
-            (r.output_dir, r.window) for r in tile_results if not r.window.intersection(cell.halo_window).is_empty
-        )
-        if not outputs:
+        touching = [t for t in tile_tasks if not t.window.intersection(cell.halo_window).is_empty]
+        if not touching:
             continue
-        planned = tuple(w for w in plan.tile_windows if not w.intersection(cell.halo_window).is_empty)
-        tasks.append(
-            CellTask(
-                cell=cell,
-                grid=plan.grid,
-                tile_outputs=outputs,
-                planned_windows=planned,
-                dsm_path=str(staging / "dsm" / f"dsm_{cell.id}.tif"),
-                statistics_path=str(staging / "work" / "cells" / f"cell_{cell.id}.npz"),
-                raster_options=options,
-            )
+        task = CellTask(
+            cell=cell,
+            grid=plan.grid,
+            planned_windows=tuple(t.window for t in touching),
+            dsm_path=str(staging / "dsm" / f"dsm_{cell.id}.tif"),
+            statistics_path=str(staging / "work" / "cells" / f"cell_{cell.id}.npz"),
+            raster_options=options,
         )
-    bar.start("merge cells + write DSM", total=len(tasks))
-    futures = [client.submit(merge_cell, task, pure=False) for task in tasks]
-    results: list[CellResult] = []
-    for future in as_completed(futures):
-        results.append(future.result())
-        bar.advance()
+        dependencies = [tile_futures[t.tile_index] for t in touching]
+        cell_futures.append(
+            client.submit(merge_cell, task, *dependencies, pure=False, priority=1, key=f"merge-{run_id}-{cell.id}")
+        )
+    tiles_bar = bar.add("decode + bin tiles", total=len(tile_futures))
+    cells_bar = bar.add("merge cells + write DSM", total=len(cell_futures))
+    tile_results: list[TileResult] = []
+    failed: list[dict[str, str]] = []
+    cell_results: list[CellResult] = []
+    all_futures = [*tile_futures.values(), *cell_futures]
+    try:
+        for future in as_completed(all_futures):
+            result = future.result()  # a tile error in "fail" mode raises here
+            if isinstance(result, TileResult):
+                tile_results.append(result)
+                if result.points_outside:
+                    logger.warning(
+                        "%s: %d points lie outside the bounds its header declares; they were not used",
+                        result.path,
+                        result.points_outside,
+                    )
+                bar.advance(tiles_bar, points=result.points_read)
+                if len(tile_results) + len(failed) == len(tile_futures):
+                    stage_seconds["rasterize"] = time.perf_counter() - started
+            elif isinstance(result, TileFailure):
+                logger.warning("skipping %s: %s", result.path, result.reason)
+                failed.append({"path": result.path, "reason": result.reason})
+                bar.advance(tiles_bar)
+            else:
+                cell_results.append(result)
+                bar.advance(cells_bar)
+    except BaseException:
+        client.cancel(all_futures)
+        raise
+    stage_seconds["merge_tail"] = time.perf_counter() - started - stage_seconds.get("rasterize", 0.0)
+    if not tile_results:
+        raise InputDataError("INPUT", "no tile could be decoded: every tile failed")
+    tile_results.sort(key=lambda r: r.tile_index)
     order = {cell.id: i for i, cell in enumerate(plan.cells)}
-    results.sort(key=lambda r: order[r.cell_id])
-    return results
+    cell_results.sort(key=lambda r: order[r.cell_id])
+    return tile_results, failed, cell_results
 
 
 # -- outputs --------------------------------------------------------------------------
@@ -465,14 +478,13 @@ def _dask_client(client, scheduler: str | None, config: Config) -> Iterator[Any]
 
 
 class _Progress:
-    """A rich progress bar on stderr: tasks done, points per second, time left."""
+    """rich progress bars on stderr: tasks done, points per second, time left."""
 
     def __init__(self, enabled: bool) -> None:
         self.enabled = enabled
         self._progress = None
-        self._task = None
-        self._points = 0
-        self._started = 0.0
+        self._points: dict[int, int] = {}
+        self._started = time.perf_counter()
 
     def __enter__(self) -> _Progress:
         if self.enabled:
@@ -486,7 +498,6 @@ class _Progress:
                 TextColumn("{task.fields[rate]}"),
                 TimeRemainingColumn(),
                 console=Console(stderr=True),
-                transient=False,
             )
             self._progress.__enter__()
         return self
@@ -495,18 +506,18 @@ class _Progress:
         if self._progress is not None:
             self._progress.__exit__(*exc)
 
-    def start(self, description: str, *, total: int, points: int = 0) -> None:
-        self._points = 0
-        self._started = time.perf_counter()
+    def add(self, description: str, *, total: int) -> int:
+        """A new bar; returns its handle."""
+        handle = len(self._points)
+        self._points[handle] = 0
         if self._progress is not None:
-            self._task = self._progress.add_task(description, total=total, rate="")
+            handle = self._progress.add_task(description, total=total, rate="")
+            self._points[handle] = 0
+        return handle
 
-    def advance(self, *, points: int = 0) -> None:
-        self._points += points
-        if self._progress is not None and self._task is not None:
+    def advance(self, handle: int, *, points: int = 0) -> None:
+        self._points[handle] = self._points.get(handle, 0) + points
+        if self._progress is not None:
             elapsed = max(time.perf_counter() - self._started, 1e-9)
-            rate = f"{self._points / elapsed / 1e6:6.2f} M pts/s" if self._points else ""
-            self._progress.update(self._task, advance=1, rate=rate)
-
-
-
+            rate = f"{self._points[handle] / elapsed / 1e6:6.2f} M pts/s" if self._points[handle] else ""
+            self._progress.update(handle, advance=1, rate=rate)

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from pyproj import Transformer
 
+from .errors import InputDataError
 from .grid import Cell, Grid, PixelWindow
 from .io.las import iter_point_chunks
 from .io.raster import RasterOptions, write_cog
@@ -69,12 +70,24 @@ class TileResult:
 
 
 @dataclass(frozen=True)
+class TileFailure:
+    """A tile that could not be decoded, when bad tiles are skipped."""
+
+    tile_index: int
+    path: str
+    reason: str
+
+
+@dataclass(frozen=True)
 class CellTask:
-    """Stage 2: merge the statistics of the tiles touching one cell; write its DSM tile."""
+    """Stage 2: merge the statistics of the tiles touching one cell; write its DSM tile.
+
+    The stage-1 results of those tiles are passed to :func:`merge_cell` as
+    arguments, so Dask runs the cell as soon as they exist.
+    """
 
     cell: Cell
     grid: Grid
-    tile_outputs: tuple[tuple[str, PixelWindow], ...]  # stage-1 folder and window of each tile read
     planned_windows: tuple[PixelWindow, ...]  # windows of every planned tile touching the cell
     dsm_path: str
     statistics_path: str
@@ -118,11 +131,15 @@ def rasterize_tile(task: TileTask) -> TileResult:
             keep_classes=f.keep_classes,
             drop_withheld=f.drop_withheld,
         )
-        x, y = chunk.x, chunk.y
-        if transformer is not None:
+        if transformer is None:
+            n_used, n_outside = accumulator.add(
+                chunk.X, chunk.Y, chunk.Z, keep, scales=chunk.scales, offsets=chunk.offsets
+            )
+        else:
+            x, y, z = chunk.coordinates()
             x, y = transformer.transform(x, y)
-        n_used, n_outside = accumulator.add(x, y, chunk.z, keep)
-        read += len(chunk.x)
+            n_used, n_outside = accumulator.add(x, y, z, keep)
+        read += len(chunk)
         used += n_used
         outside += n_outside
     out = Path(task.output_dir)
@@ -143,16 +160,31 @@ def rasterize_tile(task: TileTask) -> TileResult:
     )
 
 
-def merge_cell(task: CellTask) -> CellResult:
-    """Merge tile statistics over a cell and its halo, and write the cell's DSM COG (stage 2)."""
+def rasterize_tile_or_skip(task: TileTask) -> TileResult | TileFailure:
+    """:func:`rasterize_tile`, reporting a bad tile instead of raising (``on_error = "skip"``)."""
+    try:
+        return rasterize_tile(task)
+    except InputDataError as e:
+        return TileFailure(task.tile_index, task.path, e.reason)
+
+
+def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
+    """Merge tile statistics over a cell and its halo, and write the cell's DSM COG (stage 2).
+
+    ``tiles`` are the stage-1 results of the tiles touching the cell; failed
+    (skipped) tiles contribute nothing.
+    """
     cell, grid = task.cell, task.grid
     window = cell.halo_window
     parts = []
-    for output_dir, tile_window in task.tile_outputs:
-        overlap = tile_window.intersection(window)
+    for tile in tiles:
+        if not isinstance(tile, TileResult):
+            continue
+        overlap = tile.window.intersection(window)
         if overlap.is_empty:
             continue
-        parts.append((load_tile_statistics(output_dir, tile_window, overlap), _load(Path(output_dir) / "shared_keys.npy")))
+        statistics = load_tile_statistics(tile.output_dir, tile.window, overlap)
+        parts.append((statistics, _load(Path(tile.output_dir) / "shared_keys.npy")))
     shared = shared_pixel_mask(window, task.planned_windows)
     merged = merge_statistics(window, parts, shared=shared, grid_width=grid.width)
     save_cell_statistics(task.statistics_path, merged)

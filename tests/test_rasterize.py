@@ -125,3 +125,22 @@ def test_merge_of_overlapping_tiles_equals_one_tile(rng):
     np.testing.assert_array_equal(merged.zmax, zmax[rows, cols])
     np.testing.assert_array_equal(merged.zmin, zmin[rows, cols])
     np.testing.assert_array_equal(merged.voxels, voxels[rows, cols])
+
+
+def test_integer_records_bin_exactly_like_scaled_floats(rng):
+    """The kernel applies X * scale + offset itself; it must match laspy's float coordinates."""
+    n = 20_000
+    X = rng.integers(0, 6_000_000, n).astype(np.int32)
+    Y = rng.integers(0, 5_000_000, n).astype(np.int32)
+    Z = rng.integers(-5000, 40_000, n).astype(np.int32)
+    scales, offsets = (0.001, 0.001, 0.01), (770_000.0, 6_270_000.0, -12.0)
+    x, y, z = (raw * s + o for raw, s, o in zip((X, Y, Z), scales, offsets))
+    grid = Grid.covering([(770_000, 6_270_000, 776_000, 6_275_000)], resolution=7.0, cell_px=32, halo_px=2, crs_wkt="")
+    keep = rng.random(n) < 0.9
+    from_floats, *_ = accumulate(grid, grid.window, x, y, z, keep, 5000)
+    from_records = HeightMapAccumulator(
+        grid.window, resolution=7.0, col_min=grid.col_min, row_top=grid.row_top, grid_width=grid.width, voxel_height=0.5
+    )
+    from_records.add(X, Y, Z, keep, scales=scales, offsets=offsets)
+    for name in ("zmax", "zmin", "count", "voxels"):
+        np.testing.assert_array_equal(getattr(from_records.statistics, name), getattr(from_floats.statistics, name))

@@ -40,13 +40,29 @@ class TileHeader:
 
 @dataclass(frozen=True)
 class PointChunk:
-    """Decoded points of one chunk: coordinates in file units and what filters need."""
+    """Decoded points of one chunk, as stored: integer coordinates with their scale and offset.
 
-    x: np.ndarray  # float64
-    y: np.ndarray
-    z: np.ndarray
+    Materialising scaled float coordinates and bit fields through laspy's
+    accessors costs almost as much as decoding; the rasterizer reads the
+    integer views directly and applies ``scale * X + offset`` itself.
+    """
+
+    X: np.ndarray  # int32 views into the decoded record array
+    Y: np.ndarray
+    Z: np.ndarray
+    scales: tuple[float, float, float]
+    offsets: tuple[float, float, float]
     classification: np.ndarray  # uint8
     withheld: np.ndarray  # bool
+
+    def __len__(self) -> int:
+        return len(self.X)
+
+    def coordinates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Scaled float64 coordinates, as laspy computes them (``X * scale + offset``)."""
+        return tuple(  # type: ignore[return-value]
+            raw * scale + offset for raw, scale, offset in zip((self.X, self.Y, self.Z), self.scales, self.offsets)
+        )
 
 
 def read_header(path: str | os.PathLike) -> TileHeader:
@@ -123,19 +139,22 @@ def iter_point_chunks(path: str | os.PathLike, chunk_points: int) -> Iterator[Po
     expected = None
     try:
         with laspy.open(path, laz_backend=laspy.LazBackend.Lazrs if laspy.LazBackend.Lazrs.is_available() else None) as reader:
-            expected = int(reader.header.point_count)
+            header = reader.header
+            expected = int(header.point_count)
+            scales = tuple(float(v) for v in header.scales)
+            offsets = tuple(float(v) for v in header.offsets)
             for chunk in reader.chunk_iterator(chunk_points):
                 n = len(chunk)
                 if n == 0:
                     break
                 decoded += n
+                records = chunk.array
+                classification, withheld = _class_and_withheld(records)
                 yield PointChunk(
-                    x=np.asarray(chunk.x, dtype=np.float64),
-                    y=np.asarray(chunk.y, dtype=np.float64),
-                    z=np.asarray(chunk.z, dtype=np.float64),
-                    classification=np.asarray(chunk.classification, dtype=np.uint8),
-                    withheld=np.asarray(chunk.withheld, dtype=bool),
-                )
+                    X=records["X"], Y=records["Y"], Z=records["Z"],
+                    scales=scales, offsets=offsets,
+                    classification=classification, withheld=withheld,
+                )  # fmt: skip
     except InputDataError:
         raise
     except Exception as e:
@@ -147,11 +166,21 @@ def iter_point_chunks(path: str | os.PathLike, chunk_points: int) -> Iterator[Po
         )
 
 
+def _class_and_withheld(records: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Class and withheld flag from the raw bytes of any point format (LAS 1.4 R15, tables 7-8 and 15-16)."""
+    names = records.dtype.names
+    if "raw_classification" in names:  # formats 0-5: class in bits 0-4, withheld in bit 7
+        raw = records["raw_classification"]
+        return raw & np.uint8(0x1F), (raw & np.uint8(0x80)) != 0
+    # formats 6-10: a whole byte of class; flags byte bit 2 is withheld
+    return np.asarray(records["classification"]), (records["classification_flags"] & np.uint8(0x04)) != 0
+
+
 def decode_only(path: str | os.PathLike, chunk_points: int) -> int:
     """Decode every point of a file and drop it: the baseline of the benchmark."""
     total = 0
     for chunk in iter_point_chunks(path, chunk_points):
-        total += len(chunk.x)
+        total += len(chunk)
     return total
 
 
