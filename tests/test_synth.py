@@ -1,0 +1,374 @@
+"""Tests of pipeline.synth: synthetic surveys whose holes have known causes.
+
+Every survey here is small (well under a second to generate); the module-scoped
+fixtures share the ones several tests read.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+
+import affine
+import laspy
+import numpy as np
+import pytest
+import shapely
+
+from pipeline.synth import (
+    CLASS_BUILDING,
+    CLASS_GROUND,
+    CLASS_HIGH_VEGETATION,
+    Buildings,
+    HoleCause,
+    SurveySpec,
+    Trees,
+    build_scene,
+    flight_lines,
+    generate_survey,
+    preset,
+)
+
+# Default-density survey small enough for tests: 320 m x 120 m, ~300k points.
+SMALL = dict(width_m=320.0, height_m=120.0, tile_size_m=80.0)
+
+
+@pytest.fixture(scope="module")
+def unit_survey(tmp_path_factory):
+    return generate_survey(tmp_path_factory.mktemp("unit"), preset("unit"))
+
+
+@pytest.fixture(scope="module")
+def small_survey(tmp_path_factory):
+    spec = SurveySpec(**SMALL, building_density=6.0)
+    return generate_survey(tmp_path_factory.mktemp("small"), spec)
+
+
+def read_points(survey):
+    """Decoded points of all tiles, as one structured dict."""
+    parts = [laspy.read(path) for path in survey.tiles]
+    return {
+        "x": np.concatenate([np.asarray(p.x) for p in parts]),
+        "y": np.concatenate([np.asarray(p.y) for p in parts]),
+        "z": np.concatenate([np.asarray(p.z) for p in parts]),
+        "gps_time": np.concatenate([np.asarray(p.gps_time) for p in parts]),
+        "classification": np.concatenate([np.asarray(p.classification) for p in parts]),
+        "point_source_id": np.concatenate([np.asarray(p.point_source_id) for p in parts]),
+        "return_number": np.concatenate([np.asarray(p.return_number) for p in parts]),
+        "number_of_returns": np.concatenate([np.asarray(p.number_of_returns) for p in parts]),
+    }
+
+
+def bin_points(spec, x, y):
+    """Points per truth pixel, binned on the absolute lattice as the pipeline does."""
+    rows, cols = spec.shape
+    col = np.floor(x / spec.resolution).astype(np.int64) - round(spec.x_min / spec.resolution)
+    row = round(spec.y_max / spec.resolution) - 1 - np.floor(y / spec.resolution).astype(np.int64)
+    assert col.min() >= 0 and col.max() < cols and row.min() >= 0 and row.max() < rows
+    return np.bincount(row * cols + col, minlength=rows * cols).reshape(rows, cols)
+
+
+def sorted_points(survey):
+    points = read_points(survey)
+    table = np.column_stack([np.round(points[k] * 100).astype(np.int64) for k in ("x", "y", "z")]
+                            + [np.round((points["gps_time"] - 3e8) * 1e6).astype(np.int64), points["classification"]])
+    return table[np.lexsort(table.T[::-1])]
+
+
+# -- files ---------------------------------------------------------------------------
+
+
+def test_tiles_are_valid_laz_with_crs_and_correct_headers(unit_survey):
+    spec = unit_survey.spec
+    assert [p.name for p in unit_survey.tiles] == ["synth_500000_5000000.laz", "synth_500096_5000000.laz"]
+    total = 0
+    for path in unit_survey.tiles:
+        las = laspy.read(path)
+        header = las.header
+        assert str(header.version) == "1.4" and header.point_format.id == 6
+        assert header.point_count == len(las.points) > 0
+        assert header.parse_crs().to_epsg() == 32631
+        assert np.allclose(header.scales, 0.01)
+        x, y, z = np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)
+        assert np.allclose(header.mins, [x.min(), y.min(), z.min()])
+        assert np.allclose(header.maxs, [x.max(), y.max(), z.max()])
+        # every point inside its tile, named after the lower-left corner
+        x0, y0 = (float(v) for v in path.stem.split("_")[1:])
+        assert x.min() >= x0 and x.max() < min(x0 + spec.tile_size_m, spec.x_max)
+        assert y.min() >= y0 and y.max() < min(y0 + spec.tile_size_m, spec.y_max)
+        assert np.all(np.diff(las.gps_time) >= 0)
+        total += len(las.points)
+    assert total == unit_survey.n_points
+
+
+def test_las_1_2_uncompressed(tmp_path):
+    spec = preset("unit", las_version="1.2", compress=False, width_m=96.0, missed_line=None)
+    survey = generate_survey(tmp_path, spec)
+    assert [p.suffix for p in survey.tiles] == [".las"]
+    las = laspy.read(survey.tiles[0])
+    assert str(las.header.version) == "1.2" and las.header.point_format.id == 1
+    assert las.header.parse_crs().to_epsg() == 32631
+    assert np.abs(las.scan_angle_rank).max() <= spec.scan_angle_deg + 5
+    assert np.array_equal(bin_points(spec, np.asarray(las.x), np.asarray(las.y)), survey.point_count)
+
+
+def test_point_attributes_are_plausible(small_survey):
+    points = read_points(small_survey)
+    assert set(np.unique(points["classification"])) == {CLASS_GROUND, CLASS_HIGH_VEGETATION, CLASS_BUILDING}
+    # canopy first returns followed by ground last returns
+    first, last = points["return_number"], points["number_of_returns"]
+    assert np.all(first <= last) and set(np.unique(last)) == {1, 2}
+    second = first == 2
+    assert np.all(points["classification"][second] == CLASS_GROUND)
+    assert np.count_nonzero(second) == np.count_nonzero((first == 1) & (last == 2))
+    # each point comes from a flown line whose swath holds it
+    lines = {line.line_id: line for line in small_survey.flight_lines}
+    for line_id in np.unique(points["point_source_id"]):
+        line = lines[int(line_id)]
+        assert line.flown
+        x = points["x"][points["point_source_id"] == line_id]
+        assert np.all(np.abs(x - line.x) <= line.half_swath_m + 0.01)
+        # GPS time runs along the line in the direction flown
+        t = points["gps_time"][points["point_source_id"] == line_id]
+        y = points["y"][points["point_source_id"] == line_id]
+        assert (np.corrcoef(t, y)[0, 1] > 0.99) == line.northbound
+
+
+# -- truth ---------------------------------------------------------------------------
+
+
+def test_truth_shapes_and_transform(unit_survey):
+    spec = unit_survey.spec
+    shape = (48, 64)
+    assert spec.shape == shape
+    assert unit_survey.truth_dsm.shape == unit_survey.hole_cause.shape == unit_survey.point_count.shape == shape
+    assert unit_survey.truth_dsm.dtype == np.float32 and unit_survey.hole_cause.dtype == np.uint8
+    assert unit_survey.transform == affine.Affine(2.0, 0.0, 500_000.0, 0.0, -2.0, 5_000_096.0)
+    assert unit_survey.transform @ (shape[1], shape[0]) == (spec.x_max, spec.y_min)
+    assert unit_survey.crs == "EPSG:32631"
+    assert np.all(np.isfinite(unit_survey.truth_dsm))
+    assert np.array_equal(unit_survey.hole_mask, unit_survey.hole_cause != HoleCause.NONE)
+
+
+@pytest.mark.parametrize("survey_name", ["unit_survey", "small_survey"])
+def test_hole_mask_is_exactly_the_empty_pixels(survey_name, request):
+    survey = request.getfixturevalue(survey_name)
+    points = read_points(survey)
+    count = bin_points(survey.spec, points["x"], points["y"])
+    assert np.array_equal(count, survey.point_count)
+    assert np.array_equal(count == 0, survey.hole_mask)
+    assert count.sum() == survey.n_points
+
+
+def test_every_cause_present_in_unit_preset(unit_survey):
+    counts = unit_survey.cause_counts()
+    assert all(counts[cause] > 0 for cause in HoleCause), counts
+    assert unit_survey.n_points < 20_000
+
+
+def test_missed_line_leaves_a_strip_of_missed_coverage(unit_survey):
+    spec, cause = unit_survey.spec, unit_survey.hole_cause
+    flown = [line for line in unit_survey.flight_lines if line.flown]
+    assert len(flown) == len(unit_survey.flight_lines) - 1
+    centres = (np.arange(spec.shape[1]) + 0.5) * spec.resolution
+    left = centres - spec.resolution / 2
+    right = centres + spec.resolution / 2
+    # pixel columns entirely outside every flown swath: all holes, missed unless water
+    outside = np.ones(len(centres), dtype=bool)
+    for line in flown:
+        outside &= (right <= line.u - line.half_swath_m) | (left >= line.u + line.half_swath_m)
+    assert outside.sum() >= 10  # a real strip, 20 m at least
+    strip = cause[:, outside]
+    assert np.all(np.isin(strip, [HoleCause.MISSED_COVERAGE, HoleCause.WATER]))
+    assert np.mean(strip == HoleCause.MISSED_COVERAGE) > 0.8
+    # and missed coverage nowhere else than near the strip
+    missed_columns = np.flatnonzero((cause == HoleCause.MISSED_COVERAGE).any(axis=0))
+    strip_columns = np.flatnonzero(outside)
+    assert missed_columns.min() >= strip_columns.min() - 1 and missed_columns.max() <= strip_columns.max() + 1
+
+
+def test_water_holes_are_over_the_river(unit_survey):
+    spec, river = unit_survey.spec, unit_survey.scene.river
+    rows, cols = np.nonzero(unit_survey.hole_cause == HoleCause.WATER)
+    u = (cols + 0.5) * spec.resolution
+    v = spec.height_m - (rows + 0.5) * spec.resolution
+    distance = np.abs(river.offset(u, v))
+    assert np.all(distance < river.half_width + spec.resolution)
+    # no point comes from well inside the water
+    points = read_points(unit_survey)
+    inside = np.abs(river.offset(points["x"] - spec.x_min, points["y"] - spec.y_min)) < river.half_width - 0.5
+    assert not inside.any()
+    # the river crosses the whole scene: water pixels in every column
+    assert np.all((unit_survey.hole_cause == HoleCause.WATER).any(axis=0))
+    # its outline, in CRS coordinates, holds the water pixels' centres
+    polygon = unit_survey.water_polygon()
+    x, y = unit_survey.transform @ (cols + 0.5, rows + 0.5)
+    inside = shapely.contains_xy(polygon, x, y)
+    assert inside.mean() > 0.9
+
+
+def shadow_scene_survey(tmp_path):
+    """Flat ground, one line over x < 140 m, a 25 m tall block west and one east of it."""
+    spec = SurveySpec(
+        width_m=200.0,
+        height_m=60.0,
+        tile_size_m=100.0,
+        terrain_relief_m=0.0,
+        building_density=0.0,
+        tree_density=0.0,
+        water=False,
+        missed_line=None,
+        pulse_spacing_m=0.5,
+    )
+    roof = 50.0 + 25.0
+    buildings = Buildings.from_records(
+        [
+            # west of the sensor (u = 98.1): shadow on its west side
+            dict(center_u=30.0, center_v=15.0, half_length=10.0, half_width=10.0, angle=0.0, eave_z=roof),
+            # east of the sensor: shadow on its east side
+            dict(center_u=117.5, center_v=45.0, half_length=7.5, half_width=10.0, angle=0.0, eave_z=roof),
+        ]
+    )
+    scene = dataclasses.replace(build_scene(spec), buildings=buildings, trees=Trees.empty())
+    return generate_survey(tmp_path, spec, scene=scene)
+
+
+def test_buildings_cast_occlusion_on_the_side_away_from_the_sensor(tmp_path):
+    survey = shadow_scene_survey(tmp_path)
+    spec = survey.spec
+    lines = survey.flight_lines
+    assert len(lines) == 2 and lines[0].u + lines[0].half_swath_m < 210 and lines[1].u - lines[1].half_swath_m > 140
+    sensor_u, sensor_z, height = lines[0].u, lines[0].sensor_z, 25.0
+    occluded = survey.hole_cause == HoleCause.OCCLUSION
+    assert survey.cause_counts()[HoleCause.MISSED_COVERAGE] == survey.cause_counts()[HoleCause.WATER] == 0
+
+    def expected(edge_u, rows, east):
+        # ground is hidden within height * d / (H - roof) beyond the far wall
+        length = height * abs(edge_u - sensor_u) / (sensor_z - 75.0)
+        full = np.zeros(spec.shape, dtype=bool)  # pixels entirely in the shadow
+        near = np.zeros(spec.shape, dtype=bool)  # pixels touching it
+        col = np.arange(spec.shape[1])
+        if east:
+            full[rows, (col >= edge_u) & (col + 1 <= edge_u + length)] = True
+            near[rows, (col >= edge_u) & (col < edge_u + length)] = True
+        else:
+            full[rows, (col + 1 <= edge_u) & (col >= edge_u - length)] = True
+            near[rows, (col + 1 <= edge_u) & (col + 1 > edge_u - length)] = True
+        return full, near
+
+    # truth rows count from the north: v in [5, 25) -> rows 35..54, v in [35, 55) -> rows 5..24
+    west_full, west_near = expected(20.0, slice(35, 55), east=False)
+    east_full, east_near = expected(125.0, slice(5, 25), east=True)
+    assert west_full.sum() >= 6 * 20 and east_full.sum() >= 2 * 20
+    assert np.all(occluded[west_full]) and np.all(occluded[east_full])
+    assert not np.any(occluded & ~(west_near | east_near))
+    # the roofs themselves are covered
+    assert np.all(survey.point_count[35:55, 21:39] > 0) and np.all(survey.point_count[5:25, 111:124] > 0)
+    west_footprint = survey.building_footprints()[0]
+    assert west_footprint.bounds == pytest.approx((spec.x_min + 20, spec.y_min + 5, spec.x_min + 40, spec.y_min + 25))
+
+
+def test_no_spurious_empty_pixels(small_survey, unit_survey):
+    # an empty pixel that some line mostly sees would be a sampling accident
+    for survey in (small_survey, unit_survey):
+        fully_seen_but_empty = survey.hole_mask & (survey.visible_fraction >= 1.0)
+        assert not fully_seen_but_empty.any()
+    spurious = small_survey.hole_mask & (small_survey.visible_fraction >= 0.5)
+    assert spurious.mean() < 0.001
+    # ... and the default spacing leaves holes only for real reasons
+    assert small_survey.cause_counts()[HoleCause.OCCLUSION] > 0
+
+
+# -- determinism and tiling ----------------------------------------------------------
+
+
+def test_deterministic_for_a_seed(tmp_path, unit_survey):
+    again = generate_survey(tmp_path / "again", unit_survey.spec)
+    assert np.array_equal(again.truth_dsm, unit_survey.truth_dsm)
+    assert np.array_equal(again.hole_cause, unit_survey.hole_cause)
+    assert np.array_equal(sorted_points(again), sorted_points(unit_survey))
+    other = generate_survey(tmp_path / "other", dataclasses.replace(unit_survey.spec, seed=1))
+    assert not np.array_equal(other.truth_dsm, unit_survey.truth_dsm)
+
+
+def test_scene_and_points_do_not_depend_on_tiling(tmp_path):
+    spec = SurveySpec(**{**SMALL, "tile_size_m": 100.0})
+    big = generate_survey(tmp_path / "t100", spec)
+    small = generate_survey(tmp_path / "t50", dataclasses.replace(spec, tile_size_m=50.0))
+    assert len(big.tiles) < len(small.tiles)
+    for name in ("truth_dsm", "hole_cause", "point_count", "visible_fraction"):
+        assert np.array_equal(getattr(big, name), getattr(small, name)), name
+    assert big.n_points == small.n_points
+    assert np.array_equal(sorted_points(big), sorted_points(small))
+
+
+def test_keep_truth_false_writes_the_same_points(tmp_path, unit_survey):
+    lean = generate_survey(tmp_path, unit_survey.spec, keep_truth=False)
+    assert lean.truth_dsm is None and lean.hole_cause is None and lean.hole_mask is None
+    assert lean.n_points == unit_survey.n_points
+    assert np.array_equal(sorted_points(lean), sorted_points(unit_survey))
+
+
+def test_tiles_entirely_over_water_are_not_written(tmp_path):
+    spec = preset("unit", width_m=64.0, height_m=32.0, tile_size_m=16.0, missed_line=None, water_width_m=20.0)
+    scene = build_scene(spec)
+    river = dataclasses.replace(scene.river, center_v=8.0, meander_amplitude=0.0)
+    survey = generate_survey(tmp_path, spec, scene=dataclasses.replace(scene, river=river))
+    # southern tile row (v in [0, 16)) lies under water
+    assert len(survey.tiles) == 4
+    assert all(path.stem.endswith("_5000016") for path in survey.tiles)
+    assert np.all(survey.hole_cause[8:] == HoleCause.WATER)
+
+
+def test_stale_tiles_in_the_folder_are_reported(tmp_path):
+    spec = preset("unit", width_m=64.0, tile_size_m=32.0, missed_line=None)
+    generate_survey(tmp_path, spec)
+    with pytest.warns(UserWarning, match="not written by this survey"):
+        generate_survey(tmp_path, dataclasses.replace(spec, tile_size_m=64.0))
+
+
+# -- specification -------------------------------------------------------------------
+
+
+def test_presets():
+    assert preset("unit").resolution == 2.0
+    assert preset("bench", width_m=4000.0).width_m == 4000.0
+    assert preset("demo", seed=7).seed == 7
+    with pytest.raises(ValueError, match="unknown preset"):
+        preset("huge")
+
+
+@pytest.mark.parametrize(
+    "fields, message",
+    [
+        (dict(resolution=0.333), "resolution"),
+        (dict(width_m=400.5), "width_m"),
+        (dict(tile_size_m=75.5), "tile_size_m"),
+        (dict(pulse_spacing_m=0.6), "too sparse"),
+        (dict(las_version="1.3"), "las_version"),
+        (dict(side_overlap=1.0), "side_overlap"),
+    ],
+)
+def test_invalid_specs_are_rejected(fields, message):
+    with pytest.raises(ValueError, match=message):
+        SurveySpec(**fields)
+
+
+def test_missed_line_must_leave_a_gap():
+    with pytest.raises(ValueError, match="no uncovered strip"):
+        flight_lines(SurveySpec(side_overlap=0.55))
+    with pytest.raises(ValueError, match="does not exist"):
+        flight_lines(SurveySpec(missed_line=9))
+    # the default geometry: a gap of swath * (1 - 2 * overlap)
+    lines = flight_lines(SurveySpec())
+    gap = (lines[2].u - lines[2].half_swath_m) - (lines[0].u + lines[0].half_swath_m)
+    assert gap == pytest.approx(2 * lines[0].half_swath_m * (1 - 2 * 0.3))
+    assert not lines[1].flown and math.isclose(lines[1].x - lines[0].x, lines[2].x - lines[1].x)
+
+
+def test_sensor_must_clear_the_scene(tmp_path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(ValueError, match="flight_altitude_m"):
+            generate_survey(tmp_path, preset("unit", flight_altitude_m=20.0, missed_line=None))
