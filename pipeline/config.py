@@ -84,6 +84,9 @@ class OutputConfig:
     compress: str = _opt(
         "deflate", "COG compression.", choices=("deflate", "zstd", "lzw", "none")
     )
+    compress_level: int = _opt(
+        1, "Deflate/zstd level: 1 writes fastest, higher values make smaller files.", ge=1
+    )
     blocksize: int = _opt(256, "COG internal tile size in pixels.", choices=(128, 256, 512, 1024))
     overview_resampling: str = _opt(
         "average", "Resampling of COG overviews.", choices=("average", "nearest", "bilinear")

@@ -242,6 +242,7 @@ def _run_stages(client, plan: SurveyPlan, config: Config, staging: Path, bar: _P
     tile_tasks = sorted(plan.tile_tasks(config, staging / "work"), key=lambda t: (t.window.row_off, t.window.col_off))
     options = RasterOptions(
         compress=config.output.compress,
+        compress_level=config.output.compress_level,
         blocksize=config.output.blocksize,
         overview_resampling=config.output.overview_resampling,
     )

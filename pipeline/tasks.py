@@ -30,6 +30,9 @@ from .rasterize import (
 )
 
 STATISTIC_NAMES = ("zmax", "zmin", "count", "voxels")
+#: Stage-1 arrays are raw binaries of known shape (the tile's window): memory-mapping
+#: them needs no header parsing, which cost more than the merge itself.
+STATISTIC_DTYPES = {"zmax": np.float32, "zmin": np.float32, "count": np.uint32, "voxels": np.uint16}
 
 
 @dataclass(frozen=True)
@@ -146,8 +149,8 @@ def rasterize_tile(task: TileTask) -> TileResult:
     out.mkdir(exist_ok=True)  # never parents: a cancelled run's staging folder must stay deleted
     stats = accumulator.statistics
     for name in STATISTIC_NAMES:
-        _save(out / f"{name}.npy", getattr(stats, name))
-    _save(out / "shared_keys.npy", accumulator.voxel_keys(task.shared_windows))
+        _save_raw(out / f"{name}.bin", getattr(stats, name))
+    _save_raw(out / "shared_keys.bin", accumulator.voxel_keys(task.shared_windows).astype(np.int64))
     return TileResult(
         tile_index=task.tile_index,
         path=task.path,
@@ -184,7 +187,7 @@ def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
         if overlap.is_empty:
             continue
         statistics = load_tile_statistics(tile.output_dir, tile.window, overlap)
-        parts.append((statistics, _load(Path(tile.output_dir) / "shared_keys.npy")))
+        parts.append((statistics, np.fromfile(Path(tile.output_dir) / "shared_keys.bin", dtype=np.int64)))
     shared = shared_pixel_mask(window, task.planned_windows)
     merged = merge_statistics(window, parts, shared=shared, grid_width=grid.width)
     save_cell_statistics(task.statistics_path, merged)
@@ -214,7 +217,10 @@ def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
 def load_tile_statistics(output_dir: str, tile_window: PixelWindow, window: PixelWindow) -> PixelStatistics:
     """Read the part of a tile's stage-1 statistics inside ``window`` (memory-mapped)."""
     rows, cols = window.slices_within(tile_window)
-    arrays = {name: np.asarray(_load(Path(output_dir) / f"{name}.npy", mmap=True)[rows, cols]) for name in STATISTIC_NAMES}
+    arrays = {}
+    for name in STATISTIC_NAMES:
+        mapped = np.memmap(Path(output_dir) / f"{name}.bin", dtype=STATISTIC_DTYPES[name], mode="r", shape=tile_window.shape)
+        arrays[name] = np.array(mapped[rows, cols])
     return PixelStatistics(window=window, **arrays)
 
 
@@ -236,11 +242,7 @@ def load_cell_statistics(path: str | os.PathLike) -> PixelStatistics:
         return PixelStatistics(window=window, **{name: data[name] for name in STATISTIC_NAMES})
 
 
-def _save(path: Path, array: np.ndarray) -> None:
-    tmp = path.with_name(path.name + ".tmp.npy")
-    np.save(tmp, array)
+def _save_raw(path: Path, array: np.ndarray) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    np.ascontiguousarray(array).tofile(tmp)
     os.replace(tmp, path)
-
-
-def _load(path: Path, mmap: bool = False) -> np.ndarray:
-    return np.load(path, mmap_mode="r" if mmap else None)

@@ -21,6 +21,16 @@ logger = logging.getLogger(__name__)
 
 LAS_SIGNATURE = b"LASF"
 
+#: LAZ layers the rasterizer needs. Point formats 6-10 compress each field in its own
+#: layer, so the others (intensity, GPS time, colour, ...) are never decompressed;
+#: formats 0-5 compress whole points and ignore the selection.
+NEEDED_LAYERS = (
+    laspy.DecompressionSelection.base()
+    | laspy.DecompressionSelection.Z
+    | laspy.DecompressionSelection.CLASSIFICATION
+    | laspy.DecompressionSelection.FLAGS
+)
+
 
 @dataclass(frozen=True)
 class TileHeader:
@@ -127,18 +137,22 @@ def read_header(path: str | os.PathLike) -> TileHeader:
     )
 
 
-def iter_point_chunks(path: str | os.PathLike, chunk_points: int) -> Iterator[PointChunk]:
+def iter_point_chunks(
+    path: str | os.PathLike, chunk_points: int, *, selection: laspy.DecompressionSelection = NEEDED_LAYERS
+) -> Iterator[PointChunk]:
     """Decode a file once, ``chunk_points`` points at a time.
 
-    Memory is bounded by the chunk size, never the whole tile. A file that ends
-    early, or decodes fewer points than its header declares, raises
-    :class:`InputDataError`.
+    Memory is bounded by the chunk size, never the whole tile. Only the LAZ
+    layers in ``selection`` are decompressed (coordinates, class and flags by
+    default). A file that ends early, or decodes fewer points than its header
+    declares, raises :class:`InputDataError`.
     """
     path = Path(path)
     decoded = 0
     expected = None
     try:
-        with laspy.open(path, laz_backend=laspy.LazBackend.Lazrs if laspy.LazBackend.Lazrs.is_available() else None) as reader:
+        backend = laspy.LazBackend.Lazrs if laspy.LazBackend.Lazrs.is_available() else None
+        with laspy.open(path, laz_backend=backend, decompression_selection=selection) as reader:
             header = reader.header
             expected = int(header.point_count)
             scales = tuple(float(v) for v in header.scales)
@@ -179,7 +193,7 @@ def _class_and_withheld(records: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def decode_only(path: str | os.PathLike, chunk_points: int) -> int:
     """Decode every point of a file and drop it: the baseline of the benchmark."""
     total = 0
-    for chunk in iter_point_chunks(path, chunk_points):
+    for chunk in iter_point_chunks(path, chunk_points, selection=laspy.DecompressionSelection.all()):
         total += len(chunk)
     return total
 

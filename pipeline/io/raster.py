@@ -33,6 +33,7 @@ class RasterOptions:
     """How COGs are written (from the ``[output]`` configuration)."""
 
     compress: str = "deflate"
+    compress_level: int = 1
     blocksize: int = 256
     overview_resampling: str = "average"
 
@@ -97,6 +98,7 @@ def write_cog(
                     OVERVIEW_COUNT=overview_count,
                     RESAMPLING=options.overview_resampling.upper(),
                     PREDICTOR="YES" if options.compress != "none" else "NO",
+                    **({"LEVEL": options.compress_level} if options.compress in ("deflate", "zstd") else {}),
                     BIGTIFF="IF_SAFER",
                 )
         os.replace(tmp, path)
