@@ -39,6 +39,19 @@ VOXEL_SPAN = 64
 _SPAN_BELOW = VOXEL_SPAN // 2
 
 
+#: The per-pixel statistics, and the type each is stored in.
+STATISTIC_DTYPES: dict[str, type] = {
+    "zmax": np.float32,
+    "zmin": np.float32,
+    "count": np.uint32,
+    "voxels": np.uint16,
+    "water": np.uint16,
+    "source": np.uint16,
+}
+STATISTIC_NAMES = tuple(STATISTIC_DTYPES)
+WATER_CLASS = 9
+
+
 @dataclass
 class PixelStatistics:
     """Height-map statistics of a window of the grid.
@@ -53,6 +66,11 @@ class PixelStatistics:
         Points per pixel.
     voxels : ndarray of uint16, shape (M, N)
         Occupied voxels per pixel.
+    water : ndarray of uint16, shape (M, N)
+        Points of the water class (ASPRS 9) per pixel: evidence for the cause of holes.
+    source : ndarray of uint16, shape (M, N)
+        The highest ``point_source_id + 1`` of the pixel's points (0: none); the
+        flight line that covered it, whatever the order the points came in.
     """
 
     window: PixelWindow
@@ -60,6 +78,8 @@ class PixelStatistics:
     zmin: np.ndarray
     count: np.ndarray
     voxels: np.ndarray
+    water: np.ndarray
+    source: np.ndarray
 
     @classmethod
     def empty(cls, window: PixelWindow) -> PixelStatistics:
@@ -70,14 +90,14 @@ class PixelStatistics:
             zmin=np.full(shape, np.nan, np.float32),
             count=np.zeros(shape, np.uint32),
             voxels=np.zeros(shape, np.uint16),
+            water=np.zeros(shape, np.uint16),
+            source=np.zeros(shape, np.uint16),
         )
 
     def crop(self, window: PixelWindow) -> PixelStatistics:
         """The statistics of a sub-window (views, not copies)."""
         rows, cols = window.slices_within(self.window)
-        return PixelStatistics(
-            window, self.zmax[rows, cols], self.zmin[rows, cols], self.count[rows, cols], self.voxels[rows, cols]
-        )
+        return PixelStatistics(window, **{name: getattr(self, name)[rows, cols] for name in STATISTIC_NAMES})
 
 
 class VoxelSet:
@@ -141,6 +161,8 @@ class HeightMapAccumulator:
         z: np.ndarray,
         keep: np.ndarray,
         *,
+        water: np.ndarray | None = None,
+        source: np.ndarray | None = None,
         scales: tuple[float, float, float] = (1.0, 1.0, 1.0),
         offsets: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> tuple[int, int]:
@@ -155,6 +177,10 @@ class HeightMapAccumulator:
             does, without materialising float arrays).
         keep : ndarray of bool, shape (P,)
             Points that passed the class/withheld filters.
+        water : ndarray of bool, shape (P,), optional
+            Points of the water class.
+        source : ndarray of uint16, shape (P,), optional
+            ``point_source_id`` of each point (the flight line).
         scales, offsets : tuple of 3 floats
             Of the integer coordinates; the defaults leave floats unchanged.
 
@@ -166,14 +192,19 @@ class HeightMapAccumulator:
         self.overflow.reserve(int(len(x)))
         w = self.window
         s = self.statistics
+        if water is None:
+            water = np.zeros(len(x), bool)
+        if source is None:
+            source = np.full(len(x), np.iinfo(np.uint16).max, np.uint16)  # +1 wraps to 0: no line
         used, outside, added = _bin_points_kernel(
-            x, y, z, keep,
+            x, y, z, keep, water, source,
             float(scales[0]), float(scales[1]), float(scales[2]),
             float(offsets[0]), float(offsets[1]), float(offsets[2]),
             *self._geometry,
             w.row_off, w.col_off, w.height, w.width,
             self.voxel_height,
             s.zmax.reshape(-1), s.zmin.reshape(-1), s.count.reshape(-1), s.voxels.reshape(-1),
+            s.water.reshape(-1), s.source.reshape(-1),
             self.voxel_base.reshape(-1), self.voxel_bits.reshape(-1),
             self.overflow.table,
         )  # fmt: skip
@@ -279,6 +310,8 @@ def merge_statistics(
         np.fmax(dst.zmax, src.zmax, out=dst.zmax)
         np.fmin(dst.zmin, src.zmin, out=dst.zmin)
         dst.count += src.count
+        dst.water += src.water
+        np.maximum(dst.source, src.source, out=dst.source)
         local_shared = shared[overlap.slices_within(window)]
         dst.voxels += np.where(local_shared, 0, src.voxels).astype(np.uint16)
         if len(keys):
@@ -335,12 +368,12 @@ def _rehash(old, new):
 
 @numba.njit(cache=True, nogil=True)
 def _bin_points_kernel(
-    x, y, z, keep,
+    x, y, z, keep, water, source,
     scale_x, scale_y, scale_z, offset_x, offset_y, offset_z,
     resolution, col_min, row_top, grid_width,
     win_row_off, win_col_off, win_height, win_width,
     voxel_height,
-    zmax, zmin, count, voxels, voxel_base, voxel_bits,
+    zmax, zmin, count, voxels, water_count, source_max, voxel_base, voxel_bits,
     table,
 ):  # fmt: skip
     used = 0
@@ -367,6 +400,11 @@ def _bin_points_kernel(
         elif level > _LEVEL_MAX - LEVEL_OFFSET:
             level = _LEVEL_MAX - LEVEL_OFFSET
         used += 1
+        if water[i] and water_count[p] < 65535:
+            water_count[p] += 1
+        line = np.uint16(source[i] + np.uint16(1))
+        if line > source_max[p]:
+            source_max[p] = line
         if count[p] == 0:
             count[p] = 1
             zmax[p] = height

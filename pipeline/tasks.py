@@ -22,6 +22,9 @@ from .grid import Cell, Grid, PixelWindow
 from .io.las import iter_point_chunks
 from .io.raster import RasterOptions, write_cog
 from .rasterize import (
+    STATISTIC_DTYPES,
+    STATISTIC_NAMES,
+    WATER_CLASS,
     HeightMapAccumulator,
     PixelStatistics,
     merge_statistics,
@@ -29,10 +32,8 @@ from .rasterize import (
     shared_pixel_mask,
 )
 
-STATISTIC_NAMES = ("zmax", "zmin", "count", "voxels")
-#: Stage-1 arrays are raw binaries of known shape (the tile's window): memory-mapping
-#: them needs no header parsing, which cost more than the merge itself.
-STATISTIC_DTYPES = {"zmax": np.float32, "zmin": np.float32, "count": np.uint32, "voxels": np.uint16}
+# Stage-1 arrays are raw binaries of known shape (the tile's window): memory-mapping
+# them needs no header parsing, which cost more than the merge itself.
 
 
 @dataclass(frozen=True)
@@ -134,14 +135,15 @@ def rasterize_tile(task: TileTask) -> TileResult:
             keep_classes=f.keep_classes,
             drop_withheld=f.drop_withheld,
         )
+        evidence = {"water": chunk.classification == WATER_CLASS, "source": chunk.point_source_id}
         if transformer is None:
             n_used, n_outside = accumulator.add(
-                chunk.X, chunk.Y, chunk.Z, keep, scales=chunk.scales, offsets=chunk.offsets
+                chunk.X, chunk.Y, chunk.Z, keep, scales=chunk.scales, offsets=chunk.offsets, **evidence
             )
         else:
             x, y, z = chunk.coordinates()
             x, y = transformer.transform(x, y)
-            n_used, n_outside = accumulator.add(x, y, z, keep)
+            n_used, n_outside = accumulator.add(x, y, z, keep, **evidence)
         read += len(chunk)
         used += n_used
         outside += n_outside

@@ -21,7 +21,7 @@ logger = logging.getLogger(__name__)
 
 LAS_SIGNATURE = b"LASF"
 
-#: LAZ layers the rasterizer needs. Point formats 6-10 compress each field in its own
+#: LAZ layers the rasterizer needs (the point source id tells flight lines apart). Point formats 6-10 compress each field in its own
 #: layer, so the others (intensity, GPS time, colour, ...) are never decompressed;
 #: formats 0-5 compress whole points and ignore the selection.
 NEEDED_LAYERS = (
@@ -29,6 +29,7 @@ NEEDED_LAYERS = (
     | laspy.DecompressionSelection.Z
     | laspy.DecompressionSelection.CLASSIFICATION
     | laspy.DecompressionSelection.FLAGS
+    | laspy.DecompressionSelection.POINT_SOURCE_ID
 )
 
 
@@ -64,6 +65,7 @@ class PointChunk:
     offsets: tuple[float, float, float]
     classification: np.ndarray  # uint8
     withheld: np.ndarray  # bool
+    point_source_id: np.ndarray  # uint16: the flight line
 
     def __len__(self) -> int:
         return len(self.X)
@@ -168,6 +170,7 @@ def iter_point_chunks(
                     X=records["X"], Y=records["Y"], Z=records["Z"],
                     scales=scales, offsets=offsets,
                     classification=classification, withheld=withheld,
+                    point_source_id=records["point_source_id"],
                 )  # fmt: skip
     except InputDataError:
         raise
