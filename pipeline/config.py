@@ -68,6 +68,30 @@ class RasterizeConfig:
 
 
 @dataclass(frozen=True)
+class HolesConfig:
+    """Hole detection, classification and outlines (docs/holes.md)."""
+
+    min_area_m2: float = _opt(
+        4.0, "Holes smaller than this are small voids: counted in the report, not listed.", ge=0
+    )
+    connectivity: int = _opt(4, "Pixel connectivity of hole pixels.", choices=(4, 8))
+    jump_threshold_m: float = _opt(
+        2.5, "Height jump (UAS eq. 1): max z - min z in a pixel, or between 4-neighbours.", gt=0
+    )
+    outline: str = _opt(
+        "pixel", "Hole polygons: exact pixel edges, simplified, or straight (man-made).",
+        choices=("pixel", "simplified", "straight"),
+    )
+    footprint_block_m: float = _opt(
+        8.0, "Block size of the coarse occupancy map that decides the survey's data footprint.", gt=0
+    )
+    footprint_closing_m: float = _opt(
+        40.0, "Gaps between data narrower than about twice this stay inside the footprint.", ge=0
+    )
+    water: str = _opt("", "Polygon file of known water (--water); holes inside it are water.")
+
+
+@dataclass(frozen=True)
 class DaskConfig:
     """The Dask cluster a run uses when no --scheduler is given."""
 
@@ -116,6 +140,7 @@ class Config:
     grid: GridConfig = field(default_factory=GridConfig)
     filter: FilterConfig = field(default_factory=FilterConfig)
     rasterize: RasterizeConfig = field(default_factory=RasterizeConfig)
+    holes: HolesConfig = field(default_factory=HolesConfig)
     dask: DaskConfig = field(default_factory=DaskConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     survey: SurveyConfig = field(default_factory=SurveyConfig)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
 import shutil
 import socket
@@ -27,13 +28,18 @@ from pyproj import CRS, Transformer
 from . import __version__
 from .config import Config, to_dict
 from .errors import CRSError, InputDataError, OutputError
+from .footprint import block_size_px, footprint_map
 from .grid import Cell, Grid, PixelWindow
+from .hole_layers import write_hole_layers
 from .io.raster import RasterOptions, write_vrt
 from .io.vector import write_layer
 from .survey import Survey, scan_survey, source_crs_for_task, tile_index_records
 from .tasks import (
     CellResult,
     CellTask,
+    DetectTask,
+    HoleParams,
+    detect_cell,
     PointFilter,
     TileFailure,
     TileResult,
@@ -62,6 +68,7 @@ class RunSummary:
     stage_seconds: dict[str, float] = field(default_factory=dict)
     skipped: list[dict[str, str]] = field(default_factory=list)
     dsm_tiles: list[str] = field(default_factory=list)
+    holes: dict[str, Any] = field(default_factory=dict)
 
     @property
     def points_per_second(self) -> float:
@@ -77,6 +84,8 @@ class SurveyPlan:
     cells: list[Cell]
     tile_windows: list[PixelWindow]
     survey_area: shapely.Geometry
+    aoi_given: bool
+    block_px: int
 
     def tile_tasks(self, config: Config, work_dir: Path) -> list[TileTask]:
         f = config.filter
@@ -126,22 +135,23 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
         touches_tile = any(not w.intersection(cell.window).is_empty for w in tile_windows)
         if touches_tile and shapely.intersects(shapely.box(*grid.window_bounds(cell.window)), survey_area):
             cells.append(cell)
-    return SurveyPlan(survey, grid, cells, tile_windows, survey_area)
+    block_px = block_size_px(grid, config.holes.footprint_block_m, survey.horizontal_unit_m)
+    return SurveyPlan(survey, grid, cells, tile_windows, survey_area, aoi is not None, block_px)
 
 
-def read_survey_area(path: str | os.PathLike, crs: CRS) -> shapely.Geometry:
+def read_survey_area(path: str | os.PathLike, crs: CRS, *, what: str = "AOI") -> shapely.Geometry:
     """The union of the polygons of a vector file, in the survey CRS."""
     import pyogrio
 
     try:
         frame = pyogrio.read_dataframe(path)
     except Exception as e:
-        raise InputDataError(path, f"AOI file cannot be read: {e}") from None
+        raise InputDataError(path, f"{what} file cannot be read: {e}") from None
     polygons = [g for g in frame.geometry if g is not None and g.geom_type in ("Polygon", "MultiPolygon")]
     if not polygons:
-        raise InputDataError(path, "AOI file holds no polygon")
+        raise InputDataError(path, f"{what} file holds no polygon")
     if frame.crs is None:
-        raise CRSError(path, "AOI file has no CRS")
+        raise CRSError(path, f"{what} file has no CRS")
     area = shapely.union_all(polygons)
     if not CRS.from_user_input(frame.crs).equals(crs, ignore_axis_order=True):
         transformer = Transformer.from_crs(frame.crs, crs, always_xy=True)
@@ -164,6 +174,7 @@ def run_survey(
     scheduler: str | None = None,
     client: Any = None,
     aoi: str | os.PathLike | None = None,
+    water: str | os.PathLike | None = None,
     progress: bool = False,
 ) -> RunSummary:
     """Run the pipeline on a survey and write the products into ``out_dir``.
@@ -183,6 +194,8 @@ def run_survey(
         An existing client (takes precedence over ``scheduler``).
     aoi : path-like, optional
         A polygon file: the survey area, instead of the union of tile extents.
+    water : path-like, optional
+        A polygon file of known water (default: ``config.holes.water``).
     progress : bool
         Show a progress bar on stderr.
     """
@@ -193,16 +206,23 @@ def run_survey(
         inputs, crs=config.survey.crs, target_crs=config.survey.target_crs, on_error=config.survey.on_error
     )
     plan = plan_survey(survey, config, aoi=aoi)
+    water = water or config.holes.water or None
+    water = read_survey_area(water, survey.crs, what="water") if water else None
     stage_seconds["scan"] = time.perf_counter() - started
     created_out = not out.exists()
     staging = _make_staging(out)
     try:
         with _dask_client(client, scheduler, config) as dask_client, _Progress(progress) as bar:
             tile_results, failed, cell_results = _run_stages(dask_client, plan, config, staging, bar, stage_seconds)
+            t0 = time.perf_counter()
+            detected = _run_detection(dask_client, plan, config, cell_results, bar, water)
+            stage_seconds["holes"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         skipped = survey.skipped + failed
         _write_outputs(staging, plan, tile_results, cell_results, skipped)
+        hole_summary = write_hole_layers(staging / "holes.gpkg", plan, config, detected)
         summary = RunSummary(
+            holes=hole_summary,
             out_dir=str(out),
             tiles=len(tile_results),
             cells=len(cell_results),
@@ -264,6 +284,7 @@ def _run_stages(client, plan: SurveyPlan, config: Config, staging: Path, bar: _P
             dsm_path=str(staging / "dsm" / f"dsm_{cell.id}.tif"),
             statistics_path=str(staging / "work" / "cells" / f"cell_{cell.id}.npz"),
             raster_options=options,
+            block_px=plan.block_px,
         )
         dependencies = [tile_futures[t.tile_index] for t in touching]
         cell_futures.append(
@@ -306,6 +327,54 @@ def _run_stages(client, plan: SurveyPlan, config: Config, staging: Path, bar: _P
     order = {cell.id: i for i, cell in enumerate(plan.cells)}
     cell_results.sort(key=lambda r: order[r.cell_id])
     return tile_results, failed, cell_results
+
+
+def _run_detection(client, plan: SurveyPlan, config: Config, cell_results, bar: _Progress, water) -> list:
+    """Stage 3: the footprint on the client, then one detection task per cell."""
+    from distributed import as_completed
+
+    holes = config.holes
+    closing_blocks = math.ceil(holes.footprint_closing_m / holes.footprint_block_m)
+    blocks = footprint_map(
+        [r.occupied_blocks for r in cell_results], plan.grid, plan.block_px, closing_blocks=closing_blocks
+    )
+    unit = plan.survey.horizontal_unit_m
+    pixel_area_m2 = (plan.grid.resolution * unit) ** 2
+    params = HoleParams(
+        jump_threshold=holes.jump_threshold_m / plan.survey.vertical_unit_m,
+        voxel_height=config.rasterize.voxel_height_m / plan.survey.vertical_unit_m,
+        connectivity=holes.connectivity,
+        min_area_px=math.ceil(holes.min_area_m2 / pixel_area_m2),
+    )
+    cells = {c.id: c for c in plan.cells}
+    area_wkb = shapely.to_wkb(plan.survey_area) if plan.aoi_given else None
+    water_wkb = shapely.to_wkb(water) if water is not None else None
+    futures = []
+    for result in cell_results:
+        cell = cells[result.cell_id]
+        task = DetectTask(
+            cell=cell,
+            grid=plan.grid,
+            statistics_path=result.statistics_path,
+            blocks=blocks.slice_for(plan.grid, cell.halo_window),
+            tile_windows=tuple(w for w in plan.tile_windows if not w.intersection(cell.halo_window).is_empty),
+            survey_area_wkb=area_wkb,
+            water_wkb=water_wkb,
+            params=params,
+        )
+        futures.append(client.submit(detect_cell, task, pure=False))
+    handle = bar.add("find holes", total=len(futures))
+    detected = []
+    try:
+        for future in as_completed(futures):
+            detected.append(future.result())
+            bar.advance(handle)
+    except BaseException:
+        client.cancel(futures)
+        raise
+    order = {r.cell_id: i for i, r in enumerate(cell_results)}
+    detected.sort(key=lambda d: order[d.cell_holes.cell.id])
+    return detected
 
 
 # -- outputs --------------------------------------------------------------------------
@@ -407,6 +476,7 @@ def _write_manifest(path: Path, summary: RunSummary, plan: SurveyPlan, config: C
             "stage_seconds": {k: round(v, 3) for k, v in summary.stage_seconds.items()},
             "empty_pixels": sum(r.empty_pixels for r in cell_results),
         },
+        "holes": summary.holes,
     }
     path.write_text(json.dumps(manifest, indent=2, default=str))
 

@@ -17,10 +17,15 @@ from pathlib import Path
 import numpy as np
 from pyproj import Transformer
 
+import shapely
+
 from .errors import InputDataError
+from .footprint import BlockMap, aoi_mask, occupied_blocks, window_union_mask
 from .grid import Cell, Grid, PixelWindow
+from .holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
+from .walls import Wall, find_walls
 from .io.las import iter_point_chunks
-from .io.raster import RasterOptions, write_cog
+from .io.raster import RasterOptions, geometry_mask, label_polygons, write_cog
 from .rasterize import (
     STATISTIC_DTYPES,
     STATISTIC_NAMES,
@@ -96,6 +101,7 @@ class CellTask:
     dsm_path: str
     statistics_path: str
     raster_options: RasterOptions
+    block_px: int
 
 
 @dataclass(frozen=True)
@@ -106,6 +112,41 @@ class CellResult:
     points: int
     pixels: int
     empty_pixels: int
+    occupied_blocks: np.ndarray  # packed keys of the footprint blocks holding data
+
+
+@dataclass(frozen=True)
+class HoleParams:
+    """Hole-stage parameters in survey units (from ``[holes]``)."""
+
+    jump_threshold: float  # z units
+    voxel_height: float  # z units
+    connectivity: int
+    min_area_px: int
+
+
+@dataclass(frozen=True)
+class DetectTask:
+    """Stage 3: find and measure the holes, vertical holes and walls of one cell."""
+
+    cell: Cell
+    grid: Grid
+    statistics_path: str
+    blocks: BlockMap
+    tile_windows: tuple[PixelWindow, ...]
+    survey_area_wkb: bytes | None  # the --aoi polygon, else the tile windows are the survey area
+    water_wkb: bytes | None  # the --water polygons
+    params: HoleParams
+
+
+@dataclass(frozen=True)
+class DetectResult:
+    cell_holes: CellHoles  # without its label raster
+    part_outlines: dict[int, bytes]  # WKB polygon per part label, exact pixel edges
+    vertical_holes: list[dict]  # records with a "wkb" polygon
+    walls: list[Wall]
+    jump_px: int
+    aoi_px: int
 
 
 def rasterize_tile(task: TileTask) -> TileResult:
@@ -213,7 +254,98 @@ def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
         points=points,
         pixels=cell.window.height * cell.window.width,
         empty_pixels=int((core.count == 0).sum()),
+        occupied_blocks=occupied_blocks(core.count, cell.window, grid, task.block_px),
     )
+
+
+def detect_cell(task: DetectTask) -> DetectResult:
+    """Holes, vertical holes and walls of one cell, from its merged statistics (stage 3)."""
+    cell, grid, params = task.cell, task.grid, task.params
+    stats = load_cell_statistics(task.statistics_path)
+    window = stats.window
+    transform = grid.window_transform(window)
+    if task.survey_area_wkb is not None:
+        survey_area = geometry_mask(shapely.from_wkb(task.survey_area_wkb), transform, window.shape)
+    else:
+        survey_area = window_union_mask(window, task.tile_windows)
+    aoi = aoi_mask(window, grid, task.blocks, count=stats.count, survey_area=survey_area)
+    water_mask = (
+        geometry_mask(shapely.from_wkb(task.water_wkb), transform, window.shape) if task.water_wkb else None
+    )
+    holes = detect_cell_holes(
+        stats.count,
+        stats.zmax,
+        stats.zmin,
+        aoi,
+        cell=cell,
+        grid_window=grid.window,
+        jump_threshold=params.jump_threshold,
+        connectivity=params.connectivity,
+        water_points=stats.water,
+        water_mask=water_mask,
+        flight_line=stats.source.astype(np.int64) - 1,
+        min_area_px=params.min_area_px,
+    )
+    core_rows, core_cols = cell.window.slices_within(window)
+    core_transform = grid.window_transform(cell.window)
+    outlines = {}
+    if holes.labels is not None and holes.n_parts:
+        polygons = label_polygons(
+            np.where(holes.labels > 0, holes.labels, 0), core_transform, connectivity=params.connectivity
+        )
+        outlines = {label: shapely.to_wkb(polygon) for label, polygon in polygons.items()}
+    jumps = height_jumps(stats.zmax, stats.zmin, jump_threshold=params.jump_threshold)
+    vertical = vertical_holes(
+        stats.zmax, stats.zmin, stats.voxels, voxel_height=params.voxel_height, jump_threshold=params.jump_threshold
+    )[core_rows, core_cols]
+    vertical_records = _vertical_hole_records(vertical, stats.crop(cell.window), core_transform, params)
+    walls = [
+        wall
+        for wall in find_walls(stats.zmax, stats.zmin, jump_threshold=params.jump_threshold, count=stats.count, transform=transform)
+        if _midpoint_in(wall, grid.window_bounds(cell.window))
+    ]
+    return DetectResult(
+        cell_holes=holes.without_labels(),
+        part_outlines=outlines,
+        vertical_holes=vertical_records,
+        walls=walls,
+        jump_px=int(jumps[core_rows, core_cols].sum()),
+        aoi_px=int(aoi[core_rows, core_cols].sum()),
+    )
+
+
+def _vertical_hole_records(mask: np.ndarray, core: PixelStatistics, transform, params: HoleParams) -> list[dict]:
+    """One record per connected group of vertical-hole pixels (UAS eq. 2) in a cell core."""
+    import scipy.ndimage as ndi
+
+    labels, n = ndi.label(mask)
+    if n == 0:
+        return []
+    index = np.arange(1, n + 1)
+    span = (core.zmax.astype(np.float64) - core.zmin)
+    expected = np.floor(span / params.voxel_height)
+    missing = np.where(mask, np.maximum(expected - core.voxels, 0), 0)
+    pixels = ndi.sum_labels(mask, labels, index)
+    max_span = ndi.maximum(np.where(mask, span, 0), labels, index)
+    missing_voxels = ndi.sum_labels(missing, labels, index)
+    top = ndi.maximum(np.where(mask, core.zmax, -np.inf), labels, index)
+    polygons = label_polygons(labels, transform, connectivity=8)
+    return [
+        {
+            "pixels": int(pixels[i]),
+            "max_height_range": float(max_span[i]),
+            "missing_voxels": int(missing_voxels[i]),
+            "top": float(top[i]),
+            "wkb": shapely.to_wkb(polygons[i + 1]),
+        }
+        for i in range(n)
+        if (i + 1) in polygons
+    ]
+
+
+def _midpoint_in(wall: Wall, bounds: tuple[float, float, float, float]) -> bool:
+    x, y = (wall.x0 + wall.x1) / 2, (wall.y0 + wall.y1) / 2
+    return bounds[0] <= x < bounds[2] and bounds[1] <= y < bounds[3]
 
 
 def load_tile_statistics(output_dir: str, tile_window: PixelWindow, window: PixelWindow) -> PixelStatistics:

@@ -170,3 +170,24 @@ def read_raster(path: str | os.PathLike) -> tuple[np.ndarray, Affine, str]:
 
 
 __all__ = ["NODATA", "RasterOptions", "Resampling", "read_raster", "write_cog", "write_vrt"]
+
+
+def label_polygons(labels: np.ndarray, transform: Affine, *, connectivity: int = 4) -> dict[int, "shapely.Geometry"]:
+    """Polygons with exact pixel edges of each positive label (holes-in-holes kept as interiors)."""
+    import shapely
+    from rasterio.features import shapes
+
+    pieces: dict[int, list] = {}
+    data = np.ascontiguousarray(labels, dtype=np.int32)
+    for geometry, value in shapes(data, mask=data > 0, transform=transform, connectivity=connectivity):
+        pieces.setdefault(int(value), []).append(shapely.geometry.shape(geometry))
+    return {label: parts[0] if len(parts) == 1 else shapely.union_all(parts) for label, parts in pieces.items()}
+
+
+def geometry_mask(geometry, transform: Affine, shape: tuple[int, int]) -> np.ndarray:
+    """Pixels whose centre lies inside ``geometry`` (a shapely geometry in the raster's CRS)."""
+    from rasterio.features import geometry_mask as _geometry_mask
+
+    if geometry is None or geometry.is_empty:
+        return np.zeros(shape, bool)
+    return _geometry_mask([geometry], out_shape=shape, transform=transform, invert=True)

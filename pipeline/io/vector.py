@@ -46,7 +46,7 @@ def write_layer(
             layer=layer,
             driver="GPKG",
             geometry_type=geometry_type,
-            promote_to_multi=False,
+            promote_to_multi=bool(geometry_type and geometry_type.startswith("Multi")),
         )
     except Exception as e:
         raise OutputError(f"{path}: cannot write layer '{layer}': {e}") from None

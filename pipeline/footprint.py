@@ -1,0 +1,159 @@
+"""The survey area (AOI) at pixel level: where an empty pixel is a hole.
+
+Outside the AOI everything is exterior, never a hole. The AOI is the survey area
+(the union of the tile windows, or a polygon given with ``--aoi``) intersected
+with the data footprint, so that the empty corners of a tile around a diagonal
+flight strip are not holes, while voids enclosed by data and gaps between
+flight lines are.
+
+The footprint needs a global view (whether a void is enclosed is not a local
+question), which must not mean a survey-sized fine raster: each cell reports
+which blocks of ``block_px`` x ``block_px`` pixels hold data; the client closes
+and fills that coarse map (:func:`pipeline.holes.data_footprint`). Blocks lie on
+the absolute lattice, so the result does not depend on the cell size. At pixel
+level, blocks on the footprint's border keep only what a small closing of the
+occupied pixels covers (a local operation inside the cell's halo); interior
+blocks are wholly inside.
+
+Pure: arrays in, arrays out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.ndimage as ndi
+
+from .grid import Grid, PixelWindow
+from .holes import data_footprint
+
+#: Radius (pixels) of the closing of occupied pixels in border blocks.
+EDGE_CLOSING_PX = 2
+
+
+@dataclass(frozen=True)
+class BlockMap:
+    """A boolean map of absolute blocks: row 0 is block row ``top`` (counting up), column 0 is ``left``."""
+
+    block_px: int
+    left: int
+    top: int
+    inside: np.ndarray  # bool (rows, cols): in the footprint
+    border: np.ndarray  # bool: in the footprint with a 4-neighbour outside it
+
+    def slice_for(self, grid: Grid, window: PixelWindow) -> BlockMap:
+        """The blocks under a window (with one block of margin), small enough to ship to a task."""
+        c0, r0 = _block_of(grid, window.row_off + window.height - 1, window.col_off, self.block_px)
+        c1, r1 = _block_of(grid, window.row_off, window.col_off + window.width - 1, self.block_px)
+        rows = slice(max(0, self.top - (r1 + 1)), max(0, self.top - (r0 - 1) + 1))
+        cols = slice(max(0, c0 - 1 - self.left), max(0, c1 + 1 - self.left + 1))
+        return BlockMap(
+            self.block_px,
+            self.left + cols.start,
+            self.top - rows.start,
+            self.inside[rows, cols].copy(),
+            self.border[rows, cols].copy(),
+        )
+
+
+def block_size_px(grid: Grid, block_m: float, unit_m: float) -> int:
+    """Pixels per block side for a block size in metres (at least 1)."""
+    return max(1, round(block_m / unit_m / grid.resolution))
+
+
+def occupied_blocks(count: np.ndarray, window: PixelWindow, grid: Grid, block_px: int) -> np.ndarray:
+    """Packed keys ``(block_col, block_row)`` of the absolute blocks holding data in ``window``."""
+    rows, cols = np.nonzero(count > 0)
+    if len(rows) == 0:
+        return np.empty(0, np.int64)
+    block_cols = np.floor_divide(grid.col_min + window.col_off + cols, block_px)
+    block_rows = np.floor_divide(grid.row_top - (window.row_off + rows), block_px)
+    return np.unique(_pack(block_cols, block_rows))
+
+
+def footprint_map(keys: list[np.ndarray], grid: Grid, block_px: int, *, closing_blocks: int) -> BlockMap:
+    """Close and fill the survey's block occupancy into its footprint."""
+    left = math.floor(grid.col_min / block_px)
+    right = math.floor((grid.col_min + grid.width - 1) / block_px)
+    top = math.floor(grid.row_top / block_px)
+    bottom = math.floor((grid.row_top - grid.height + 1) / block_px)
+    occupied = np.zeros((top - bottom + 1, right - left + 1), bool)
+    if keys:
+        block_cols, block_rows = _unpack(np.concatenate(keys))
+        occupied[top - block_rows, block_cols - left] = True
+    inside = data_footprint(occupied, closing_px=closing_blocks)
+    border = inside & ~ndi.binary_erosion(inside, border_value=0)
+    return BlockMap(block_px, left, top, inside, border)
+
+
+def aoi_mask(
+    window: PixelWindow,
+    grid: Grid,
+    blocks: BlockMap,
+    *,
+    count: np.ndarray,
+    survey_area: np.ndarray,
+) -> np.ndarray:
+    """Which pixels of ``window`` are inside the AOI.
+
+    Parameters
+    ----------
+    window : PixelWindow
+        Usually a cell's halo window.
+    blocks : BlockMap
+        The footprint (or a slice of it covering the window).
+    count : ndarray, shape of ``window``
+        Points per pixel.
+    survey_area : ndarray of bool, shape of ``window``
+        The tile windows or the ``--aoi`` polygon.
+    """
+    rows = np.arange(window.row_off, window.row_end)
+    cols = np.arange(window.col_off, window.col_end)
+    block_rows = blocks.top - np.floor_divide(grid.row_top - rows, blocks.block_px)
+    block_cols = np.floor_divide(grid.col_min + cols, blocks.block_px) - blocks.left
+    valid_r = (block_rows >= 0) & (block_rows < blocks.inside.shape[0])
+    valid_c = (block_cols >= 0) & (block_cols < blocks.inside.shape[1])
+    br = np.clip(block_rows, 0, blocks.inside.shape[0] - 1)
+    bc = np.clip(block_cols, 0, blocks.inside.shape[1] - 1)
+    valid = valid_r[:, None] & valid_c[None, :]
+    inside = blocks.inside[np.ix_(br, bc)] & valid
+    border = blocks.border[np.ix_(br, bc)] & valid
+    occupied = count > 0
+    disc = _disc(EDGE_CLOSING_PX)
+    padded = np.pad(occupied, EDGE_CLOSING_PX * 2, mode="edge")
+    closed = ndi.binary_closing(padded, structure=disc)[
+        EDGE_CLOSING_PX * 2 : -EDGE_CLOSING_PX * 2, EDGE_CLOSING_PX * 2 : -EDGE_CLOSING_PX * 2
+    ]
+    return survey_area & inside & (~border | closed | occupied)
+
+
+def window_union_mask(window: PixelWindow, windows: list[PixelWindow] | tuple[PixelWindow, ...]) -> np.ndarray:
+    """Pixels of ``window`` covered by any of ``windows`` (the tiles' survey area)."""
+    mask = np.zeros(window.shape, bool)
+    for other in windows:
+        overlap = other.intersection(window)
+        if not overlap.is_empty:
+            mask[overlap.slices_within(window)] = True
+    return mask
+
+
+def _block_of(grid: Grid, row: int, col: int, block_px: int) -> tuple[int, int]:
+    return (grid.col_min + col) // block_px, (grid.row_top - row) // block_px
+
+
+def _disc(radius: int) -> np.ndarray:
+    yy, xx = np.mgrid[-radius : radius + 1, -radius : radius + 1]
+    return xx**2 + yy**2 <= radius**2
+
+
+_OFFSET = np.int64(1) << 30  # block indices up to +-2^30 fit both halves of an int64
+
+
+def _pack(block_cols: np.ndarray, block_rows: np.ndarray) -> np.ndarray:
+    return ((block_cols.astype(np.int64) + _OFFSET) << 32) | (block_rows.astype(np.int64) + _OFFSET)
+
+
+def _unpack(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return (keys >> 32) - _OFFSET, (keys & np.int64(0xFFFFFFFF)) - _OFFSET
