@@ -81,23 +81,26 @@ def main(verbose: int, quiet: int) -> None:
 @click.option("--crs", help="CRS of tiles that have none, e.g. EPSG:28992 (survey.crs).")
 @click.option("--target-crs", help="Reproject every tile to this CRS while streaming (survey.target_crs).")
 @click.option("--aoi", type=click.Path(dir_okay=False), help="Polygon file: the survey area.")
+@click.option("--water", type=click.Path(dir_okay=False), help="Polygon file of known water (holes.water).")
 @click.option("--on-error", type=click.Choice(["fail", "skip"]), help="What a bad tile does (survey.on_error).")
 @click.option("--progress/--no-progress", default=None, help="Progress bar (default: when stderr is a terminal).")
-def run(inputs, out_dir, config_path, overrides, scheduler, workers, crs, target_crs, aoi, on_error, progress):
+def run(inputs, out_dir, config_path, overrides, scheduler, workers, crs, target_crs, aoi, water, on_error, progress):
     """Build the DSM of a survey. INPUT may be files, folders or globs of LAS/LAZ/COPC."""
     from .config import load_config
     from .run import run_survey
 
     extra = _option_overrides(workers=workers, crs=crs, target_crs=target_crs, on_error=on_error)
     config = load_config(config_path, [*overrides, *extra])
-    if aoi is not None and not Path(aoi).exists():
-        raise InputDataError(aoi, "AOI file not found")
+    for name, path in (("AOI", aoi), ("water", water)):
+        if path is not None and not Path(path).exists():
+            raise InputDataError(path, f"{name} file not found")
     summary = run_survey(
         inputs,
         out_dir,
         config,
         scheduler=scheduler,
         aoi=aoi,
+        water=water,
         progress=sys.stderr.isatty() if progress is None else progress,
     )
     _report(summary)
@@ -119,20 +122,59 @@ def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
     from .run import run_survey
     from .synth import generate_survey, preset
 
+    from .evaluate import score_holes
+    from .synth import write_truth
+
     config = load_config(config_path, [*overrides, *_option_overrides(workers=workers)])
     out = Path(out_dir)
     survey_dir = out / "survey"
     click.echo(f"generating a synthetic survey ({size}) in {survey_dir} ...", err=True)
-    synthetic = generate_survey(survey_dir, preset(size))
-    click.echo(f"{len(synthetic.tiles)} LAZ tiles, {synthetic.n_points:,} points", err=True)
+    synthetic = generate_survey(survey_dir / "tiles", preset(size))
+    truth = write_truth(synthetic, survey_dir)
+    click.echo(f"{len(synthetic.tiles)} LAZ tiles, {synthetic.n_points:,} points; truth in {survey_dir}", err=True)
     summary = run_survey(
-        [str(survey_dir)],
+        [str(survey_dir / "tiles")],
         out,
         config,
         scheduler=scheduler,
+        aoi=truth["survey_area"],
         progress=sys.stderr.isatty() if progress is None else progress,
     )
     _report(summary)
+    score = score_holes(out / "holes.gpkg", truth["hole_cause"], min_area_px=_min_area_px(config, synthetic.spec.resolution))
+    click.echo(
+        f"against the truth: hole IoU {score.iou:.3f}, causes right for {score.cause_correct} of "
+        f"{score.holes} holes ({score.cause_accuracy:.1%})",
+        err=True,
+    )
+
+
+@main.command()
+@click.argument("out_dir", type=click.Path(exists=True, file_okay=False))
+@click.option("--truth", "truth_path", required=True, type=click.Path(exists=True, dir_okay=False),
+              help="Raster of true hole causes (0 none, 1 occlusion, 2 water, 3 missed coverage) on the run's grid.")
+@config_option
+@set_option
+def evaluate(out_dir, truth_path, config_path, overrides):
+    """Score the holes of a finished run against a truth raster (IoU, cause accuracy)."""
+    import json
+
+    import rasterio
+
+    from .config import load_config
+    from .evaluate import score_holes
+
+    config = load_config(config_path, list(overrides))
+    with rasterio.open(truth_path) as truth:
+        resolution = abs(truth.transform.a)
+    score = score_holes(Path(out_dir) / "holes.gpkg", truth_path, min_area_px=_min_area_px(config, resolution))
+    click.echo(json.dumps(score.as_dict(), indent=2))
+
+
+def _min_area_px(config, resolution: float) -> int:
+    import math
+
+    return max(1, math.ceil(config.holes.min_area_m2 / resolution**2))
 
 
 @main.command("config")
@@ -167,6 +209,16 @@ def _report(summary) -> None:
         f"{len(summary.dsm_tiles)} DSM tiles in {summary.seconds:.1f} s -> {summary.out_dir}",
         err=True,
     )
+    holes = summary.holes
+    if holes:
+        causes = ", ".join(f"{n} {cause}" for cause, n in holes["by_cause"].items() if n)
+        types = ", ".join(f"{n} {kind}" for kind, n in holes["parts_by_type"].items())
+        click.echo(
+            f"{holes['listed']} holes ({holes['area_m2']:,.0f} m2): {causes or 'none'}; parts by type: {types or 'none'}; "
+            f"{holes['small_voids']} small voids under {holes['min_area_m2']:g} m2; "
+            f"{holes['vertical_hole_groups']} vertical holes, {holes['walls']} walls",
+            err=True,
+        )
     for item in summary.skipped:
         click.echo(f"skipped {item['path']}: {item['reason']}", err=True)
 

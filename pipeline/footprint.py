@@ -73,8 +73,10 @@ def occupied_blocks(count: np.ndarray, window: PixelWindow, grid: Grid, block_px
     return np.unique(_pack(block_cols, block_rows))
 
 
-def footprint_map(keys: list[np.ndarray], grid: Grid, block_px: int, *, closing_blocks: int) -> BlockMap:
-    """Close and fill the survey's block occupancy into its footprint."""
+def footprint_map(
+    keys: list[np.ndarray], grid: Grid, block_px: int, *, closing_blocks: int, everything: bool = False
+) -> BlockMap:
+    """Close and fill the survey's block occupancy into its footprint (``everything``: the whole grid)."""
     left = math.floor(grid.col_min / block_px)
     right = math.floor((grid.col_min + grid.width - 1) / block_px)
     top = math.floor(grid.row_top / block_px)
@@ -83,8 +85,8 @@ def footprint_map(keys: list[np.ndarray], grid: Grid, block_px: int, *, closing_
     if keys:
         block_cols, block_rows = _unpack(np.concatenate(keys))
         occupied[top - block_rows, block_cols - left] = True
-    inside = data_footprint(occupied, closing_px=closing_blocks)
-    border = inside & ~ndi.binary_erosion(inside, border_value=0)
+    inside = np.ones_like(occupied) if everything else data_footprint(occupied, closing_px=closing_blocks)
+    border = np.zeros_like(inside) if everything else inside & ~ndi.binary_erosion(inside, border_value=0)
     return BlockMap(block_px, left, top, inside, border)
 
 

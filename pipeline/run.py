@@ -335,8 +335,14 @@ def _run_detection(client, plan: SurveyPlan, config: Config, cell_results, bar: 
 
     holes = config.holes
     closing_blocks = math.ceil(holes.footprint_closing_m / holes.footprint_block_m)
+    # a given AOI is authoritative: every empty pixel inside it is a hole; without one,
+    # the data footprint decides what is exterior
     blocks = footprint_map(
-        [r.occupied_blocks for r in cell_results], plan.grid, plan.block_px, closing_blocks=closing_blocks
+        [r.occupied_blocks for r in cell_results],
+        plan.grid,
+        plan.block_px,
+        closing_blocks=closing_blocks,
+        everything=plan.aoi_given,
     )
     unit = plan.survey.horizontal_unit_m
     pixel_area_m2 = (plan.grid.resolution * unit) ** 2

@@ -1604,3 +1604,44 @@ def generate_survey(
         flight_lines=lines,
         generation_seconds=time.perf_counter() - started,
     )
+
+
+def write_truth(survey: SyntheticSurvey, folder: str | os.PathLike) -> dict[str, pathlib.Path]:
+    """Write a survey's truth beside its tiles, as GIS files a user can open and score against.
+
+    Files: ``truth_dsm.tif`` (highest surface per pixel), ``truth_hole_cause.tif``
+    (``HoleCause`` codes), ``survey_area.gpkg`` (the planned rectangle: the AOI) and
+    ``water.gpkg`` (the river polygon, when there is water).
+
+    Returns
+    -------
+    dict of str to pathlib.Path
+        ``dsm``, ``hole_cause``, ``survey_area`` and, with water, ``water``.
+    """
+    import pyproj
+    import shapely
+
+    from .io.raster import write_cog
+    from .io.vector import write_layer
+
+    if survey.truth_dsm is None or survey.hole_cause is None:
+        raise ValueError("the survey was generated with keep_truth=False: there is no truth to write")
+    folder = pathlib.Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    crs = pyproj.CRS.from_user_input(survey.crs).to_wkt()
+    spec = survey.spec
+    paths = {
+        "dsm": write_cog(folder / "truth_dsm.tif", survey.truth_dsm, transform=survey.transform, crs_wkt=crs),
+        "hole_cause": write_cog(
+            folder / "truth_hole_cause.tif", survey.hole_cause.astype(np.uint8), transform=survey.transform,
+            crs_wkt=crs, nodata=None, description="0 none, 1 occlusion, 2 water, 3 missed coverage",
+        ),  # fmt: skip
+        "survey_area": write_layer(
+            folder / "survey_area.gpkg", "survey_area", [{"name": "planned survey area"}],
+            [shapely.box(spec.x_min, spec.y_min, spec.x_max, spec.y_max)], crs_wkt=crs,
+        ),  # fmt: skip
+    }
+    water = survey.water_polygon()
+    if water is not None and not water.is_empty:
+        paths["water"] = write_layer(folder / "water.gpkg", "water", [{"name": "river"}], [water], crs_wkt=crs)
+    return paths

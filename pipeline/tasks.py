@@ -299,11 +299,14 @@ def detect_cell(task: DetectTask) -> DetectResult:
         stats.zmax, stats.zmin, stats.voxels, voxel_height=params.voxel_height, jump_threshold=params.jump_threshold
     )[core_rows, core_cols]
     vertical_records = _vertical_hole_records(vertical, stats.crop(cell.window), core_transform, params)
-    walls = [
-        wall
-        for wall in find_walls(stats.zmax, stats.zmin, jump_threshold=params.jump_threshold, count=stats.count, transform=transform)
-        if _midpoint_in(wall, grid.window_bounds(cell.window))
-    ]
+    walls = find_walls(
+        stats.zmax,
+        stats.zmin,
+        jump_threshold=params.jump_threshold,
+        count=stats.count,
+        transform=transform,
+        region=(core_rows, core_cols),
+    )
     return DetectResult(
         cell_holes=holes.without_labels(),
         part_outlines=outlines,
@@ -342,10 +345,6 @@ def _vertical_hole_records(mask: np.ndarray, core: PixelStatistics, transform, p
         if (i + 1) in polygons
     ]
 
-
-def _midpoint_in(wall: Wall, bounds: tuple[float, float, float, float]) -> bool:
-    x, y = (wall.x0 + wall.x1) / 2, (wall.y0 + wall.y1) / 2
-    return bounds[0] <= x < bounds[2] and bounds[1] <= y < bounds[3]
 
 
 def load_tile_statistics(output_dir: str, tile_window: PixelWindow, window: PixelWindow) -> PixelStatistics:

@@ -1,0 +1,504 @@
+"""Walls: straight height steps found in the height-jump pixels and fitted precisely.
+
+Airborne lidar sees few points on walls; a wall shows in the height map as a band
+of height-jump pixels ([UAS] eq. 1, :func:`pipeline.holes.height_jumps`) between a
+low side (ground) and a high side (roof). Following Lesparre and Gorte, "Finding and
+fitting wall planes in airborne point cloud data" ([WALL], ``seeds/wall-planes-
+airborne.txt``), the wall's position is not taken from the jump pixels themselves
+but from a least-squares fit of a smooth step (an S-curve) to the heights on
+either side, which locates it to a fraction of a pixel.
+
+Two steps, both pure functions:
+
+1. :func:`wall_segments` groups jump pixels into straight segments: 8-connected jump
+   pixels whose uphill directions (the gradient of ``zmax``) agree, so that the
+   two walls of a building corner become two segments.
+2. :func:`fit_wall` fits, to the pixels within a few pixels of a segment,
+
+   ``h(d) = low + (high - low) / (1 + exp(-d / width))``
+
+   where ``d`` is the signed distance to the wall line ``x cos(phi) + y sin(phi) =
+   rho`` (positive on the high side); ``phi``, ``rho``, ``low``, ``high`` and
+   ``width`` are the unknowns (``scipy.optimize.least_squares``, soft-L1 loss).
+   A pixel is a square, not a point: its ``zmax`` is the highest point anywhere in
+   it, so it is modelled as ``h(d + r)`` and its ``zmin`` as ``h(d - r)``, ``r``
+   being the pixel's half-extent along the wall normal (``(|cos phi| + |sin
+   phi|) / 2``). This makes the fitted line unbiased on max/min rasters. Empty
+   pixels next to the wall (a scan shadow) count as "not roof": roofs are seen
+   from the air, so a pixel the roof reached would hold points.
+
+:func:`find_walls` runs both and returns :class:`Wall` records in world coordinates.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import scipy.ndimage as ndi
+from affine import Affine
+from scipy import sparse
+from scipy.optimize import least_squares
+from scipy.sparse import csgraph
+
+from .holes import height_jumps
+
+__all__ = ["Wall", "WallSegment", "find_walls", "fit_wall", "wall_segments"]
+
+
+@dataclass(frozen=True)
+class WallSegment:
+    """Jump pixels of one straight wall candidate.
+
+    Attributes
+    ----------
+    rows, cols : ndarray of int64
+        The jump pixels (array indices).
+    normal : tuple of float
+        Unit vector (d_col, d_row) across the wall, pointing uphill.
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    normal: tuple[float, float]
+
+    @property
+    def n_pixels(self) -> int:
+        return len(self.rows)
+
+
+@dataclass(frozen=True)
+class Wall:
+    """A fitted wall line.
+
+    Attributes
+    ----------
+    x0, y0, x1, y1 : float
+        End points in world coordinates (through ``transform``).
+    bottom, top : float
+        Fitted heights of the low and the high side (z units).
+    rms : float
+        Root mean square of the height residuals of the measured pixels (z units).
+    width_px : float
+        Fitted width of the S-curve, in pixels (small for a sharp wall).
+    n_support : int
+        Pixels used in the fit.
+    n_jump_px : int
+        Jump pixels of the segment.
+    line_px : tuple of float
+        End points in pixel coordinates of the input arrays, (col0, row0, col1,
+        row1); pixel (r, c) covers [c, c + 1) x [r, r + 1).
+    normal_px : tuple of float
+        Unit normal (d_col, d_row) pointing to the high side, in pixel coordinates.
+    offset_px : float
+        The line is ``col * normal_px[0] + row * normal_px[1] == offset_px``.
+    """
+
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+    bottom: float
+    top: float
+    rms: float
+    width_px: float
+    n_support: int
+    n_jump_px: int
+    line_px: tuple[float, float, float, float]
+    normal_px: tuple[float, float]
+    offset_px: float
+
+    @property
+    def height(self) -> float:
+        return self.top - self.bottom
+
+    @property
+    def length(self) -> float:
+        """Length in world units."""
+        return math.hypot(self.x1 - self.x0, self.y1 - self.y0)
+
+
+def wall_segments(
+    jumps: np.ndarray,
+    zmax: np.ndarray,
+    *,
+    min_pixels: int = 6,
+    min_length_px: float = 4.0,
+    angle_tolerance_deg: float = 20.0,
+    max_thickness_px: float = 2.0,
+) -> list[WallSegment]:
+    """Group height-jump pixels into straight wall segments.
+
+    Parameters
+    ----------
+    jumps : ndarray of bool, shape (M, N)
+        Height-jump pixels (e.g. :func:`pipeline.holes.height_jumps`).
+    zmax : ndarray of float, shape (M, N)
+        Highest point per pixel, NaN where empty.
+    min_pixels : int
+        Smaller groups are dropped.
+    min_length_px : float
+        Shorter groups are dropped.
+    angle_tolerance_deg : float
+        Neighbouring jump pixels join when their uphill directions differ by less.
+    max_thickness_px : float
+        Groups thicker than this (standard deviation across their main axis,
+        e.g. vegetation) are dropped.
+
+    Returns
+    -------
+    list of WallSegment
+        Longest first.
+    """
+    jumps = np.asarray(jumps, dtype=bool)
+    if jumps.shape != np.shape(zmax) or jumps.ndim != 2:
+        raise ValueError(f"jumps {jumps.shape} and zmax {np.shape(zmax)} must be 2-D arrays of one shape")
+    if not jumps.any():
+        return []
+    gx, gy = _uphill(np.asarray(zmax, dtype=np.float64))
+    h, w = jumps.shape
+    index = np.full(jumps.shape, -1, np.int64)
+    rows, cols = np.nonzero(jumps)
+    index[rows, cols] = np.arange(len(rows))
+    gxs, gys = gx[rows, cols], gy[rows, cols]
+    angle = np.mod(np.arctan2(gys, gxs), np.pi)  # undirected: a wall's two sides agree
+    strong = np.hypot(gxs, gys) > 0
+    tol = math.radians(angle_tolerance_deg)
+    a_list, b_list = [], []
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        r2, c2 = rows + dr, cols + dc
+        ok = (r2 >= 0) & (r2 < h) & (c2 >= 0) & (c2 < w)
+        other = np.full(len(rows), -1, np.int64)
+        other[ok] = index[r2[ok], c2[ok]]
+        ok = other >= 0
+        a, b = np.flatnonzero(ok), other[ok]
+        diff = np.abs(angle[a] - angle[b])
+        diff = np.minimum(diff, np.pi - diff)
+        keep = (diff < tol) & strong[a] & strong[b]
+        a_list.append(a[keep])
+        b_list.append(b[keep])
+    a, b = np.concatenate(a_list), np.concatenate(b_list)
+    graph = sparse.coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(len(rows), len(rows)))
+    n_groups, group = csgraph.connected_components(graph, directed=False)
+    order = np.argsort(group, kind="stable")
+    bounds = np.searchsorted(group[order], np.arange(n_groups + 1))
+    segments = []
+    for g in range(n_groups):
+        members = order[bounds[g] : bounds[g + 1]]
+        if len(members) < min_pixels:
+            continue
+        r, c = rows[members], cols[members]
+        pts = np.stack([c + 0.5, r + 0.5], axis=1)
+        centred = pts - pts.mean(axis=0)
+        evals, evecs = np.linalg.eigh(centred.T @ centred / len(pts))
+        along = evecs[:, 1]
+        if math.sqrt(max(evals[0], 0.0)) > max_thickness_px or math.sqrt(12 * evals[1]) < min_length_px:
+            continue
+        normal = np.array([-along[1], along[0]])
+        unit = np.stack([gxs[members], gys[members]], axis=1)
+        unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+        uphill = unit.mean(axis=0)
+        # a wall: the uphill directions agree and cross the segment's main axis
+        if np.linalg.norm(uphill) < math.cos(tol) or abs(normal @ uphill) < math.cos(tol) * np.linalg.norm(uphill):
+            continue
+        if normal @ uphill < 0:
+            normal = -normal
+        segments.append(WallSegment(r.astype(np.int64), c.astype(np.int64), (float(normal[0]), float(normal[1]))))
+    segments.sort(key=lambda s: -s.n_pixels)
+    return segments
+
+
+def fit_wall(
+    zmax: np.ndarray,
+    zmin: np.ndarray | None,
+    segment: WallSegment,
+    *,
+    count: np.ndarray | None = None,
+    transform: Affine | None = None,
+    support_px: float = 3.0,
+    empty_is_low: bool = True,
+    min_height: float = 0.0,
+    pixel_values: str = "extremes",
+    points_per_pixel: float = 8.0,
+) -> Wall | None:
+    """Fit the S-curve step of one wall segment ([WALL]).
+
+    The surface across the wall is ``low + (high - low) * S(d)`` with ``S`` a
+    logistic S-curve of width ``width`` and ``d`` the signed distance to the wall
+    line. A pixel sees the surface over its whole square: the share of the square
+    on the high side is ``a(d)``, the exact area fraction of a unit square cut by
+    the line, smoothed by the S-curve. Then, for a pixel with ``k`` points spread
+    over it, the expected highest point is ``low + (high - low) * (1 - (1 - a)^k)``
+    and the expected lowest ``low + (high - low) * a^k`` (``pixel_values=
+    "extremes"``, the stage-2 rasters); a mean or centre value is
+    ``low + (high - low) * a`` (``"centre"``). Fitting expectations keeps the line
+    unbiased whatever the point density.
+
+    Parameters
+    ----------
+    zmax : ndarray of float, shape (M, N)
+        Highest point per pixel (or the surface value, see ``pixel_values``), NaN where empty.
+    zmin : ndarray of float, shape (M, N), optional
+        Lowest point per pixel; a second observation of each pixel.
+    segment : WallSegment
+        From :func:`wall_segments`.
+    count : ndarray of int, shape (M, N), optional
+        Points per pixel (``k``); ``points_per_pixel`` where not given.
+    transform : Affine, optional
+        Pixel-to-world transform of the arrays (e.g. ``grid.window_transform(window)``);
+        the identity by default.
+    support_px : float
+        Pixels whose centre lies within this distance of the initial line (and
+        beside the segment's extent) take part in the fit.
+    empty_is_low : bool
+        Empty pixels in the support count as "not reached by the roof": roofs are
+        seen from the air, so a pixel the roof covered would hold points.
+    min_height : float
+        Fits whose step is not higher are rejected (None).
+    pixel_values : {"extremes", "centre"}
+        What the pixel values are: the highest/lowest point of the square pixel
+        (stage-2 ``zmax``/``zmin``), or the surface at the centre / its mean
+        over the pixel (an interpolated or averaged DSM).
+    points_per_pixel : float
+        ``k`` when ``count`` is not given.
+
+    Returns
+    -------
+    Wall or None
+        None when the fit fails, has too little support on either side, or is too low.
+    """
+    if pixel_values not in ("extremes", "centre"):
+        raise ValueError(f"pixel_values must be 'extremes' or 'centre', got {pixel_values!r}")
+    zmax = np.asarray(zmax, dtype=np.float64)
+    zmin_arr = None if zmin is None else np.asarray(zmin, dtype=np.float64)
+    h, w = zmax.shape
+    n0 = np.asarray(segment.normal, dtype=np.float64)
+    along0 = np.array([n0[1], -n0[0]])
+    pts = np.stack([segment.cols + 0.5, segment.rows + 0.5], axis=1)
+    rho0 = float((pts @ n0).mean())
+    t = pts @ along0
+    t_lo, t_hi = float(t.min()) + 1.0, float(t.max()) - 1.0  # keep clear of corners
+
+    # the support: pixels near the initial line, beside the segment
+    pad = int(math.ceil(support_px)) + 2
+    r0, r1 = max(int(segment.rows.min()) - pad, 0), min(int(segment.rows.max()) + pad + 1, h)
+    c0, c1 = max(int(segment.cols.min()) - pad, 0), min(int(segment.cols.max()) + pad + 1, w)
+    rr, cc = np.mgrid[r0:r1, c0:c1]
+    xc, yc = cc.ravel() + 0.5, rr.ravel() + 0.5
+    d0 = xc * n0[0] + yc * n0[1] - rho0
+    tt = xc * along0[0] + yc * along0[1]
+    near = (np.abs(d0) <= support_px) & (tt >= t_lo) & (tt <= t_hi)
+    xc, yc, d0 = xc[near], yc[near], d0[near]
+    zx = zmax[r0:r1, c0:c1].ravel()[near]
+    zn = zmin_arr[r0:r1, c0:c1].ravel()[near] if zmin_arr is not None else np.full(len(zx), np.nan)
+    if pixel_values == "centre":
+        k = np.ones(len(zx))
+    elif count is not None:
+        k = np.asarray(count, dtype=np.float64)[r0:r1, c0:c1].ravel()[near]
+    else:
+        k = np.full(len(zx), float(points_per_pixel))
+    measured = np.isfinite(zx)
+    if measured.sum() < 6 or (d0[measured] < 0).sum() < 3 or (d0[measured] > 0).sum() < 3:
+        return None
+    lows = np.concatenate([zn[measured & (d0 < -0.5)], zx[measured & (d0 < -0.5)]])
+    highs = zx[measured & (d0 > 0.5)]
+    low0 = float(np.nanpercentile(lows, 20)) if np.isfinite(lows).any() else float(np.nanmin(zx))
+    high0 = float(np.percentile(highs, 80)) if len(highs) else float(np.nanmax(zx))
+    if not high0 > low0:
+        return None
+    step0 = high0 - low0
+    has_min = measured & np.isfinite(zn)
+    empty = ~measured if empty_is_low else np.zeros(len(zx), bool)
+    k_hi, k_lo = np.maximum(k[measured], 1.0), np.maximum(k[has_min], 1.0)
+    phi0 = math.atan2(n0[1], n0[0])
+
+    def high_share(params, x, y):
+        phi, rho, _, _, log_w = params
+        c, s = math.cos(phi), math.sin(phi)
+        return _square_share(x * c + y * s - rho, abs(c), abs(s), math.exp(log_w))
+
+    def residuals(params):
+        low, high = params[2], params[3]
+        step = high - low
+        a_hi = high_share(params, xc[measured], yc[measured])
+        parts = [low + step * (1.0 - (1.0 - a_hi) ** k_hi) - zx[measured]]
+        if has_min.any():
+            a_lo = high_share(params, xc[has_min], yc[has_min])
+            parts.append(low + step * a_lo**k_lo - zn[has_min])
+        if empty.any():
+            parts.append(step * high_share(params, xc[empty], yc[empty]))
+        return np.concatenate(parts)
+
+    x0 = np.array([phi0, rho0, low0, high0, math.log(0.2)])
+    lower = [phi0 - 0.6, rho0 - support_px, low0 - step0, low0, math.log(0.001)]
+    upper = [phi0 + 0.6, rho0 + support_px, high0, high0 + step0, math.log(support_px)]
+    # least squares first (a good basin), then a robust (soft-L1) polish against outliers
+    scale = [0.05, 0.1, 0.1 * step0, 0.1 * step0, 0.5]
+    try:
+        # tolerances of 1e-6 (relative) are far below the 0.2-pixel accuracy a wall needs,
+        # and take half the evaluations of scipy's 1e-8 defaults
+        tolerances = {"ftol": 1e-6, "xtol": 1e-6, "gtol": 1e-6}
+        fit = least_squares(residuals, x0, bounds=(lower, upper), x_scale=scale, max_nfev=200, **tolerances)
+        start = np.clip(fit.x, np.nextafter(lower, upper), np.nextafter(upper, lower))
+        robust = least_squares(
+            residuals, start, bounds=(lower, upper), x_scale=scale, max_nfev=100,
+            loss="soft_l1", f_scale=max(0.05 * step0, 1e-6), **tolerances,
+        )
+    except ValueError:
+        return None
+    if robust.status >= 0 and robust.cost <= _soft_l1_cost(fit.fun, max(0.05 * step0, 1e-6)):
+        fit = robust
+    if fit.status < 0:  # status 0 (evaluation budget spent) still carries the best fit found
+        return None
+    phi, rho, low, high, log_w = fit.x
+    if not high - low > min_height:
+        return None
+    normal = np.array([math.cos(phi), math.sin(phi)])
+    along = np.array([normal[1], -normal[0]])
+    foot = normal * rho
+    proj = pts @ along
+    ends = [foot + along * (proj.min() - 0.5), foot + along * (proj.max() + 0.5)]
+    n_measured = int(measured.sum() + has_min.sum())
+    rms = float(np.sqrt(np.mean(fit.fun[:n_measured] ** 2)))
+    transform = Affine.identity() if transform is None else transform
+    (x0w, y0w), (x1w, y1w) = (transform @ (float(e[0]), float(e[1])) for e in ends)
+    return Wall(
+        x0=x0w, y0=y0w, x1=x1w, y1=y1w,
+        bottom=float(low), top=float(high), rms=rms, width_px=float(math.exp(log_w)),
+        n_support=int(len(zx)), n_jump_px=segment.n_pixels,
+        line_px=(float(ends[0][0]), float(ends[0][1]), float(ends[1][0]), float(ends[1][1])),
+        normal_px=(float(normal[0]), float(normal[1])), offset_px=float(rho),
+    )
+
+
+def find_walls(
+    zmax: np.ndarray,
+    zmin: np.ndarray | None,
+    *,
+    jump_threshold: float,
+    count: np.ndarray | None = None,
+    transform: Affine | None = None,
+    min_pixels: int = 6,
+    min_length_px: float = 4.0,
+    angle_tolerance_deg: float = 20.0,
+    support_px: float = 3.0,
+    pixel_values: str = "extremes",
+    region: tuple[slice, slice] | None = None,
+) -> list[Wall]:
+    """Walls of a height map: jump pixels -> straight segments -> S-curve fits.
+
+    Parameters
+    ----------
+    zmax, zmin : ndarray of float, shape (M, N)
+        Highest and lowest point per pixel, NaN where empty (``zmin`` may be None).
+    jump_threshold : float
+        Height-jump threshold in z units ([UAS] eq. 1); also the least wall height.
+    count : ndarray of int, shape (M, N), optional
+        Points per pixel (see :func:`fit_wall`).
+    transform : Affine, optional
+        Pixel-to-world transform of the arrays.
+    min_pixels, min_length_px, angle_tolerance_deg
+        See :func:`wall_segments`.
+    support_px, pixel_values
+        See :func:`fit_wall`.
+    region : (slice, slice), optional
+        Only segments whose centre pixel lies in these rows and columns are
+        fitted (a cell's core inside its halo arrays: each wall is fitted once,
+        by the cell that holds its middle, with the halo as context).
+
+    Returns
+    -------
+    list of Wall
+    """
+    zmax = np.asarray(zmax, dtype=np.float64)
+    jumps = height_jumps(zmax, zmax if zmin is None else zmin, jump_threshold=jump_threshold)
+    segments = wall_segments(
+        jumps, zmax, min_pixels=min_pixels, min_length_px=min_length_px, angle_tolerance_deg=angle_tolerance_deg
+    )
+    walls = []
+    for seg in segments:
+        if region is not None:
+            row, col = int(np.median(seg.rows)), int(np.median(seg.cols))
+            rows, cols = region
+            if not (rows.start <= row < rows.stop and cols.start <= col < cols.stop):
+                continue
+        wall = fit_wall(zmax, zmin, seg, count=count, transform=transform, support_px=support_px,
+                        min_height=jump_threshold, pixel_values=pixel_values)
+        if wall is not None:
+            walls.append(wall)
+    return walls
+
+
+#: Equal-weight quadrature nodes of the standard logistic distribution (its deciles 1, 3,
+#: 5, 7, 9): smoothing by the S-curve is the mean over these shifts.
+_LOGISTIC_NODES = np.log(np.array([0.1, 0.3, 0.5, 0.7, 0.9]) / (1 - np.array([0.1, 0.3, 0.5, 0.7, 0.9])))
+
+
+def _soft_l1_cost(residuals: np.ndarray, f_scale: float) -> float:
+    """The cost least_squares(loss="soft_l1") reports for these residuals."""
+    z = (residuals / f_scale) ** 2
+    return float(0.5 * f_scale**2 * np.sum(2 * (np.sqrt(1 + z) - 1)))
+
+
+def _square_share(d: np.ndarray, u: float, v: float, width: float) -> np.ndarray:
+    """Share of a unit pixel on the high side of an S-curve step whose centre line is
+    at signed distance ``-d`` from the pixel centre (normal components ``u``, ``v``).
+
+    The mean of :func:`_square_cdf` over the logistic quadrature nodes, compiled:
+    the least-squares fit evaluates it thousands of times on small arrays.
+    """
+    return _square_share_kernel(np.ascontiguousarray(d, dtype=np.float64), float(u), float(v), float(width), _LOGISTIC_NODES)
+
+
+@numba.njit(cache=True)
+def _square_share_kernel(d, u, v, width, nodes):  # pragma: no cover - compiled
+    big, small = max(u, v), min(u, v)
+    half_diff, half_sum = 0.5 * (big - small), 0.5 * (big + small)
+    out = np.empty(len(d))
+    for i in range(len(d)):
+        total = 0.0
+        for q in nodes:
+            t = d[i] + width * q
+            if small < 1e-9:
+                value = t / big + 0.5
+            elif t <= -half_diff:
+                x = t + half_sum
+                value = x * x / (2 * big * small) if x > 0 else 0.0
+            elif t < half_diff:
+                value = (t + 0.5 * big) / big
+            else:
+                x = -t + half_sum
+                value = 1.0 - (x * x / (2 * big * small) if x > 0 else 0.0)
+            total += min(max(value, 0.0), 1.0)
+        out[i] = total / len(nodes)
+    return out
+
+
+def _square_cdf(t: np.ndarray, u: float, v: float) -> np.ndarray:
+    """Area of the unit square centred at 0 where ``x * u + y * v <= t`` (u, v >= 0).
+
+    The distribution of ``u * U1 + v * U2`` for independent uniform U1, U2 on
+    [-1/2, 1/2]: a trapezoid, so the area is piecewise quadratic/linear in ``t``.
+    """
+    u, v = max(u, v), min(u, v)
+    t = np.asarray(t, dtype=np.float64)
+    if v < 1e-9:
+        return np.clip(t / u + 0.5, 0.0, 1.0)
+    a, b = 0.5 * (u - v), 0.5 * (u + v)
+    tail = lambda x: np.clip(x + b, 0.0, None) ** 2 / (2 * u * v)  # noqa: E731
+    mid = (t + 0.5 * u) / u
+    out = np.where(t <= -a, tail(t), np.where(t < a, mid, 1.0 - tail(-t)))
+    return np.clip(out, 0.0, 1.0)
+
+
+def _uphill(zmax: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gradient (d/dcol, d/drow) of ``zmax`` with empty pixels filled from the nearest data."""
+    empty = ~np.isfinite(zmax)
+    if empty.all():
+        return np.zeros_like(zmax), np.zeros_like(zmax)
+    if empty.any():
+        idx = ndi.distance_transform_edt(empty, return_distances=False, return_indices=True)
+        zmax = zmax[tuple(idx)]
+    return ndi.sobel(zmax, axis=1), ndi.sobel(zmax, axis=0)
