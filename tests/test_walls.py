@@ -1,0 +1,136 @@
+"""Tests of pipeline.walls: wall segments from jump pixels and the S-curve fit ([WALL])."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from affine import Affine
+
+from pipeline.holes import height_jumps
+from pipeline.walls import find_walls, fit_wall, wall_segments
+
+LOW, HIGH = 10.0, 22.0
+
+
+def antialiased_step(n: int, angle_deg: float, offset: float, supersample: int = 16) -> np.ndarray:
+    """Each pixel holds the mean height over its square of a sharp step at a known line."""
+    a = math.radians(angle_deg)
+    sub = (np.arange(n * supersample) + 0.5) / supersample
+    x, y = np.meshgrid(sub, sub)
+    high = (x * math.cos(a) + y * math.sin(a) - offset) > 0
+    return LOW + (HIGH - LOW) * high.reshape(n, supersample, n, supersample).mean(axis=(1, 3))
+
+
+def binned_points(n: int, angle_deg: float, offset: float, density: float, seed: int):
+    """zmax, zmin and count rasters of random points on a sharp step (the stage-2 rasters)."""
+    rng = np.random.default_rng(seed)
+    k = int(n * n * density)
+    x, y = rng.uniform(0, n, k), rng.uniform(0, n, k)
+    a = math.radians(angle_deg)
+    z = np.where(x * math.cos(a) + y * math.sin(a) - offset > 0, HIGH, LOW) + rng.normal(0, 0.02, k)
+    r, c = y.astype(int), x.astype(int)
+    zmax = np.full((n, n), -np.inf)
+    zmin = np.full((n, n), np.inf)
+    count = np.zeros((n, n), np.int64)
+    np.maximum.at(zmax, (r, c), z)
+    np.minimum.at(zmin, (r, c), z)
+    np.add.at(count, (r, c), 1)
+    zmax[count == 0] = np.nan
+    zmin[count == 0] = np.nan
+    return zmax, zmin, count
+
+
+def distance_to_truth(wall, angle_deg, offset):
+    """Largest distance (pixels) of the fitted segment's ends and middle from the true line."""
+    a = math.radians(angle_deg)
+    c0, r0, c1, r1 = wall.line_px
+    pts = [(c0, r0), (c1, r1), ((c0 + c1) / 2, (r0 + r1) / 2)]
+    return max(abs(c * math.cos(a) + r * math.sin(a) - offset) for c, r in pts)
+
+
+def centred_offset(angle_deg, n=40, shift=0.0):
+    a = math.radians(angle_deg)
+    return n / 2 * (math.cos(a) + math.sin(a)) + shift
+
+
+@pytest.mark.parametrize("angle", [0.0, 20.0, 33.0, 45.0, 110.0, 200.0])
+@pytest.mark.parametrize("shift", [0.0, 0.37])
+def test_fit_recovers_a_subpixel_step_on_a_mean_raster(angle, shift):
+    offset = centred_offset(angle, shift=shift)
+    z = antialiased_step(40, angle, offset)
+    walls = find_walls(z, None, jump_threshold=2.0, pixel_values="centre")
+    assert len(walls) == 1
+    wall = walls[0]
+    assert distance_to_truth(wall, angle, offset) < 0.2
+    assert wall.bottom == pytest.approx(LOW, abs=0.1) and wall.top == pytest.approx(HIGH, abs=0.1)
+    assert wall.rms < 0.1
+    # the normal points to the high side
+    a = math.radians(angle)
+    assert wall.normal_px[0] * math.cos(a) + wall.normal_px[1] * math.sin(a) > 0.99
+
+
+@pytest.mark.parametrize("angle,seed", [(20.0, 0), (33.0, 1), (-25.0, 2)])
+def test_fit_recovers_a_slanted_wall_from_binned_points(angle, seed):
+    offset = centred_offset(angle, shift=0.13 * seed)
+    zmax, zmin, count = binned_points(40, angle, offset, density=20, seed=seed)
+    walls = find_walls(zmax, zmin, jump_threshold=2.0, count=count)
+    assert walls
+    assert distance_to_truth(walls[0], angle, offset) < 0.2
+    assert walls[0].height == pytest.approx(HIGH - LOW, abs=0.2)
+
+
+def test_shadow_next_to_the_wall_keeps_the_wall_at_the_roof_edge():
+    angle, offset = 10.0, centred_offset(10.0, shift=0.3)
+    z = antialiased_step(40, angle, offset)
+    zmax = z.copy()
+    a = math.radians(angle)
+    r, c = np.mgrid[:40, :40]
+    d = (c + 0.5) * math.cos(a) + (r + 0.5) * math.sin(a) - offset
+    zmax[(d < -0.5) & (d > -5.5)] = np.nan  # the ground beside the wall was not seen
+    walls = find_walls(zmax, None, jump_threshold=2.0, pixel_values="centre", support_px=4.0)
+    assert walls and distance_to_truth(walls[0], angle, offset) < 0.3
+
+
+def test_l_shaped_building_gives_two_perpendicular_walls_in_world_coordinates():
+    n = 60
+    z = np.full((n, n), LOW)
+    z[10:40, 10:45] = HIGH
+    transform = Affine(0.5, 0, 1000.0, 0, -0.5, 2000.0)  # 0.5 m pixels
+    walls = find_walls(z, z, jump_threshold=2.0, transform=transform, min_length_px=8)
+    assert len(walls) == 4
+    directions = sorted(
+        round(math.degrees(math.atan2(w.y1 - w.y0, w.x1 - w.x0))) % 180 for w in walls
+    )
+    assert directions == [0, 0, 90, 90]
+    north = max(walls, key=lambda w: (w.y0 + w.y1) / 2)
+    # the north wall is the edge between rows 9 and 10: y = 2000 - 10 * 0.5, within half a pixel
+    assert north.y0 == pytest.approx(1995.0, abs=0.25) and north.y1 == pytest.approx(1995.0, abs=0.25)
+    assert north.length == pytest.approx(35 * 0.5, abs=1.0)
+    assert all(w.top == pytest.approx(HIGH, abs=0.1) and w.bottom == pytest.approx(LOW, abs=0.1) for w in walls)
+
+
+def test_segments_split_at_corners_and_ignore_noise():
+    n = 50
+    z = np.full((n, n), LOW)
+    z[10:30, 10:35] = HIGH
+    rng = np.random.default_rng(0)
+    r, c = np.mgrid[:n, :n]
+    crown = (r - 42) ** 2 + (c - 8) ** 2 < 25
+    z[crown] += rng.uniform(3, 15, crown.sum())  # a tree: jumps in every direction
+    jumps = height_jumps(z, z, jump_threshold=2.0)
+    segs = wall_segments(jumps, z, min_pixels=8)
+    assert len(segs) == 4
+    normals = sorted((round(s.normal[0]), round(s.normal[1])) for s in segs)
+    assert normals == [(-1, 0), (0, -1), (0, 1), (1, 0)]  # all point into the building
+
+
+def test_fit_rejects_flat_ground():
+    z = np.full((30, 30), 5.0)
+    assert find_walls(z, z, jump_threshold=1.0) == []
+    jumps = np.zeros((30, 30), bool)
+    jumps[10, 5:20] = True
+    seg = wall_segments(jumps, z + np.arange(30)[:, None] * 0.0, min_pixels=3)
+    for s in seg:
+        assert fit_wall(z, z, s, min_height=1.0) is None
