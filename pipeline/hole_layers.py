@@ -20,6 +20,10 @@ import shapely
 
 from .holes import CAUSES, classify_causes, link_holes, ring_metrics
 from .io.vector import write_layer
+from .outlines import hole_outline, merge_outlines, to_world
+
+#: ``holes.outline`` values -> modes of :func:`pipeline.outlines.hole_outline`.
+OUTLINE_MODES = {"pixel": "exact", "simplified": "simplified", "straight": "straight"}
 
 
 def write_hole_layers(path: Path, plan, config, detected: list) -> dict[str, Any]:
@@ -39,7 +43,7 @@ def write_hole_layers(path: Path, plan, config, detected: list) -> dict[str, Any
     )
     ring = ring_metrics(catalog.stats)
 
-    # outlines: dissolve the parts of each hole
+    # outlines (global pixel coordinates): dissolve the parts of each hole, then to world
     part_geometries: dict[tuple[int, int], shapely.Geometry] = {}
     for cell_index, d in enumerate(detected):
         for label, wkb in d.part_outlines.items():
@@ -62,8 +66,9 @@ def write_hole_layers(path: Path, plan, config, detected: list) -> dict[str, Any
             continue
         hole_id = int(hole["hole_id"])
         listed_ids.add(hole_id)
-        geometry = shapely.union_all(by_hole.get(hole_id, []))
-        geometry = _outline(geometry, holes_config.outline, pixel_size)
+        geometry = hole_outline(
+            merge_outlines(by_hole.get(hole_id, [])), mode=OUTLINE_MODES[holes_config.outline], transform=grid.transform
+        )
         cause = str(causes["cause"][i])
         counts_by_cause[cause] += 1
         ring_px = int(catalog.stats["ring_px"][i])
@@ -118,7 +123,7 @@ def write_hole_layers(path: Path, plan, config, detected: list) -> dict[str, Any
                 "neighbours": ";".join(f"{parts[j]['cell_id']}:{int(parts[j]['label'])}" for j in neighbours),
             }
         )
-        part_geometries_out.append(part_geometries.get((int(part["cell"]), int(part["label"]))))
+        part_geometries_out.append(to_world(part_geometries[(int(part["cell"]), int(part["label"]))], grid.transform))
     write_layer(path, "hole_parts", part_records, part_geometries_out, crs_wkt=crs, geometry_type="MultiPolygon")
 
     vertical_records, vertical_geometries = [], []
@@ -164,15 +169,6 @@ def write_hole_layers(path: Path, plan, config, detected: list) -> dict[str, Any
         "aoi_area_m2": round(sum(d.aoi_px for d in detected) * pixel_area_m2, 2),
     }
 
-
-def _outline(geometry: shapely.Geometry, mode: str, pixel_size: float) -> shapely.Geometry:
-    if geometry.is_empty or mode == "pixel":
-        return geometry
-    if mode == "simplified":
-        return shapely.simplify(geometry, pixel_size, preserve_topology=True)
-    from .outlines import straight_outline
-
-    return straight_outline(geometry, pixel_size=pixel_size)
 
 
 def _finite(value: float, ring_px: int) -> float | None:

@@ -1372,7 +1372,8 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
     n_nodes = int(offsets[-1])
 
     # every hole pixel on a cell edge, by global position
-    e_rows, e_cols, e_nodes, e_side = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    empty = np.zeros(0, np.int64)
+    e_rows, e_cols, e_nodes, e_side = [empty], [empty], [empty], [empty]
     for k, c in enumerate(cells):
         for strip in c.edges:
             m = strip.labels > 0
@@ -1609,6 +1610,8 @@ def classify_causes(
     strip_min_fill: float = 0.7,
     strip_min_length_px: float = 20.0,
     strip_min_line_share: float = 0.2,
+    strip_two_line_share: float = 0.8,
+    strip_min_elongation_with_lines: float = 2.0,
     low_quantile: float = 0.05,
     high_quantile: float = 0.95,
 ) -> np.ndarray:
@@ -1640,7 +1643,11 @@ def classify_causes(
        (``elongation >= strip_min_elongation``, ``fill >= strip_min_fill``,
        ``length_px >= strip_min_length_px``); where flight-line ids were given,
        its ring must also come from two or more flight lines each holding at
-       least ``strip_min_line_share`` of it (a gap between lines).
+       least ``strip_min_line_share`` of it, and the two most common lines must
+       hold at least ``strip_two_line_share`` of it (a gap *between two* lines; a
+       river crossing the lines is rimmed by all of them). That evidence lowers
+       the elongation needed to ``strip_min_elongation_with_lines``: a gap left by
+       one missed line is about a swath wide, so a short survey gives a squat strip.
     5. ``water`` / ``flat_low_rim``: at least ``water_min_flat_fraction`` of the
        ring lies within ``water_flat_tolerance`` above the low level, at least
        ``water_min_low_fraction`` of it is at the local minimum (``ring_low_px``).
@@ -1677,8 +1684,10 @@ def classify_causes(
     centres = (hist["bin"] + 0.5) * stats.height_bin
     hrow = hist["row"]
     hcount = hist["count"].astype(np.float64)
-    high_frac = np.bincount(hrow, np.where(centres > q_lo[hrow] + jump_threshold, hcount, 0.0), minlength=k) / ring1
-    flat_frac = np.bincount(hrow, np.where(centres <= q_lo[hrow] + water_flat_tolerance, hcount, 0.0), minlength=k) / ring1
+    high = np.where(centres > q_lo[hrow] + jump_threshold, hcount, 0.0)
+    flat = np.where(centres <= q_lo[hrow] + water_flat_tolerance, hcount, 0.0)
+    high_frac = np.bincount(hrow, high, minlength=k) / ring1
+    flat_frac = np.bincount(hrow, flat, minlength=k) / ring1
     mean_jump_span = stats["ring_jump_span_sum"] / np.maximum(stats["ring_jump_px"], 1)
     step = np.fmax(np.nan_to_num(q_hi - q_lo, nan=0.0), mean_jump_span)
 
@@ -1694,17 +1703,23 @@ def classify_causes(
     )
     occluded_jumps = shadow_like & (jump_frac >= occlusion_min_jump_fraction)
     occluded_shadow = shadow_like & (high_frac >= shadow_min_high_fraction) & not_terrain
-    strip = (
-        (shape["elongation"] >= strip_min_elongation)
-        & (shape["fill"] >= strip_min_fill)
-        & (shape["length_px"] >= strip_min_length_px)
-    )
+    strip_shape = (shape["fill"] >= strip_min_fill) & (shape["length_px"] >= strip_min_length_px)
+    strip = strip_shape & (shape["elongation"] >= strip_min_elongation)
     if len(stats.line_hist):
         lrow = stats.line_hist["row"]
         share = stats.line_hist["count"] / ring1[lrow]
         n_lines = np.bincount(lrow, share >= strip_min_line_share, minlength=k)
         has_lines = np.bincount(lrow, minlength=k) > 0
-        strip &= ~has_lines | (n_lines >= 2)
+        # share of the ring held by each row's two most common lines
+        order = np.lexsort((-share, lrow))
+        ranked_rows = lrow[order]
+        starts = np.r_[True, ranked_rows[1:] != ranked_rows[:-1]]
+        position = np.arange(len(order))
+        rank = position - np.maximum.accumulate(np.where(starts, position, 0))
+        top_two = np.bincount(ranked_rows[rank < 2], share[order][rank < 2], minlength=k)
+        between_two_lines = (n_lines >= 2) & (top_two >= strip_two_line_share)
+        strip_with_lines = strip_shape & between_two_lines & (shape["elongation"] >= strip_min_elongation_with_lines)
+        strip = np.where(has_lines, strip_with_lines, strip)
     flat_low = has_ring & (flat_frac >= water_min_flat_fraction) & (low_frac >= water_min_low_fraction)
     conditions = [water_mask, water_points, occluded_jumps, occluded_shadow, strip, flat_low]
     out["cause"] = np.select(conditions, ["water", "water", "occlusion", "occlusion", "missed_coverage", "water"],

@@ -23,6 +23,7 @@ from .errors import InputDataError
 from .footprint import BlockMap, aoi_mask, occupied_blocks, window_union_mask
 from .grid import Cell, Grid, PixelWindow
 from .holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
+from .outlines import label_outlines
 from .walls import Wall, find_walls
 from .io.las import iter_point_chunks
 from .io.raster import RasterOptions, geometry_mask, label_polygons, write_cog
@@ -142,7 +143,7 @@ class DetectTask:
 @dataclass(frozen=True)
 class DetectResult:
     cell_holes: CellHoles  # without its label raster
-    part_outlines: dict[int, bytes]  # WKB polygon per part label, exact pixel edges
+    part_outlines: dict[int, bytes]  # WKB polygon per part label, exact pixel edges in global pixel coordinates
     vertical_holes: list[dict]  # records with a "wkb" polygon
     walls: list[Wall]
     jump_px: int
@@ -290,8 +291,12 @@ def detect_cell(task: DetectTask) -> DetectResult:
     core_transform = grid.window_transform(cell.window)
     outlines = {}
     if holes.labels is not None and holes.n_parts:
-        polygons = label_polygons(
-            np.where(holes.labels > 0, holes.labels, 0), core_transform, connectivity=params.connectivity
+        # integer pixel coordinates: parts of one hole merge exactly on the client, whatever the resolution
+        polygons = label_outlines(
+            np.where(holes.labels > 0, holes.labels, 0),
+            row_off=cell.window.row_off,
+            col_off=cell.window.col_off,
+            connectivity=params.connectivity,
         )
         outlines = {label: shapely.to_wkb(polygon) for label, polygon in polygons.items()}
     jumps = height_jumps(stats.zmax, stats.zmin, jump_threshold=params.jump_threshold)
