@@ -19,7 +19,9 @@ JUMP = 2.0
 # --------------------------------------------------------------------------------------
 
 
-def make_grid(height: int, width: int, cell_px: int, halo_px: int = 8, col_min: int = 0, row_top: int | None = None) -> Grid:
+def make_grid(
+    height: int, width: int, cell_px: int, halo_px: int = 8, col_min: int = 0, row_top: int | None = None
+) -> Grid:
     return Grid(
         resolution=1.0,
         col_min=col_min,
