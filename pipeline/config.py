@@ -71,6 +71,7 @@ class RasterizeConfig:
 class HolesConfig:
     """Hole detection, classification and outlines (docs/holes.md)."""
 
+    enabled: bool = _opt(True, "Find, classify and outline holes (false: the DSM only).")
     min_area_m2: float = _opt(
         4.0, "Holes smaller than this are small voids: counted in the report, not listed.", ge=0
     )
@@ -89,6 +90,10 @@ class HolesConfig:
         40.0, "Gaps between data narrower than about twice this stay inside the footprint.", ge=0
     )
     water: str = _opt("", "Polygon file of known water (--water); holes inside it are water.")
+    vertical_min_area_m2: float = _opt(
+        2.0, "Groups of vertical-hole pixels smaller than this are not listed.", ge=0
+    )
+    wall_min_length_m: float = _opt(4.0, "Wall segments shorter than this are not fitted.", gt=0)
 
 
 @dataclass(frozen=True)

@@ -214,13 +214,15 @@ def run_survey(
     try:
         with _dask_client(client, scheduler, config) as dask_client, _Progress(progress) as bar:
             tile_results, failed, cell_results = _run_stages(dask_client, plan, config, staging, bar, stage_seconds)
-            t0 = time.perf_counter()
-            detected = _run_detection(dask_client, plan, config, cell_results, bar, water)
-            stage_seconds["holes"] = time.perf_counter() - t0
+            detected = None
+            if config.holes.enabled:
+                t0 = time.perf_counter()
+                detected = _run_detection(dask_client, plan, config, cell_results, bar, water)
+                stage_seconds["holes"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         skipped = survey.skipped + failed
         _write_outputs(staging, plan, tile_results, cell_results, skipped)
-        hole_summary = write_hole_layers(staging / "holes.gpkg", plan, config, detected)
+        hole_summary = write_hole_layers(staging / "holes.gpkg", plan, config, detected) if detected is not None else {}
         summary = RunSummary(
             holes=hole_summary,
             out_dir=str(out),
@@ -351,6 +353,8 @@ def _run_detection(client, plan: SurveyPlan, config: Config, cell_results, bar: 
         voxel_height=config.rasterize.voxel_height_m / plan.survey.vertical_unit_m,
         connectivity=holes.connectivity,
         min_area_px=math.ceil(holes.min_area_m2 / pixel_area_m2),
+        vertical_min_px=math.ceil(holes.vertical_min_area_m2 / pixel_area_m2),
+        wall_min_length_px=holes.wall_min_length_m / unit / plan.grid.resolution,
     )
     cells = {c.id: c for c in plan.cells}
     area_wkb = shapely.to_wkb(plan.survey_area) if plan.aoi_given else None

@@ -124,6 +124,8 @@ class HoleParams:
     voxel_height: float  # z units
     connectivity: int
     min_area_px: int
+    vertical_min_px: int
+    wall_min_length_px: float
 
 
 @dataclass(frozen=True)
@@ -311,6 +313,7 @@ def detect_cell(task: DetectTask) -> DetectResult:
         count=stats.count,
         transform=transform,
         region=(core_rows, core_cols),
+        min_length_px=params.wall_min_length_px,
     )
     return DetectResult(
         cell_holes=holes.without_labels(),
@@ -326,9 +329,17 @@ def _vertical_hole_records(mask: np.ndarray, core: PixelStatistics, transform, p
     """One record per connected group of vertical-hole pixels (UAS eq. 2) in a cell core."""
     import scipy.ndimage as ndi
 
-    labels, n = ndi.label(mask)
+    labels, n = ndi.label(mask, structure=np.ones((3, 3), bool))
     if n == 0:
         return []
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    keep = sizes >= max(1, params.vertical_min_px)
+    keep[0] = False
+    labels = np.where(keep[labels], np.cumsum(keep)[labels], 0)
+    n = int(keep.sum())
+    if n == 0:
+        return []
+    mask = labels > 0
     index = np.arange(1, n + 1)
     span = (core.zmax.astype(np.float64) - core.zmin)
     expected = np.floor(span / params.voxel_height)

@@ -341,14 +341,18 @@ def fit_wall(
         # and take half the evaluations of scipy's 1e-8 defaults
         tolerances = {"ftol": 1e-6, "xtol": 1e-6, "gtol": 1e-6}
         fit = least_squares(residuals, x0, bounds=(lower, upper), x_scale=scale, max_nfev=200, **tolerances)
-        start = np.clip(fit.x, np.nextafter(lower, upper), np.nextafter(upper, lower))
-        robust = least_squares(
-            residuals, start, bounds=(lower, upper), x_scale=scale, max_nfev=100,
-            loss="soft_l1", f_scale=max(0.05 * step0, 1e-6), **tolerances,
-        )
+        f_scale = max(0.05 * step0, 1e-6)
+        robust = None
+        # the robust polish only changes a fit that has outliers (residuals beyond the soft-L1 knee)
+        if np.max(np.abs(fit.fun), initial=0.0) > 3.0 * f_scale:
+            start = np.clip(fit.x, np.nextafter(lower, upper), np.nextafter(upper, lower))
+            robust = least_squares(
+                residuals, start, bounds=(lower, upper), x_scale=scale, max_nfev=100,
+                loss="soft_l1", f_scale=f_scale, **tolerances,
+            )
     except ValueError:
         return None
-    if robust.status >= 0 and robust.cost <= _soft_l1_cost(fit.fun, max(0.05 * step0, 1e-6)):
+    if robust is not None and robust.status >= 0 and robust.cost <= _soft_l1_cost(fit.fun, f_scale):
         fit = robust
     if fit.status < 0:  # status 0 (evaluation budget spent) still carries the best fit found
         return None
