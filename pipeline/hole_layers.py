@@ -167,6 +167,7 @@ def write_hole_layers(path: Path, plan, config, detected: list) -> dict[str, Any
         "walls": len(wall_records),
         "height_jump_px": int(sum(d.jump_px for d in detected)),
         "aoi_area_m2": round(sum(d.aoi_px for d in detected) * pixel_area_m2, 2),
+        "largest": sorted(hole_records, key=lambda r: -r["area_m2"])[:20],
     }
 
 

@@ -33,6 +33,7 @@ from .grid import Cell, Grid, PixelWindow
 from .hole_layers import write_hole_layers
 from .io.raster import RasterOptions, write_vrt
 from .io.vector import write_layer
+from .report import write_report
 from .survey import Survey, scan_survey, source_crs_for_task, tile_index_records
 from .tasks import (
     CellResult,
@@ -52,7 +53,7 @@ from .tasks import (
 logger = logging.getLogger(__name__)
 
 #: Products a run moves from the staging folder into OUT (and replaces there).
-PRODUCTS = ("dsm", "dsm.vrt", "holes.gpkg", "manifest.json")
+PRODUCTS = ("dsm", "dsm.vrt", "holes.gpkg", "manifest.json", "report.html")
 
 
 @dataclass
@@ -236,7 +237,8 @@ def run_survey(
             dsm_tiles=sorted(os.path.relpath(r.dsm_path, staging) for r in cell_results if r.dsm_path),
         )
         stage_seconds["outputs"] = time.perf_counter() - t0
-        _write_manifest(staging / "manifest.json", summary, plan, config, tile_results, cell_results)
+        manifest = _write_manifest(staging / "manifest.json", summary, plan, config, tile_results, cell_results)
+        write_report(staging / "report.html", manifest, summary.holes.get("largest", []))
         _commit(staging, out, keep_work=config.output.keep_intermediate)
     except BaseException:
         _remove_staging(staging)
@@ -449,7 +451,7 @@ def _write_outputs(staging: Path, plan: SurveyPlan, tile_results, cell_results, 
     )
 
 
-def _write_manifest(path: Path, summary: RunSummary, plan: SurveyPlan, config: Config, tile_results, cell_results) -> None:
+def _write_manifest(path: Path, summary: RunSummary, plan: SurveyPlan, config: Config, tile_results, cell_results) -> dict:
     grid = plan.grid
     manifest = {
         "holefill_version": __version__,
@@ -489,6 +491,7 @@ def _write_manifest(path: Path, summary: RunSummary, plan: SurveyPlan, config: C
         "holes": summary.holes,
     }
     path.write_text(json.dumps(manifest, indent=2, default=str))
+    return manifest
 
 
 def _make_staging(out: Path) -> Path:
