@@ -632,10 +632,7 @@ class Scene:
         buildings = self.buildings
         if len(buildings):
             radius = buildings.bounding_radius
-            near = np.flatnonzero(
-                (buildings.center_u + radius >= u_lo) & (buildings.center_u - radius <= u_hi)
-                & (buildings.center_v + radius >= v_lo) & (buildings.center_v - radius <= v_hi)
-            )
+            near = _objects_near(buildings.center_u, buildings.center_v, radius, (u_lo, u_hi, v_lo, v_hi))
             for index in near:
                 columns, rows = _cell_span(u, v, buildings.center_u[index], buildings.center_v[index], radius[index], column0, row0, cell)
                 if columns is None:
@@ -654,10 +651,7 @@ class Scene:
         trees = self.trees
         if len(trees):
             radius = trees.crown_radius
-            near = np.flatnonzero(
-                (trees.center_u + radius >= u_lo) & (trees.center_u - radius <= u_hi)
-                & (trees.center_v + radius >= v_lo) & (trees.center_v - radius <= v_hi)
-            )
+            near = _objects_near(trees.center_u, trees.center_v, radius, (u_lo, u_hi, v_lo, v_hi))
             for index in near:
                 columns, rows = _cell_span(u, v, trees.center_u[index], trees.center_v[index], radius[index], column0, row0, cell)
                 if columns is None:
@@ -679,6 +673,16 @@ class Scene:
             kind[water] = SurfaceKind.WATER
             object_index[water] = -1
         return SceneRaster(column0, row0, surface, hard_surface, kind, object_index)
+
+
+def _objects_near(
+    center_u: np.ndarray, center_v: np.ndarray, radius: np.ndarray, bounds: tuple[float, float, float, float]
+) -> np.ndarray:
+    """Indices of the round objects (centre, radius) that reach into a (u_lo, u_hi, v_lo, v_hi) window."""
+    u_lo, u_hi, v_lo, v_hi = bounds
+    return np.flatnonzero(
+        (center_u + radius >= u_lo) & (center_u - radius <= u_hi) & (center_v + radius >= v_lo) & (center_v - radius <= v_hi)
+    )
 
 
 def _cell_span(
