@@ -445,7 +445,7 @@ def _write_outputs(staging: Path, plan: SurveyPlan, tile_results, cell_results, 
     write_layer(
         gpkg,
         "survey_area",
-        [{"source": "aoi" if plan.survey_area is not None else "tiles"}],
+        [{"source": "--aoi polygon" if plan.aoi_given else "union of tile extents"}],
         [plan.survey_area],
         crs_wkt=grid.crs_wkt,
     )

@@ -109,10 +109,9 @@ def test_merge_of_overlapping_tiles_equals_one_tile(rng):
     # tile A: x < 135, tile B: x >= 120 (15 m of overlap, points in the overlap go to both at random)
     in_a = (x < 135) & ((x < 120) | (rng.random(len(x)) < 0.5))
     in_b = ~in_a
-    windows, parts = [], []
-    for select, bounds in ((in_a, (100, 200, 135, 250)), (in_b, (120, 200, 160, 250))):
-        windows.append(grid.window_of_bounds(*bounds))
-    for select, window in zip((in_a, in_b), windows):
+    windows = [grid.window_of_bounds(100, 200, 135, 250), grid.window_of_bounds(120, 200, 160, 250)]
+    parts = []
+    for select, window in zip((in_a, in_b), windows, strict=True):
         other = windows[1] if window is windows[0] else windows[0]
         acc, _, outside = accumulate(grid, window, x[select], y[select], z[select], np.ones(select.sum(), bool), 4096)
         assert outside == 0

@@ -18,6 +18,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 import rasterio
 import rasterio.shutil
+import shapely
 from affine import Affine
 from rasterio.enums import Resampling
 from rasterio.io import MemoryFile
@@ -172,9 +173,8 @@ def read_raster(path: str | os.PathLike) -> tuple[np.ndarray, Affine, str]:
 __all__ = ["NODATA", "RasterOptions", "Resampling", "read_raster", "write_cog", "write_vrt"]
 
 
-def label_polygons(labels: np.ndarray, transform: Affine, *, connectivity: int = 4) -> dict[int, "shapely.Geometry"]:
+def label_polygons(labels: np.ndarray, transform: Affine, *, connectivity: int = 4) -> dict[int, shapely.Geometry]:
     """Polygons with exact pixel edges of each positive label (holes-in-holes kept as interiors)."""
-    import shapely
     from rasterio.features import shapes
 
     pieces: dict[int, list] = {}
