@@ -314,22 +314,15 @@ def fit_wall(
     k_hi, k_lo = np.maximum(k[measured], 1.0), np.maximum(k[has_min], 1.0)
     phi0 = math.atan2(n0[1], n0[0])
 
-    def high_share(params, x, y):
-        phi, rho, _, _, log_w = params
-        c, s = math.cos(phi), math.sin(phi)
-        return _square_share(x * c + y * s - rho, abs(c), abs(s), math.exp(log_w))
+    # observations: highest points (measured), lowest points (has_min), empty pixels (low side)
+    observations = (
+        xc[measured], yc[measured], k_hi, zx[measured],
+        xc[has_min], yc[has_min], k_lo, zn[has_min],
+        xc[empty], yc[empty], _LOGISTIC_NODES,
+    )  # fmt: skip
 
     def residuals(params):
-        low, high = params[2], params[3]
-        step = high - low
-        a_hi = high_share(params, xc[measured], yc[measured])
-        parts = [low + step * (1.0 - (1.0 - a_hi) ** k_hi) - zx[measured]]
-        if has_min.any():
-            a_lo = high_share(params, xc[has_min], yc[has_min])
-            parts.append(low + step * a_lo**k_lo - zn[has_min])
-        if empty.any():
-            parts.append(step * high_share(params, xc[empty], yc[empty]))
-        return np.concatenate(parts)
+        return _step_residuals(np.asarray(params, dtype=np.float64), *observations)
 
     x0 = np.array([phi0, rho0, low0, high0, math.log(0.2)])
     lower = [phi0 - 0.6, rho0 - support_px, low0 - step0, low0, math.log(0.001)]
@@ -340,6 +333,12 @@ def fit_wall(
         # tolerances of 1e-6 (relative) are far below the 0.2-pixel accuracy a wall needs,
         # and take half the evaluations of scipy's 1e-8 defaults
         tolerances = {"ftol": 1e-6, "xtol": 1e-6, "gtol": 1e-6}
+        bounds_array = (np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64))
+
+        def jacobian(params):
+            return _step_jacobian(np.asarray(params, dtype=np.float64), *bounds_array, *observations)
+
+        tolerances["jac"] = jacobian
         fit = least_squares(residuals, x0, bounds=(lower, upper), x_scale=scale, max_nfev=200, **tolerances)
         f_scale = max(0.05 * step0, 1e-6)
         robust = None
@@ -438,6 +437,58 @@ def find_walls(
 #: Equal-weight quadrature nodes of the standard logistic distribution (its deciles 1, 3,
 #: 5, 7, 9): smoothing by the S-curve is the mean over these shifts.
 _LOGISTIC_NODES = np.log(np.array([0.1, 0.3, 0.5, 0.7, 0.9]) / (1 - np.array([0.1, 0.3, 0.5, 0.7, 0.9])))
+
+
+@numba.njit(cache=True)
+def _step_residuals(
+    params, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
+):  # pragma: no cover - compiled
+    """Residuals of the S-curve step model ([WALL]) for :func:`fit_wall`, compiled.
+
+    ``params`` = (phi, rho, low, high, log_width): the line ``x cos phi + y sin phi = rho``.
+    Highest points follow ``low + step (1 - (1 - a)^k)``, lowest points ``low + step a^k``
+    and empty pixels ``step a`` (they should be on the low side), with ``a`` the pixel's
+    share on the high side.
+    """
+    phi, rho, low, high, log_width = params[0], params[1], params[2], params[3], params[4]
+    c, s = math.cos(phi), math.sin(phi)
+    u, v, width, step = abs(c), abs(s), math.exp(log_width), high - low
+    n_high, n_low = len(x_high), len(x_low)
+    out = np.empty(n_high + n_low + len(x_empty))
+    share = _square_share_kernel(x_high * c + y_high * s - rho, u, v, width, nodes)
+    for i in range(n_high):
+        out[i] = low + step * (1.0 - (1.0 - share[i]) ** k_high[i]) - z_high[i]
+    share = _square_share_kernel(x_low * c + y_low * s - rho, u, v, width, nodes)
+    for i in range(n_low):
+        out[n_high + i] = low + step * share[i] ** k_low[i] - z_low[i]
+    share = _square_share_kernel(x_empty * c + y_empty * s - rho, u, v, width, nodes)
+    for i in range(len(x_empty)):
+        out[n_high + n_low + i] = step * share[i]
+    return out
+
+
+@numba.njit(cache=True)
+def _step_jacobian(
+    params, lower, upper, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
+):  # pragma: no cover - compiled
+    """Forward-difference Jacobian of :func:`_step_residuals` in one compiled call.
+
+    The step is scipy's "2-point" rule (sqrt of machine epsilon, relative to the
+    parameter), taken backwards where a forward step would leave the bounds.
+    """
+    base = _step_residuals(params, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes)
+    jacobian = np.empty((len(base), len(params)))
+    for j in range(len(params)):
+        h = 1.4901161193847656e-08 * max(1.0, abs(params[j]))
+        if params[j] + h > upper[j]:
+            h = -h
+        shifted = params.copy()
+        shifted[j] += h
+        h = shifted[j] - params[j]  # the step actually taken, after rounding
+        moved = _step_residuals(shifted, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes)
+        for i in range(len(base)):
+            jacobian[i, j] = (moved[i] - base[i]) / h
+    return jacobian
 
 
 def _soft_l1_cost(residuals: np.ndarray, f_scale: float) -> float:
