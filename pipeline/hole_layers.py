@@ -26,20 +26,23 @@ from .outlines import hole_outline, merge_outlines, to_world
 OUTLINE_MODES = {"pixel": "exact", "simplified": "simplified", "straight": "straight"}
 
 
-def write_hole_layers(path: Path, plan, config, detected: list) -> dict[str, Any]:
-    """Link, classify and write the hole layers; return the counts for the report."""
+def write_hole_layers(path: Path, plan, config, params, detected: list) -> dict[str, Any]:
+    """Link, classify and write the hole layers; return the counts for the report.
+
+    ``params`` (:class:`pipeline.tasks.HoleParams`) are the survey-unit parameters the
+    cells were detected with; linking and classification use the same ones.
+    """
     grid = plan.grid
     unit = plan.survey.horizontal_unit_m
     z_unit = plan.survey.vertical_unit_m
     pixel_size = grid.resolution
     pixel_area_m2 = (pixel_size * unit) ** 2
     holes_config = config.holes
-    min_area_px = int(np.ceil(holes_config.min_area_m2 / pixel_area_m2))
-    catalog = link_holes([d.cell_holes for d in detected], min_area_px=min_area_px)
+    catalog = link_holes([d.cell_holes for d in detected], min_area_px=params.min_area_px)
     causes = classify_causes(
         catalog.stats,
         pixel_size=pixel_size * unit / z_unit,
-        jump_threshold=holes_config.jump_threshold_m / z_unit,
+        jump_threshold=params.jump_threshold,
     )
     ring = ring_metrics(catalog.stats)
 

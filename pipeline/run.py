@@ -223,7 +223,7 @@ def run_survey(
         t0 = time.perf_counter()
         skipped = survey.skipped + failed
         _write_outputs(staging, plan, tile_results, cell_results, skipped)
-        hole_summary = write_hole_layers(staging / "holes.gpkg", plan, config, detected) if detected is not None else {}
+        hole_summary = write_hole_layers(staging / "holes.gpkg", plan, config, hole_params(plan, config), detected) if detected is not None else {}
         summary = RunSummary(
             holes=hole_summary,
             out_dir=str(out),
@@ -333,6 +333,21 @@ def _run_stages(client, plan: SurveyPlan, config: Config, staging: Path, bar: _P
     return tile_results, failed, cell_results
 
 
+def hole_params(plan: SurveyPlan, config: Config) -> HoleParams:
+    """The ``[holes]`` settings in the survey's units: computed once, for detection and linking alike."""
+    holes = config.holes
+    unit = plan.survey.horizontal_unit_m
+    pixel_area_m2 = (plan.grid.resolution * unit) ** 2
+    return HoleParams(
+        jump_threshold=holes.jump_threshold_m / plan.survey.vertical_unit_m,
+        voxel_height=config.rasterize.voxel_height_m / plan.survey.vertical_unit_m,
+        connectivity=holes.connectivity,
+        min_area_px=math.ceil(holes.min_area_m2 / pixel_area_m2),
+        vertical_min_px=math.ceil(holes.vertical_min_area_m2 / pixel_area_m2),
+        wall_min_length_px=holes.wall_min_length_m / unit / plan.grid.resolution,
+    )
+
+
 def _run_detection(client, plan: SurveyPlan, config: Config, cell_results, bar: _Progress, water) -> list:
     """Stage 3: the footprint on the client, then one detection task per cell."""
     from distributed import as_completed
@@ -348,16 +363,7 @@ def _run_detection(client, plan: SurveyPlan, config: Config, cell_results, bar: 
         closing_blocks=closing_blocks,
         everything=plan.aoi_given,
     )
-    unit = plan.survey.horizontal_unit_m
-    pixel_area_m2 = (plan.grid.resolution * unit) ** 2
-    params = HoleParams(
-        jump_threshold=holes.jump_threshold_m / plan.survey.vertical_unit_m,
-        voxel_height=config.rasterize.voxel_height_m / plan.survey.vertical_unit_m,
-        connectivity=holes.connectivity,
-        min_area_px=math.ceil(holes.min_area_m2 / pixel_area_m2),
-        vertical_min_px=math.ceil(holes.vertical_min_area_m2 / pixel_area_m2),
-        wall_min_length_px=holes.wall_min_length_m / unit / plan.grid.resolution,
-    )
+    params = hole_params(plan, config)
     cells = {c.id: c for c in plan.cells}
     area_wkb = shapely.to_wkb(plan.survey_area) if plan.aoi_given else None
     water_wkb = shapely.to_wkb(water) if water is not None else None
