@@ -301,7 +301,8 @@ def detect_cell(task: DetectTask) -> DetectResult:
             connectivity=params.connectivity,
         )
         outlines = {label: shapely.to_wkb(polygon) for label, polygon in polygons.items()}
-    jumps = height_jumps(stats.zmax, stats.zmin, jump_threshold=params.jump_threshold)
+    # float64, as find_walls compares heights: one jump raster serves the count and the walls
+    jumps = height_jumps(stats.zmax.astype(np.float64), stats.zmin, jump_threshold=params.jump_threshold)
     vertical = vertical_holes(
         stats.zmax, stats.zmin, stats.voxels, voxel_height=params.voxel_height, jump_threshold=params.jump_threshold
     )[core_rows, core_cols]
@@ -314,6 +315,7 @@ def detect_cell(task: DetectTask) -> DetectResult:
         transform=transform,
         region=(core_rows, core_cols),
         min_length_px=params.wall_min_length_px,
+        jumps=jumps,
     )
     return DetectResult(
         cell_holes=holes.without_labels(),

@@ -389,6 +389,7 @@ def find_walls(
     support_px: float = 3.0,
     pixel_values: str = "extremes",
     region: tuple[slice, slice] | None = None,
+    jumps: np.ndarray | None = None,
 ) -> list[Wall]:
     """Walls of a height map: jump pixels -> straight segments -> S-curve fits.
 
@@ -416,7 +417,8 @@ def find_walls(
     list of Wall
     """
     zmax = np.asarray(zmax, dtype=np.float64)
-    jumps = height_jumps(zmax, zmax if zmin is None else zmin, jump_threshold=jump_threshold)
+    if jumps is None:
+        jumps = height_jumps(zmax, zmax if zmin is None else zmin, jump_threshold=jump_threshold)
     segments = wall_segments(
         jumps, zmax, min_pixels=min_pixels, min_length_px=min_length_px, angle_tolerance_deg=angle_tolerance_deg
     )
