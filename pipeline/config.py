@@ -19,6 +19,10 @@ from typing import Any, get_args, get_origin, get_type_hints
 
 from .errors import ConfigError
 
+#: Pixels of context hole detection needs around a cell core (its local radius):
+#: ``grid.halo_px`` must be at least this when holes are found.
+HOLE_CONTEXT_PX = 8
+
 
 def _opt(default: Any, doc: str, **rules: Any) -> Any:
     """A config field: its default, a one-line description and validation rules.

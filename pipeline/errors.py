@@ -42,3 +42,22 @@ class HolefillWarning(UserWarning):
 
 class PointsOutsideHeaderWarning(HolefillWarning):
     """Some points lie outside the bounds their tile's header declares."""
+
+
+class TaskError(HolefillError):
+    """A task failed on a worker for a reason holefill does not foresee; the message names the task."""
+
+    def __init__(self, task: str, cause: BaseException) -> None:
+        self.task = task
+        self.cause = f"{type(cause).__name__}: {cause}".strip().splitlines()[0] if str(cause) else type(cause).__name__
+        super().__init__(f"{task}: {self.cause}")
+
+    def __reduce__(self):
+        return (_rebuild_task_error, (self.task, self.cause))
+
+
+def _rebuild_task_error(task: str, cause: str) -> TaskError:
+    error = TaskError.__new__(TaskError)
+    error.task, error.cause = task, cause
+    HolefillError.__init__(error, f"{task}: {cause}")
+    return error

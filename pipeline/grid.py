@@ -196,31 +196,46 @@ class Grid:
     # -- cells --------------------------------------------------------------------
     def cells(self) -> list[Cell]:
         """All cells overlapping the grid, west to east within north to south."""
-        return list(self._iter_cells())
+        return [self.cell(ix, iy) for iy, ix in self._cell_index_ranges(self.window)]
 
-    def _iter_cells(self) -> Iterator[Cell]:
+    def cell(self, index_x: int, index_y: int) -> Cell:
+        """The cell of absolute indices ``(index_x, index_y)`` (``index_y`` counts upwards)."""
         n = self.cell_px
-        # absolute lattice row (upwards) of the top grid row is row_top; cell index_y counts upwards
-        top_index = math.floor(self.row_top / n)
-        bottom_index = math.floor((self.row_top - self.height + 1) / n)
-        left_index = math.floor(self.col_min / n)
-        right_index = math.floor((self.col_min + self.width - 1) / n)
+        # absolute rows index_y*n .. index_y*n+n-1 (upwards) -> grid rows
+        row_off = self.row_top - (index_y * n + n - 1)
+        col_off = index_x * n - self.col_min
+        core = PixelWindow(row_off, col_off, n, n).intersection(self.window)
+        halo = core.expand(self.halo_px).intersection(self.window)
+        x0 = index_x * n * self.resolution
+        y0 = index_y * n * self.resolution
+        return Cell(
+            id=f"{_coordinate_name(x0)}_{_coordinate_name(y0)}",
+            index_x=index_x,
+            index_y=index_y,
+            window=core,
+            halo_window=halo,
+        )
+
+    def cell_indices_under(self, window: PixelWindow) -> list[tuple[int, int]]:
+        """``(index_x, index_y)`` of the cells whose core meets ``window``, by grid arithmetic.
+
+        In the order of :meth:`cells` (north to south, west to east within a row).
+        """
+        window = window.intersection(self.window)
+        if window.is_empty:
+            return []
+        return [(ix, iy) for iy, ix in self._cell_index_ranges(window)]
+
+    def _cell_index_ranges(self, window: PixelWindow) -> Iterator[tuple[int, int]]:
+        n = self.cell_px
+        # absolute lattice rows count upwards: the window's top row is the highest
+        top_index = math.floor((self.row_top - window.row_off) / n)
+        bottom_index = math.floor((self.row_top - window.row_end + 1) / n)
+        left_index = math.floor((self.col_min + window.col_off) / n)
+        right_index = math.floor((self.col_min + window.col_end - 1) / n)
         for index_y in range(top_index, bottom_index - 1, -1):
-            # absolute rows index_y*n .. index_y*n+n-1 (upwards) -> grid rows
-            row_off = self.row_top - (index_y * n + n - 1)
             for index_x in range(left_index, right_index + 1):
-                col_off = index_x * n - self.col_min
-                core = PixelWindow(row_off, col_off, n, n).intersection(self.window)
-                halo = core.expand(self.halo_px).intersection(self.window)
-                x0 = index_x * n * self.resolution
-                y0 = index_y * n * self.resolution
-                yield Cell(
-                    id=f"{_coordinate_name(x0)}_{_coordinate_name(y0)}",
-                    index_x=index_x,
-                    index_y=index_y,
-                    window=core,
-                    halo_window=halo,
-                )
+                yield index_y, index_x
 
 
 def _coordinate_name(value: float) -> str:

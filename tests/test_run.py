@@ -15,7 +15,7 @@ from pipeline.errors import InputDataError, OutputError
 from pipeline.io.raster import NODATA, read_raster
 from pipeline.io.vector import list_layers, read_layer
 from pipeline.run import run_survey
-from pipeline.tasks import load_cell_statistics
+from pipeline.io.intermediate import load_cell_statistics
 
 from .lasfiles import random_points, write_points
 

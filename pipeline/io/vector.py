@@ -1,7 +1,8 @@
 """Writing GeoPackage layers (pyogrio through geopandas).
 
 Layers are written into a GeoPackage inside the run's staging folder; the whole
-file is moved into place when the run succeeds (see ``pipeline.run``).
+file is moved into place when the run succeeds (see ``pipeline.staging``). Polygon
+files given by the user (``--aoi``, ``--water``) are read here too.
 """
 
 from __future__ import annotations
@@ -11,10 +12,12 @@ from pathlib import Path
 from typing import Any
 
 import geopandas as gpd
+import numpy as np
 import pyogrio
 import shapely
+from pyproj import CRS, Transformer
 
-from ..errors import OutputError
+from ..errors import CRSError, InputDataError, OutputError
 
 
 def write_layer(
@@ -61,3 +64,26 @@ def read_layer(path: str | os.PathLike, layer: str) -> gpd.GeoDataFrame:
 def list_layers(path: str | os.PathLike) -> list[str]:
     """Layer names of a GeoPackage."""
     return [name for name, _ in pyogrio.list_layers(path)]
+
+
+def read_survey_area(path: str | os.PathLike, crs: CRS, *, what: str = "AOI") -> shapely.Geometry:
+    """The union of the polygons of a vector file, in the survey CRS."""
+    try:
+        frame = pyogrio.read_dataframe(path)
+    except Exception as e:
+        raise InputDataError(path, f"{what} file cannot be read: {e}") from None
+    polygons = [g for g in frame.geometry if g is not None and g.geom_type in ("Polygon", "MultiPolygon")]
+    if not polygons:
+        raise InputDataError(path, f"{what} file holds no polygon")
+    if frame.crs is None:
+        raise CRSError(path, f"{what} file has no CRS")
+    area = shapely.union_all(polygons)
+    if not CRS.from_user_input(frame.crs).equals(crs, ignore_axis_order=True):
+        transformer = Transformer.from_crs(frame.crs, crs, always_xy=True)
+        area = shapely.transform(area, lambda xy: _transform_xy(transformer, xy))
+    return shapely.make_valid(area)
+
+
+def _transform_xy(transformer: Transformer, xy: np.ndarray) -> np.ndarray:
+    x, y = transformer.transform(xy[:, 0], xy[:, 1])
+    return np.column_stack([x, y])

@@ -1,0 +1,111 @@
+"""Stage results kept under the run's work folder: the formats of intermediate files.
+
+Every file is written under a temporary name and renamed when complete, so a
+task killed midway never leaves a file that looks finished, and a task run twice
+writes the same file again. The layout of the work folder (which file belongs to
+which tile or cell) is decided by :mod:`pipeline.staging`; this module only
+knows how each kind of result is stored:
+
+- stage 1, per tile: raw binaries of known shape (the tile's window), one per
+  statistic, memory-mapped by the cells that need a slice of them (parsing a
+  header cost more than the merge itself);
+- stage 2, per cell: the merged statistics of the cell and its halo (``.npz``);
+- detection, per cell: the part-label raster of the cell core (``.npz``);
+- linking, per survey: the hole catalog (a pickle of plain numpy structures).
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..grid import PixelWindow
+from ..rasterize import STATISTIC_DTYPES, STATISTIC_NAMES, PixelStatistics
+
+#: Bumped whenever the layout of a kept result changes, so stale files are never read.
+FORMAT_VERSION = 1
+
+
+def save_tile_statistics(folder: str | os.PathLike, statistics: PixelStatistics, shared_keys: np.ndarray) -> None:
+    """Store one tile's stage-1 statistics (its window) and the voxel keys of its shared pixels."""
+    out = Path(folder)
+    out.mkdir(exist_ok=True)  # never parents: a cancelled run's staging folder must stay deleted
+    for name in STATISTIC_NAMES:
+        save_raw(out / f"{name}.bin", getattr(statistics, name))
+    save_raw(out / "shared_keys.bin", shared_keys.astype(np.int64))
+
+
+def load_tile_statistics(folder: str | os.PathLike, tile_window: PixelWindow, window: PixelWindow) -> PixelStatistics:
+    """Read the part of a tile's stage-1 statistics inside ``window`` (memory-mapped)."""
+    rows, cols = window.slices_within(tile_window)
+    arrays = {}
+    for name in STATISTIC_NAMES:
+        mapped = np.memmap(Path(folder) / f"{name}.bin", dtype=STATISTIC_DTYPES[name], mode="r", shape=tile_window.shape)
+        arrays[name] = np.array(mapped[rows, cols])
+    return PixelStatistics(window=window, **arrays)
+
+
+def load_tile_shared_keys(folder: str | os.PathLike) -> np.ndarray:
+    """The voxel keys a tile wrote for the pixels it shares with other tiles."""
+    return np.fromfile(Path(folder) / "shared_keys.bin", dtype=np.int64)
+
+
+def save_cell_statistics(path: str | os.PathLike, statistics: PixelStatistics) -> None:
+    """Store a cell's merged statistics (core + halo) for the later stages."""
+    _save_npz(path, window=_window_array(statistics.window), **{name: getattr(statistics, name) for name in STATISTIC_NAMES})
+
+
+def load_cell_statistics(path: str | os.PathLike) -> PixelStatistics:
+    """A cell's merged statistics as :func:`save_cell_statistics` stored them."""
+    with np.load(path) as data:
+        window = PixelWindow(*(int(v) for v in data["window"]))
+        return PixelStatistics(window=window, **{name: data[name] for name in STATISTIC_NAMES})
+
+
+def save_labels(path: str | os.PathLike, labels: np.ndarray, window: PixelWindow) -> None:
+    """Store a cell core's part labels (0 no hole, -1 a settled small void, n > 0 part n)."""
+    _save_npz(path, window=_window_array(window), labels=labels.astype(np.int32))
+
+
+def load_labels(path: str | os.PathLike) -> tuple[np.ndarray, PixelWindow]:
+    """A cell core's part labels and the window they cover."""
+    with np.load(path) as data:
+        return data["labels"], PixelWindow(*(int(v) for v in data["window"]))
+
+
+def save_object(path: str | os.PathLike, value: Any) -> None:
+    """Pickle a survey-wide result (plain dataclasses of numpy arrays) with the format version."""
+    tmp = Path(f"{path}.tmp")
+    with tmp.open("wb") as fh:
+        pickle.dump((FORMAT_VERSION, value), fh, protocol=pickle.HIGHEST_PROTOCOL)
+    os.replace(tmp, path)
+
+
+def load_object(path: str | os.PathLike) -> Any:
+    """What :func:`save_object` stored; raises ``ValueError`` for another format version."""
+    with Path(path).open("rb") as fh:
+        version, value = pickle.load(fh)
+    if version != FORMAT_VERSION:
+        raise ValueError(f"{path}: intermediate format {version}, this holefill reads {FORMAT_VERSION}")
+    return value
+
+
+def save_raw(path: Path, array: np.ndarray) -> None:
+    """An array as raw bytes (its shape and type are known to the reader)."""
+    tmp = path.with_name(path.name + ".tmp")
+    np.ascontiguousarray(array).tofile(tmp)
+    os.replace(tmp, path)
+
+
+def _window_array(window: PixelWindow) -> np.ndarray:
+    return np.array([window.row_off, window.col_off, window.height, window.width])
+
+
+def _save_npz(path: str | os.PathLike, **arrays: np.ndarray) -> None:
+    tmp = f"{path}.tmp.npz"
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)

@@ -1,0 +1,337 @@
+"""The products of a run: the DSM mosaic, the GeoPackage layers, the manifest.
+
+Writers only: everything here turns kept stage results into files inside the
+run's staging folder (``docs/outputs.md`` documents every product and field).
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import os
+import socket
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import shapely
+from pyproj import CRS
+
+from . import __version__
+from .config import Config, to_dict
+from .holes import CAUSES
+from .io.raster import write_vrt
+from .io.vector import write_layer
+from .outlines import hole_outline, merge_outlines, to_world
+from .plan import SurveyPlan
+from .stages.bin_tiles import TileResult
+from .stages.detect_holes import DetectResult
+from .stages.link_holes import HoleSet
+from .stages.merge_cells import CellResult
+from .stages.write_rasters import WriteResult
+from .survey import tile_index_records
+
+#: Products a run moves from the staging folder into OUT (and replaces there).
+PRODUCTS = ("dsm", "dsm.vrt", "holes.gpkg", "manifest.json", "report.html")
+
+#: ``holes.outline`` values -> modes of :func:`pipeline.outlines.hole_outline`.
+OUTLINE_MODES = {"pixel": "exact", "simplified": "simplified", "straight": "straight"}
+
+
+@dataclass
+class RunSummary:
+    """What a run did; also written to ``manifest.json``."""
+
+    out_dir: str
+    tiles: int
+    cells: int
+    points_read: int
+    points_used: int
+    seconds: float
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+    skipped: list[dict[str, str]] = field(default_factory=list)
+    dsm_tiles: list[str] = field(default_factory=list)
+    holes: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def points_per_second(self) -> float:
+        return self.points_read / self.seconds if self.seconds else 0.0
+
+
+def write_dsm_vrt(path: Path, plan: SurveyPlan, written: list[WriteResult]) -> None:
+    """The mosaic of the DSM tiles (none when no cell holds a point)."""
+    grid = plan.grid
+    cells = plan.cell_by_id()
+    sources = []
+    for r in written:
+        if r.dsm_path:
+            w = cells[r.cell_id].window
+            sources.append((r.dsm_path, w.row_off, w.col_off, w.height, w.width))
+    if sources:
+        write_vrt(
+            path,
+            sources,
+            width=grid.width,
+            height=grid.height,
+            transform=grid.transform,
+            crs_wkt=grid.crs_wkt,
+            description="DSM: highest point per pixel",
+        )
+
+
+def write_survey_layers(
+    gpkg: Path,
+    plan: SurveyPlan,
+    tile_results: list[TileResult],
+    cell_results: list[CellResult],
+    written: list[WriteResult],
+    skipped: list[dict[str, str]],
+) -> None:
+    """The ``tiles``, ``cells`` and ``survey_area`` layers."""
+    grid = plan.grid
+    done = {r.tile_index: r for r in tile_results}
+    skipped_paths = {s["path"] for s in skipped}
+    tile_records, tile_geometries = [], []
+    for record in tile_index_records(plan.survey):
+        bounds = record.pop("bounds")
+        result = done.get(record["tile_id"])
+        record["points_used"] = result.points_used if result else 0
+        record["status"] = "ok" if result else ("skipped" if record["path"] in skipped_paths else "failed")
+        tile_records.append(record)
+        tile_geometries.append(shapely.box(*bounds))
+    write_layer(gpkg, "tiles", tile_records, tile_geometries, crs_wkt=grid.crs_wkt, geometry_type="Polygon")
+    cells = plan.cell_by_id()
+    dsm_files = {w.cell_id: w.dsm_path for w in written}
+    cell_records, cell_geometries = [], []
+    for r in cell_results:
+        cell = cells[r.cell_id]
+        dsm_path = dsm_files.get(r.cell_id)
+        cell_records.append(
+            {
+                "cell_id": cell.id,
+                "index_x": cell.index_x,
+                "index_y": cell.index_y,
+                "row_off": cell.window.row_off,
+                "col_off": cell.window.col_off,
+                "width_px": cell.window.width,
+                "height_px": cell.window.height,
+                "points": r.points,
+                "empty_pixels": r.empty_pixels,
+                "empty_fraction": r.empty_pixels / r.pixels if r.pixels else 0.0,
+                "dsm_file": os.path.relpath(dsm_path, gpkg.parent) if dsm_path else None,
+            }
+        )
+        cell_geometries.append(shapely.box(*grid.window_bounds(cell.window)))
+    write_layer(gpkg, "cells", cell_records, cell_geometries, crs_wkt=grid.crs_wkt, geometry_type="Polygon")
+    write_layer(
+        gpkg,
+        "survey_area",
+        [{"source": "--aoi polygon" if plan.aoi_given else "union of tile extents"}],
+        [plan.survey_area],
+        crs_wkt=grid.crs_wkt,
+    )
+
+
+def write_hole_layers(
+    gpkg: Path, plan: SurveyPlan, config: Config, holes: HoleSet, detected: list[DetectResult]
+) -> dict[str, Any]:
+    """The ``holes``, ``hole_parts``, ``vertical_holes`` and ``walls`` layers; returns the report's counts."""
+    crs = plan.grid.crs_wkt
+    part_outlines = {
+        (cell_index, label): shapely.from_wkb(wkb)
+        for cell_index, d in enumerate(detected)
+        for label, wkb in d.part_outlines.items()
+    }
+    hole_records, hole_geometries = _hole_records(plan, config, holes, part_outlines)
+    write_layer(gpkg, "holes", hole_records, hole_geometries, crs_wkt=crs, geometry_type="MultiPolygon")
+    listed = {r["hole_id"] for r in hole_records}
+    part_records, part_geometries, counts_by_type = _part_records(plan, holes, part_outlines, listed)
+    write_layer(gpkg, "hole_parts", part_records, part_geometries, crs_wkt=crs, geometry_type="MultiPolygon")
+    vertical_records, vertical_geometries = _vertical_records(plan, detected)
+    write_layer(gpkg, "vertical_holes", vertical_records, vertical_geometries, crs_wkt=crs, geometry_type="MultiPolygon")
+    wall_records, wall_geometries = _wall_records(plan, detected)
+    write_layer(gpkg, "walls", wall_records, wall_geometries, crs_wkt=crs, geometry_type="LineString")
+    catalog = holes.catalog
+    counts_by_cause = collections.Counter(r["cause"] for r in hole_records)
+    return {
+        "listed": len(hole_records),
+        "area_m2": round(sum(r["area_m2"] for r in hole_records), 2),
+        "by_cause": {cause: counts_by_cause.get(cause, 0) for cause in CAUSES},
+        "parts_by_type": dict(sorted(counts_by_type.items())),
+        "small_voids": catalog.small_void_count,
+        "small_void_area_m2": round(catalog.small_void_px * plan.pixel_area_m2, 2),
+        "min_area_m2": config.holes.min_area_m2,
+        "vertical_hole_groups": len(vertical_records),
+        "walls": len(wall_records),
+        "height_jump_px": int(sum(d.jump_px for d in detected)),
+        "aoi_area_m2": round(sum(d.aoi_px for d in detected) * plan.pixel_area_m2, 2),
+        "largest": sorted(hole_records, key=lambda r: -r["area_m2"])[:20],
+    }
+
+
+def _hole_records(plan: SurveyPlan, config: Config, holes: HoleSet, part_outlines: dict) -> tuple[list, list]:
+    """One record per listed hole, with its outline dissolved from its parts (exact: pixel edges)."""
+    catalog, causes, ring = holes.catalog, holes.causes, holes.ring
+    by_hole: dict[int, list] = collections.defaultdict(list)
+    for part in catalog.parts:
+        geometry = part_outlines.get((int(part["cell"]), int(part["label"])))
+        if geometry is not None:
+            by_hole[int(part["hole_id"])].append(geometry)
+    stats = catalog.stats
+    records, geometries = [], []
+    for i, hole in enumerate(catalog.holes):
+        if hole["is_small"]:
+            continue
+        hole_id = int(hole["hole_id"])
+        ring_px = int(stats["ring_px"][i])
+        records.append(
+            {
+                "hole_id": hole_id,
+                "area_m2": float(hole["area_px"]) * plan.pixel_area_m2,
+                "perimeter_m": float(stats["edge_len_px"][i]) * plan.grid.resolution * plan.survey.horizontal_unit_m,
+                "cause": str(causes["cause"][i]),
+                "cause_rule": str(causes["rule"][i]),
+                "n_parts": int(hole["n_parts"]),
+                "n_cells": int(hole["n_cells"]),
+                "max_layer": int(hole["max_layer"]),
+                "touches_aoi_boundary": bool(hole["touches_aoi_boundary"]),
+                "boundary_z_min": _finite(stats["ring_z_min"][i], ring_px),
+                "boundary_z_mean": _finite(ring["mean_z"][i], ring_px),
+                "boundary_z_std": _finite(ring["std_z"][i], ring_px),
+                "boundary_z_max": _finite(stats["ring_z_max"][i], ring_px),
+                "boundary_jump_px": int(stats["ring_jump_px"][i]),
+                "boundary_px": ring_px,
+                "fill_status": "unfilled",
+                "fill_method": None,
+            }
+        )
+        geometries.append(
+            hole_outline(
+                merge_outlines(by_hole.get(hole_id, [])),
+                mode=OUTLINE_MODES[config.holes.outline],
+                transform=plan.grid.transform,
+            )
+        )
+    return records, geometries
+
+
+def _part_records(plan: SurveyPlan, holes: HoleSet, part_outlines: dict, listed: set[int]):
+    """The hierarchy table: one row per cell part of a listed hole."""
+    catalog = holes.catalog
+    parts = catalog.parts
+    records, geometries = [], []
+    counts_by_type: collections.Counter = collections.Counter()
+    for index, part in enumerate(parts):
+        if int(part["hole_id"]) not in listed:
+            continue
+        neighbours = catalog.neighbour_idx[catalog.neighbour_ptr[index] : catalog.neighbour_ptr[index + 1]]
+        category = str(part["category"])
+        shape = str(part["shape"]) if category != "closed" else ""
+        counts_by_type[f"{category}{shape}" if shape else category] += 1
+        records.append(
+            {
+                "hole_id": int(part["hole_id"]),
+                "cell_id": str(part["cell_id"]),
+                "part_label": int(part["label"]),
+                "layer": int(part["layer"]),
+                "category": category,
+                "open": category != "closed",
+                "type": category if category in ("I", "II") else None,
+                "shape": shape or None,
+                "area_m2": float(part["area_px"]) * plan.pixel_area_m2,
+                "neighbours": ";".join(f"{parts[j]['cell_id']}:{int(parts[j]['label'])}" for j in neighbours),
+            }
+        )
+        geometries.append(to_world(part_outlines[(int(part["cell"]), int(part["label"]))], plan.grid.transform))
+    return records, geometries, counts_by_type
+
+
+def _vertical_records(plan: SurveyPlan, detected: list[DetectResult]) -> tuple[list, list]:
+    records, geometries = [], []
+    for d in detected:
+        for record in d.vertical_holes:
+            record = dict(record)
+            geometries.append(shapely.from_wkb(record.pop("wkb")))
+            record["cell_id"] = d.cell_holes.cell.id
+            record["area_m2"] = record["pixels"] * plan.pixel_area_m2
+            records.append(record)
+    return records, geometries
+
+
+def _wall_records(plan: SurveyPlan, detected: list[DetectResult]) -> tuple[list, list]:
+    unit = plan.survey.horizontal_unit_m
+    records, geometries = [], []
+    for d in detected:
+        for wall in d.walls:
+            records.append(
+                {
+                    "cell_id": d.cell_holes.cell.id,
+                    "bottom": wall.bottom,
+                    "top": wall.top,
+                    "height": wall.height,
+                    "length_m": wall.length * unit,
+                    "fit_rms": wall.rms,
+                    "edge_width_px": wall.width_px,
+                    "support_px": wall.n_support,
+                    "jump_px": wall.n_jump_px,
+                }
+            )
+            geometries.append(shapely.LineString([(wall.x0, wall.y0), (wall.x1, wall.y1)]))
+    return records, geometries
+
+
+def _finite(value: float, ring_px: int) -> float | None:
+    return float(value) if ring_px and np.isfinite(value) else None
+
+
+def write_manifest(
+    path: Path,
+    summary: RunSummary,
+    plan: SurveyPlan,
+    config: Config,
+    tile_results: list[TileResult],
+    cell_results: list[CellResult],
+) -> dict:
+    """``manifest.json``: the resolved configuration, inputs, outputs and figures of the run."""
+    grid = plan.grid
+    manifest = {
+        "holefill_version": __version__,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "host": socket.gethostname(),
+        "config": to_dict(config),
+        "crs": {"wkt": grid.crs_wkt, "name": CRS.from_wkt(grid.crs_wkt).name},
+        "grid": {
+            "resolution": grid.resolution,
+            "resolution_unit_m": plan.survey.horizontal_unit_m,
+            "width": grid.width,
+            "height": grid.height,
+            "bounds": grid.bounds,
+            "cell_px": grid.cell_px,
+            "halo_px": grid.halo_px,
+        },
+        "inputs": [
+            {"path": r.path, "points_read": r.points_read, "points_used": r.points_used, "seconds": round(r.seconds, 3)}
+            for r in tile_results
+        ],
+        "skipped": summary.skipped,
+        "outputs": {
+            "dsm_vrt": "dsm.vrt" if summary.dsm_tiles else None,
+            "dsm_tiles": summary.dsm_tiles,
+            "holes_gpkg": "holes.gpkg",
+        },
+        "summary": {
+            "tiles": summary.tiles,
+            "cells": summary.cells,
+            "points_read": summary.points_read,
+            "points_used": summary.points_used,
+            "seconds": round(summary.seconds, 3),
+            "points_per_second": round(summary.points_per_second),
+            "stage_seconds": {k: round(v, 3) for k, v in summary.stage_seconds.items()},
+            "empty_pixels": sum(r.empty_pixels for r in cell_results),
+        },
+        "holes": summary.holes,
+    }
+    path.write_text(json.dumps(manifest, indent=2, default=str))
+    return manifest

@@ -1,0 +1,172 @@
+"""The survey plan: everything decided before any point is decoded.
+
+The plan lays one grid over the survey, keeps the cells that hold tiles and meet
+the survey area, and records which tiles touch which cells. That relation is
+found by grid arithmetic (a tile window covers a range of cell indices), so
+planning grows with the number of tiles, never with the number of tile pairs
+or with the survey's bounding box in cells.
+
+Pure apart from reading a ``--aoi`` polygon (through :mod:`pipeline.io.vector`).
+Each stage builds its own task recipes from the plan (``pipeline.stages``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections import defaultdict
+from dataclasses import dataclass
+
+import shapely
+
+from .config import Config
+from .footprint import block_size_px
+from .grid import Cell, Grid, PixelWindow
+from .io.vector import read_survey_area
+from .survey import Survey
+
+
+@dataclass(frozen=True)
+class HoleParams:
+    """Hole-stage parameters in survey units (from ``[holes]``), computed once for every stage."""
+
+    jump_threshold: float  # z units
+    voxel_height: float  # z units
+    connectivity: int
+    min_area_px: int
+    vertical_min_px: int
+    wall_min_length_px: float
+
+
+@dataclass(frozen=True)
+class SurveyPlan:
+    """The grid, the cells to process and the tile-to-cell index.
+
+    Attributes
+    ----------
+    cells : list of Cell
+        Cells whose core meets a tile window and the survey area, north to south,
+        west to east.
+    tile_windows : list of PixelWindow
+        The grid window of each tile's header bounds (``survey.tiles`` order).
+    shared_windows : dict
+        Tile index -> the overlaps of its window with other tiles' windows (pixels
+        that may receive points from two tiles), in tile order.
+    tiles_of_cell : dict
+        Cell id -> indices of the tiles whose window meets the cell's halo window.
+    """
+
+    survey: Survey
+    grid: Grid
+    cells: list[Cell]
+    tile_windows: list[PixelWindow]
+    shared_windows: dict[int, tuple[PixelWindow, ...]]
+    tiles_of_cell: dict[str, tuple[int, ...]]
+    survey_area: shapely.Geometry
+    aoi_given: bool
+    block_px: int
+
+    def cell_by_id(self) -> dict[str, Cell]:
+        return {cell.id: cell for cell in self.cells}
+
+    @property
+    def pixel_size_m(self) -> float:
+        """The pixel side in metres (the grid's resolution is in CRS units)."""
+        return self.grid.resolution * self.survey.horizontal_unit_m
+
+    @property
+    def pixel_area_m2(self) -> float:
+        return self.pixel_size_m**2
+
+
+def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None = None) -> SurveyPlan:
+    """Lay the global grid over the survey, cut it into cells and index tiles by cell."""
+    resolution = config.grid.resolution_m / survey.horizontal_unit_m
+    grid = Grid.covering(
+        [t.bounds for t in survey.tiles],
+        resolution=resolution,
+        cell_px=config.cell_size_px,
+        halo_px=config.grid.halo_px,
+        crs_wkt=survey.crs_wkt,
+    )
+    tile_windows = [grid.window_of_bounds(*t.bounds) for t in survey.tiles]
+    if aoi is not None:
+        survey_area = read_survey_area(aoi, survey.crs)
+    else:
+        survey_area = shapely.union_all([shapely.box(*t.bounds) for t in survey.tiles])
+    tiles_of_core = _tiles_by_cell(grid, tile_windows, expand_px=0)
+    tiles_of_halo = _tiles_by_cell(grid, tile_windows, expand_px=grid.halo_px)
+    candidates = [grid.cell(ix, iy) for iy, ix in sorted(((iy, ix) for ix, iy in tiles_of_core), key=_north_west_first)]
+    boxes = shapely.box(*zip(*(grid.window_bounds(c.window) for c in candidates))) if candidates else []
+    meets_area = shapely.intersects(boxes, survey_area) if candidates else []
+    cells = [cell for cell, inside in zip(candidates, meets_area) if inside]
+    tiles_of_cell = {
+        cell.id: tuple(i for i in tiles_of_halo[(cell.index_x, cell.index_y)] if _meets(tile_windows[i], cell.halo_window))
+        for cell in cells
+    }
+    block_px = block_size_px(grid, config.holes.footprint_block_m, survey.horizontal_unit_m)
+    return SurveyPlan(
+        survey=survey,
+        grid=grid,
+        cells=cells,
+        tile_windows=tile_windows,
+        shared_windows=_shared_windows(tile_windows, tiles_of_core),
+        tiles_of_cell=tiles_of_cell,
+        survey_area=survey_area,
+        aoi_given=aoi is not None,
+        block_px=block_px,
+    )
+
+
+def hole_params(plan: SurveyPlan, config: Config) -> HoleParams:
+    """The ``[holes]`` settings in the survey's units: computed once, for detection and linking alike."""
+    holes = config.holes
+    unit = plan.survey.horizontal_unit_m
+    pixel_area_m2 = plan.pixel_area_m2
+    return HoleParams(
+        jump_threshold=holes.jump_threshold_m / plan.survey.vertical_unit_m,
+        voxel_height=config.rasterize.voxel_height_m / plan.survey.vertical_unit_m,
+        connectivity=holes.connectivity,
+        min_area_px=math.ceil(holes.min_area_m2 / pixel_area_m2),
+        vertical_min_px=math.ceil(holes.vertical_min_area_m2 / pixel_area_m2),
+        wall_min_length_px=holes.wall_min_length_m / unit / plan.grid.resolution,
+    )
+
+
+def _north_west_first(key: tuple[int, int]) -> tuple[int, int]:
+    index_y, index_x = key
+    return (-index_y, index_x)
+
+
+def _meets(a: PixelWindow, b: PixelWindow) -> bool:
+    return not a.intersection(b).is_empty
+
+
+def _tiles_by_cell(grid: Grid, windows: list[PixelWindow], *, expand_px: int) -> dict[tuple[int, int], list[int]]:
+    """Cell ``(index_x, index_y)`` -> tiles whose window, grown by ``expand_px``, meets the cell's core.
+
+    A tile window meets a cell's halo (the core grown by the halo) exactly when the
+    tile window grown by the halo meets the core.
+    """
+    index: dict[tuple[int, int], list[int]] = defaultdict(list)
+    for tile, window in enumerate(windows):
+        if window.is_empty:
+            continue
+        for key in grid.cell_indices_under(window.expand(expand_px)):
+            index[key].append(tile)
+    return index
+
+
+def _shared_windows(
+    windows: list[PixelWindow], tiles_of_core: dict[tuple[int, int], list[int]]
+) -> dict[int, tuple[PixelWindow, ...]]:
+    """Each tile's overlaps with other tiles; overlapping tiles always share a cell core."""
+    neighbours: dict[int, set[int]] = defaultdict(set)
+    for tiles in tiles_of_core.values():
+        for tile in tiles:
+            neighbours[tile].update(tiles)
+    shared = {}
+    for tile, window in enumerate(windows):
+        overlaps = (window.intersection(windows[other]) for other in sorted(neighbours[tile] - {tile}))
+        shared[tile] = tuple(overlap for overlap in overlaps if not overlap.is_empty)
+    return shared

@@ -1,0 +1,207 @@
+"""Hole detection, one task per cell: hole parts, vertical holes and walls of the cell core.
+
+Each task keeps its cell's part-label raster under the work folder (the fill
+stage reads it) and returns only small tables and outlines to the client.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+
+from ..config import HOLE_CONTEXT_PX
+from ..footprint import BlockMap, aoi_mask, window_union_mask
+from ..grid import Cell, Grid, PixelWindow
+from ..holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
+from ..io.intermediate import load_cell_statistics, save_labels
+from ..io.raster import geometry_mask, label_polygons
+from ..outlines import label_outlines
+from ..plan import HoleParams, SurveyPlan
+from ..rasterize import PixelStatistics
+from ..staging import Staging
+from ..walls import Wall, find_walls
+from .merge_cells import CellResult
+
+
+@dataclass(frozen=True)
+class DetectTask:
+    """Find and measure the holes, vertical holes and walls of one cell."""
+
+    cell: Cell
+    grid: Grid
+    statistics_path: str
+    labels_path: str
+    blocks: BlockMap
+    tile_windows: tuple[PixelWindow, ...]
+    survey_area_wkb: bytes | None  # the --aoi polygon, else the tile windows are the survey area
+    water_wkb: bytes | None  # the --water polygons
+    params: HoleParams
+
+
+@dataclass(frozen=True)
+class DetectResult:
+    cell_holes: CellHoles  # without its label raster (kept in ``labels_path``)
+    labels_path: str
+    part_outlines: dict[int, bytes]  # WKB polygon per part label, exact pixel edges in global pixel coordinates
+    vertical_holes: list[dict]  # records with a "wkb" polygon
+    walls: list[Wall]
+    jump_px: int
+    aoi_px: int
+
+
+def detect_tasks(
+    plan: SurveyPlan,
+    params: HoleParams,
+    merged: list[CellResult],
+    blocks: BlockMap,
+    water: shapely.Geometry | None,
+    staging: Staging,
+) -> list[DetectTask]:
+    """One task per merged cell, in plan order."""
+    cells = plan.cell_by_id()
+    area_wkb = shapely.to_wkb(plan.survey_area) if plan.aoi_given else None
+    water_wkb = shapely.to_wkb(water) if water is not None else None
+    tasks = []
+    for result in merged:
+        cell = cells[result.cell_id]
+        tasks.append(
+            DetectTask(
+                cell=cell,
+                grid=plan.grid,
+                statistics_path=result.statistics_path,
+                labels_path=str(staging.cell_labels(cell.id)),
+                blocks=blocks.slice_for(plan.grid, cell.halo_window),
+                tile_windows=tuple(plan.tile_windows[i] for i in plan.tiles_of_cell[cell.id]),
+                survey_area_wkb=area_wkb,
+                water_wkb=water_wkb,
+                params=params,
+            )
+        )
+    return tasks
+
+
+def detect_cell(task: DetectTask) -> DetectResult:
+    """Holes, vertical holes and walls of one cell, from its merged statistics."""
+    cell, grid, params = task.cell, task.grid, task.params
+    stats = load_cell_statistics(task.statistics_path)
+    aoi = _aoi(task, stats)
+    holes = _cell_holes(task, stats, aoi)
+    labels = holes.labels if holes.labels is not None else np.zeros(cell.window.shape, np.int32)
+    save_labels(task.labels_path, labels, cell.window)
+    core_rows, core_cols = cell.window.slices_within(stats.window)
+    # float64, as find_walls compares heights: one jump raster serves the count and the walls
+    jumps = height_jumps(stats.zmax.astype(np.float64), stats.zmin, jump_threshold=params.jump_threshold)
+    vertical = vertical_holes(
+        stats.zmax, stats.zmin, stats.voxels, voxel_height=params.voxel_height, jump_threshold=params.jump_threshold
+    )[core_rows, core_cols]
+    walls = find_walls(
+        stats.zmax,
+        stats.zmin,
+        jump_threshold=params.jump_threshold,
+        count=stats.count,
+        transform=grid.window_transform(stats.window),
+        region=(core_rows, core_cols),
+        min_length_px=params.wall_min_length_px,
+        jumps=jumps,
+    )
+    return DetectResult(
+        cell_holes=holes.without_labels(),
+        labels_path=task.labels_path,
+        part_outlines=_part_outlines(holes, cell, params),
+        vertical_holes=_vertical_hole_records(
+            vertical, stats.crop(cell.window), grid.window_transform(cell.window), params
+        ),
+        walls=walls,
+        jump_px=int(jumps[core_rows, core_cols].sum()),
+        aoi_px=int(aoi[core_rows, core_cols].sum()),
+    )
+
+
+def _aoi(task: DetectTask, stats: PixelStatistics) -> np.ndarray:
+    """Where an empty pixel of the cell and its halo is a hole: survey area x data footprint."""
+    window = stats.window
+    transform = task.grid.window_transform(window)
+    if task.survey_area_wkb is not None:
+        survey_area = geometry_mask(shapely.from_wkb(task.survey_area_wkb), transform, window.shape)
+    else:
+        survey_area = window_union_mask(window, task.tile_windows)
+    return aoi_mask(window, task.grid, task.blocks, count=stats.count, survey_area=survey_area)
+
+
+def _cell_holes(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray) -> CellHoles:
+    params = task.params
+    water_mask = (
+        geometry_mask(shapely.from_wkb(task.water_wkb), task.grid.window_transform(stats.window), stats.window.shape)
+        if task.water_wkb
+        else None
+    )
+    return detect_cell_holes(
+        stats.count,
+        stats.zmax,
+        stats.zmin,
+        aoi,
+        cell=task.cell,
+        grid_window=task.grid.window,
+        jump_threshold=params.jump_threshold,
+        connectivity=params.connectivity,
+        water_points=stats.water,
+        water_mask=water_mask,
+        flight_line=stats.source.astype(np.int64) - 1,
+        min_area_px=params.min_area_px,
+        local_radius_px=HOLE_CONTEXT_PX,
+    )
+
+
+def _part_outlines(holes: CellHoles, cell: Cell, params: HoleParams) -> dict[int, bytes]:
+    """Outlines of the cell's parts in integer global pixel coordinates.
+
+    Parts of one hole then merge exactly on the client, whatever the resolution.
+    """
+    if holes.labels is None or not holes.n_parts:
+        return {}
+    polygons = label_outlines(
+        np.where(holes.labels > 0, holes.labels, 0),
+        row_off=cell.window.row_off,
+        col_off=cell.window.col_off,
+        connectivity=params.connectivity,
+    )
+    return {label: shapely.to_wkb(polygon) for label, polygon in polygons.items()}
+
+
+def _vertical_hole_records(mask: np.ndarray, core: PixelStatistics, transform, params: HoleParams) -> list[dict]:
+    """One record per connected group of vertical-hole pixels (UAS eq. 2) in a cell core."""
+    import scipy.ndimage as ndi
+
+    labels, n = ndi.label(mask, structure=np.ones((3, 3), bool))
+    if n == 0:
+        return []
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    keep = sizes >= max(1, params.vertical_min_px)
+    keep[0] = False
+    labels = np.where(keep[labels], np.cumsum(keep)[labels], 0)
+    n = int(keep.sum())
+    if n == 0:
+        return []
+    mask = labels > 0
+    index = np.arange(1, n + 1)
+    span = core.zmax.astype(np.float64) - core.zmin
+    expected = np.floor(span / params.voxel_height)
+    missing = np.where(mask, np.maximum(expected - core.voxels, 0), 0)
+    pixels = ndi.sum_labels(mask, labels, index)
+    max_span = ndi.maximum(np.where(mask, span, 0), labels, index)
+    missing_voxels = ndi.sum_labels(missing, labels, index)
+    top = ndi.maximum(np.where(mask, core.zmax, -np.inf), labels, index)
+    polygons = label_polygons(labels, transform, connectivity=8)
+    return [
+        {
+            "pixels": int(pixels[i]),
+            "max_height_range": float(max_span[i]),
+            "missing_voxels": int(missing_voxels[i]),
+            "top": float(top[i]),
+            "wkb": shapely.to_wkb(polygons[i + 1]),
+        }
+        for i in range(n)
+        if (i + 1) in polygons
+    ]

@@ -1,0 +1,48 @@
+"""Linking, on the client: the cells' hole parts become the survey's holes, each with a cause.
+
+Parts are linked across cell edges into global holes and layered outer to inner
+(:func:`pipeline.holes.link_holes`); every hole gets a cause
+(:func:`pipeline.holes.classify_causes`). The result is kept under the work
+folder: the fill stage schedules its cells by the layers and fills each hole by
+its cause, and a resumed run reads it instead of linking again.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..holes import HoleCatalog, classify_causes, link_holes, ring_metrics
+from ..io.intermediate import save_object
+from ..plan import HoleParams, SurveyPlan
+from .detect_holes import DetectResult
+
+
+@dataclass(frozen=True)
+class HoleSet:
+    """The survey's holes: the linked catalog with a cause and rim statistics per hole.
+
+    ``causes`` and ``ring`` rows are aligned with ``catalog.holes``.
+    """
+
+    catalog: HoleCatalog
+    causes: np.ndarray
+    ring: np.ndarray
+
+
+def link_cells(detected: list[DetectResult], plan: SurveyPlan, params: HoleParams) -> HoleSet:
+    """Gather: link the detected parts of every cell (in plan order) and classify the holes."""
+    unit = plan.survey.horizontal_unit_m
+    catalog = link_holes([d.cell_holes for d in detected], min_area_px=params.min_area_px)
+    causes = classify_causes(
+        catalog.stats,
+        pixel_size=plan.grid.resolution * unit / plan.survey.vertical_unit_m,
+        jump_threshold=params.jump_threshold,
+    )
+    return HoleSet(catalog=catalog, causes=causes, ring=ring_metrics(catalog.stats))
+
+
+def keep_hole_set(holes: HoleSet, path: str) -> None:
+    """Writer: keep the linked holes for the later stages and for a resumed run."""
+    save_object(path, holes)

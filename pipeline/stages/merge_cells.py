@@ -1,0 +1,112 @@
+"""Stage 2, one task per cell: merge the statistics of the tiles touching the cell and its halo.
+
+The gather step turns the cells' occupied blocks into the survey's data
+footprint (:func:`footprint_blocks`), which hole detection needs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import Config
+from ..footprint import BlockMap, footprint_map, occupied_blocks
+from ..grid import Cell, Grid, PixelWindow
+from ..io.intermediate import load_tile_shared_keys, load_tile_statistics, save_cell_statistics
+from ..plan import SurveyPlan
+from ..rasterize import merge_statistics, shared_pixel_mask
+from ..staging import Staging
+from .bin_tiles import TileFailure, TileResult, TileTask
+
+
+@dataclass(frozen=True)
+class CellTask:
+    """Merge the statistics of the tiles touching one cell.
+
+    The stage-1 results of those tiles are passed to :func:`merge_cell` as
+    arguments, so the cell runs as soon as they exist.
+    """
+
+    cell: Cell
+    grid: Grid
+    planned_windows: tuple[PixelWindow, ...]  # windows of every planned tile touching the cell
+    statistics_path: str
+    block_px: int
+
+
+@dataclass(frozen=True)
+class CellResult:
+    cell_id: str
+    statistics_path: str
+    points: int
+    pixels: int
+    empty_pixels: int
+    occupied_blocks: np.ndarray  # packed keys of the footprint blocks holding data
+
+
+def merge_tasks(plan: SurveyPlan, tiles: list[TileTask], staging: Staging) -> list[tuple[CellTask, list[int]]]:
+    """One task per planned cell touched by a tile, with the indices of the tiles it needs."""
+    windows = {t.tile_index: t.window for t in tiles}
+    recipes = []
+    for cell in plan.cells:
+        touching = [i for i in plan.tiles_of_cell[cell.id] if i in windows]
+        if not touching:
+            continue
+        task = CellTask(
+            cell=cell,
+            grid=plan.grid,
+            planned_windows=tuple(windows[i] for i in touching),
+            statistics_path=str(staging.cell_statistics(cell.id)),
+            block_px=plan.block_px,
+        )
+        recipes.append((task, touching))
+    return recipes
+
+
+def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
+    """Merge tile statistics over a cell and its halo and keep them for the later stages.
+
+    ``tiles`` are the stage-1 results of the tiles touching the cell; failed
+    (skipped) tiles contribute nothing.
+    """
+    cell, grid = task.cell, task.grid
+    window = cell.halo_window
+    parts = []
+    for tile in tiles:
+        if not isinstance(tile, TileResult):
+            continue
+        overlap = tile.window.intersection(window)
+        if overlap.is_empty:
+            continue
+        statistics = load_tile_statistics(tile.output_dir, tile.window, overlap)
+        parts.append((statistics, load_tile_shared_keys(tile.output_dir)))
+    shared = shared_pixel_mask(window, task.planned_windows)
+    merged = merge_statistics(window, parts, shared=shared, grid_width=grid.width)
+    save_cell_statistics(task.statistics_path, merged)
+    core = merged.crop(cell.window)
+    return CellResult(
+        cell_id=cell.id,
+        statistics_path=task.statistics_path,
+        points=int(core.count.sum()),
+        pixels=cell.window.height * cell.window.width,
+        empty_pixels=int((core.count == 0).sum()),
+        occupied_blocks=occupied_blocks(core.count, cell.window, grid, task.block_px),
+    )
+
+
+def footprint_blocks(results: list[CellResult], plan: SurveyPlan, config: Config) -> BlockMap:
+    """Gather: the survey's data footprint from the blocks the cells found occupied.
+
+    A given AOI is authoritative (every empty pixel inside it is a hole); without
+    one, the data footprint decides what is exterior.
+    """
+    holes = config.holes
+    return footprint_map(
+        [r.occupied_blocks for r in results],
+        plan.grid,
+        plan.block_px,
+        closing_blocks=math.ceil(holes.footprint_closing_m / holes.footprint_block_m),
+        everything=plan.aoi_given,
+    )
