@@ -89,8 +89,9 @@ def run(inputs, out_dir, config_path, overrides, scheduler, workers, crs, target
     from .config import load_config
     from .run import run_survey
 
-    extra = _option_overrides(workers=workers, crs=crs, target_crs=target_crs, on_error=on_error)
-    config = load_config(config_path, [*overrides, *extra])
+    config = _with_options(
+        load_config(config_path, overrides), workers=workers, crs=crs, target_crs=target_crs, on_error=on_error
+    )
     for name, path in (("AOI", aoi), ("water", water)):
         if path is not None and not Path(path).exists():
             raise InputDataError(path, f"{name} file not found")
@@ -125,7 +126,7 @@ def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
     from .evaluate import score_holes
     from .synth import write_truth
 
-    config = load_config(config_path, [*overrides, *_option_overrides(workers=workers)])
+    config = _with_options(load_config(config_path, overrides), workers=workers)
     out = Path(out_dir)
     survey_dir = out / "survey"
     click.echo(f"generating a synthetic survey ({size}) in {survey_dir} ...", err=True)
@@ -192,14 +193,22 @@ def config_command(show, config_path, overrides):
         click.echo("configuration is valid", err=True)
 
 
-def _option_overrides(**options) -> list[str]:
-    keys = {"workers": "dask.workers", "crs": "survey.crs", "target_crs": "survey.target_crs", "on_error": "survey.on_error"}
-    out = []
+#: Command-line options that set a configuration key: option -> (section, key).
+OPTION_KEYS = {
+    "workers": ("dask", "workers"),
+    "crs": ("survey", "crs"),
+    "target_crs": ("survey", "target_crs"),
+    "on_error": ("survey", "on_error"),
+}
+
+
+def _with_options(config, **options):
+    """The configuration with the options given on the command line (validated like a file)."""
     for name, value in options.items():
-        if value is None:
-            continue
-        out.append(f"{keys[name]}={value}" if isinstance(value, int) else f'{keys[name]}="{value}"')
-    return out
+        if value is not None:
+            section, key = OPTION_KEYS[name]
+            config = config.replace(section, source=f"--{name.replace('_', '-')} {value}", **{key: value})
+    return config
 
 
 def _report(summary) -> None:

@@ -159,11 +159,18 @@ class Config:
         """Cell side in pixels (validated to be a whole number)."""
         return round(self.grid.cell_size_m / self.grid.resolution_m)
 
-    def replace(self, section: str, **values: Any) -> Config:
-        """Return a copy with some keys of one section changed (validated)."""
+    def replace(self, section: str, *, source: str = "replace()", **values: Any) -> Config:
+        """Return a copy with some keys of one section changed, validated like a file.
+
+        ``source`` names where the values come from in error messages (e.g. ``--crs``).
+        """
+        if section not in SECTIONS:
+            raise ConfigError(f"{source}: unknown section '{section}'; allowed sections: {', '.join(SECTIONS)}")
+        for key in values:
+            _check_key(section, key, source)
         merged = to_dict(self)
         merged[section].update(values)
-        return _build(merged, {f"{section}.{k}": "replace()" for k in values})
+        return _build(merged, {f"{section}.{k}": source for k in values})
 
     def to_toml(self) -> str:
         """The configuration as a TOML document (what ``holefill config --show`` prints)."""
@@ -267,6 +274,12 @@ def _build(merged: dict[str, dict[str, Any]], sources: dict[str, str]) -> Config
             values[f.name] = _validate(f"{name}.{f.name}", merged[name][f.name], hints[f.name], f.metadata, where)
         sections[name] = cls(**values)
     config = Config(**sections)
+    _check_across_keys(config, sources)
+    return config
+
+
+def _check_across_keys(config: Config, sources: dict[str, str]) -> None:
+    """Rules that tie keys together, checked at load time so that no worker meets them later."""
     ratio = config.grid.cell_size_m / config.grid.resolution_m
     if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 16:
         where = sources.get("grid.cell_size_m", sources.get("grid.resolution_m", "default"))
@@ -274,7 +287,12 @@ def _build(merged: dict[str, dict[str, Any]], sources: dict[str, str]) -> Config
             f"{where}: grid.cell_size_m ({config.grid.cell_size_m}) must be a whole multiple "
             f"(at least 16) of grid.resolution_m ({config.grid.resolution_m})"
         )
-    return config
+    if config.holes.enabled and config.grid.halo_px < HOLE_CONTEXT_PX:
+        where = sources.get("grid.halo_px", "default")
+        raise ConfigError(
+            f"{where}: grid.halo_px = {config.grid.halo_px} is too small; hole detection reads "
+            f"{HOLE_CONTEXT_PX} pixels around each cell (set holes.enabled = false to build the DSM only)"
+        )
 
 
 def _validate(key: str, value: Any, kind: Any, rules: dict[str, Any], where: str) -> Any:

@@ -64,3 +64,32 @@ def test_run_with_crs_override_on_a_running_scheduler(runner, tmp_path, rng, das
     assert "Amersfoort" in manifest["crs"]["name"]
     assert manifest["config"]["survey"]["crs"] == "EPSG:28992"
     assert manifest["summary"]["points_read"] == len(points[0])
+
+
+def test_halo_narrower_than_detection_needs_stops_before_any_work(runner, tmp_path, rng):
+    path = write_points(tmp_path / "a.laz", *random_points(rng, 500))
+    result = runner.invoke(main, ["run", str(path), "--out", str(tmp_path / "o"), "--set", "grid.halo_px=4"])
+    assert result.exit_code == 2
+    assert result.output.strip().splitlines() == [
+        "holefill: error: --set grid.halo_px=4: grid.halo_px = 4 is too small; hole detection reads 8 pixels "
+        "around each cell (set holes.enabled = false to build the DSM only)"
+    ]
+    assert not (tmp_path / "o").exists()
+    result = runner.invoke(main, ["config", "--set", "grid.halo_px=4", "--set", "holes.enabled=false"])
+    assert result.exit_code == 0
+
+
+def test_crs_given_as_wkt_reaches_the_config_intact(runner, tmp_path, rng):
+    from pyproj import CRS
+
+    wkt = CRS.from_epsg(28992).to_wkt()  # quotes, brackets, commas: no TOML string survives them
+    path = write_points(tmp_path / "nocrs.laz", *random_points(rng, 500), crs=None)
+    result = runner.invoke(main, ["run", str(path), "--out", str(tmp_path / "o"), "--crs", wkt, "--workers", "-1"])
+    assert result.exit_code == 2  # --workers -1 is refused after --crs was accepted as it is
+    assert "--workers -1: dask.workers = -1 is invalid" in result.output
+
+    from pipeline.cli import _with_options
+    from pipeline.config import load_config
+
+    config = _with_options(load_config(), crs=wkt, workers=2)
+    assert config.survey.crs == wkt and config.dask.workers == 2

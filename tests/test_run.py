@@ -150,3 +150,17 @@ def test_unwritable_output_folder(tmp_path, survey_points):
     blocker.write_text("a file where a folder should be")
     with pytest.raises(OutputError, match="output folder cannot be created"):
         run(inputs, blocker / "out", None)
+
+
+@pytest.mark.slow
+def test_unforeseen_worker_error_is_one_line_naming_the_task(dask_client):
+    import operator
+
+    from pipeline.errors import TaskError
+    from pipeline.run import _Progress, _Runner
+
+    runner = _Runner(dask_client, _Progress(False))
+    future = runner.submit(operator.truediv, 1, 0, label="cell 500_1000 (find holes)", key="divide")
+    with pytest.raises(TaskError) as caught:
+        runner.gather([future], lambda result: None)
+    assert str(caught.value) == "cell 500_1000 (find holes): ZeroDivisionError: division by zero"
