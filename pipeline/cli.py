@@ -120,11 +120,9 @@ def run(inputs, out_dir, config_path, overrides, scheduler, workers, crs, target
 def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
     """Generate a synthetic survey with known holes and run the pipeline on it."""
     from .config import load_config
-    from .run import run_survey
-    from .synth import generate_survey, preset
-
     from .evaluate import score_holes
-    from .synth import write_truth
+    from .run import run_survey
+    from .synth import generate_survey, preset, write_truth
 
     config = _with_options(load_config(config_path, overrides), workers=workers)
     out = Path(out_dir)

@@ -271,7 +271,7 @@ def _build(merged: dict[str, dict[str, Any]], sources: dict[str, str]) -> Config
         values = {}
         for f in dataclasses.fields(cls):
             where = sources.get(f"{name}.{f.name}", "default")
-            values[f.name] = _validate(f"{name}.{f.name}", merged[name][f.name], hints[f.name], f.metadata, where)
+            values[f.name] = _validate(f"{name}.{f.name}", merged[name][f.name], hints[f.name], dict(f.metadata), where)
         sections[name] = cls(**values)
     config = Config(**sections)
     _check_across_keys(config, sources)

@@ -95,8 +95,8 @@ def write_survey_layers(
     skipped_paths = {s["path"] for s in skipped}
     tile_records, tile_geometries = [], []
     for record in tile_index_records(plan.survey):
-        bounds = record.pop("bounds")
-        result = done.get(record["tile_id"])
+        bounds: Any = record.pop("bounds")
+        result = done.get(int(record["tile_id"]))  # type: ignore[call-overload]
         record["points_used"] = result.points_used if result else 0
         record["status"] = "ok" if result else ("skipped" if record["path"] in skipped_paths else "failed")
         tile_records.append(record)

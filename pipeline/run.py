@@ -18,10 +18,10 @@ import logging
 import os
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from .config import Config
 from .errors import HolefillError, InputDataError, TaskError
@@ -29,11 +29,11 @@ from .io.vector import read_survey_area
 from .outputs import PRODUCTS, RunSummary, write_dsm_vrt, write_hole_layers, write_manifest, write_survey_layers
 from .plan import SurveyPlan, hole_params, plan_survey
 from .report import write_report
-from .staging import Staging
 from .stages import bin_tiles, detect_holes, link_holes, merge_cells, write_rasters
 from .stages.bin_tiles import TileFailure, TileResult
 from .stages.merge_cells import CellResult
 from .stages.write_rasters import WriteResult
+from .staging import Staging
 from .survey import scan_survey
 
 logger = logging.getLogger(__name__)
@@ -326,7 +326,7 @@ class _Progress:
 
     def __init__(self, enabled: bool) -> None:
         self.enabled = enabled
-        self._progress = None
+        self._progress: Any = None
         self._points: dict[int, int] = {}
         self._started = time.perf_counter()
 

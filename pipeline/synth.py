@@ -736,11 +736,11 @@ def build_scene(spec: SurveySpec) -> Scene:
     if spec.water and spec.water_width_m > 0:
         rng = np.random.default_rng([spec.seed, 2])
         half_width = spec.water_width_m / 2.0
-        center_v = rng.uniform(0.35, 0.65) * height
+        river_center_v = rng.uniform(0.35, 0.65) * height
         amplitude = min(0.12 * height, 15.0) * rng.uniform(0.3, 1.0)
         wavelength = max(width, 200.0) * rng.uniform(0.7, 1.3)
         phase = rng.uniform(0.0, 2.0 * np.pi)
-        draft = River(center_v, amplitude, wavelength, phase, half_width, water_level=0.0)
+        draft = River(river_center_v, amplitude, wavelength, phase, half_width, water_level=0.0)
         along = np.linspace(-RIVER_BANK_WIDTH_M, width + RIVER_BANK_WIDTH_M, int(width) + 32)
         water_level = float(terrain.height(along, draft.centerline_v(along)).min()) - 1.0
         river = dataclasses.replace(draft, water_level=water_level)
@@ -816,9 +816,9 @@ def _greedy_non_overlapping(
             continue
         others = [j for j in neighbours[index] if j < index and kept[j]]
         if others:
-            others = np.asarray(others)
-            distance = np.hypot(center_u[others] - center_u[index], center_v[others] - center_v[index])
-            if np.any(distance < radius[others] + radius[index] + gap):
+            near = np.asarray(others)
+            distance = np.hypot(center_u[near] - center_u[index], center_v[near] - center_v[index])
+            if np.any(distance < radius[near] + radius[index] + gap):
                 continue
         kept[index] = True
     return kept
@@ -1545,11 +1545,11 @@ def generate_survey(
     lines = flight_lines(spec)
     layout = _layout(spec, scene, lines)
     rows, cols = layout.n_rows, layout.n_cols
-    if keep_truth:
-        truth_dsm = np.empty((rows, cols), dtype=np.float32)
-        hole_cause = np.empty((rows, cols), dtype=np.uint8)
-        point_count = np.empty((rows, cols), dtype=np.uint32)
-        visible_fraction = np.empty((rows, cols), dtype=np.float32)
+    truth_shape = (rows, cols) if keep_truth else (0, 0)
+    truth_dsm = np.empty(truth_shape, dtype=np.float32)
+    hole_cause = np.empty(truth_shape, dtype=np.uint8)
+    point_count = np.empty(truth_shape, dtype=np.uint32)
+    visible_fraction = np.empty(truth_shape, dtype=np.float32)
     written: list[pathlib.Path] = []
     n_points = 0
     # One background writer: the next tile is simulated (numpy releases the GIL)
@@ -1560,6 +1560,8 @@ def generate_survey(
         for tile in _tiles(layout):
             result = _simulate_tile(spec, scene, lines, layout, tile, keep_truth)
             if keep_truth:
+                assert result.dsm is not None and result.cause is not None
+                assert result.count is not None and result.visible_fraction is not None
                 # south-up tile arrays -> north-up truth grid
                 top, bottom = rows - tile.row1, rows - tile.row0
                 window = (slice(top, bottom), slice(tile.col0, tile.col1))

@@ -12,10 +12,10 @@ import rasterio
 
 from pipeline.config import load_config
 from pipeline.errors import InputDataError, OutputError
+from pipeline.io.intermediate import load_cell_statistics
 from pipeline.io.raster import NODATA, read_raster
 from pipeline.io.vector import list_layers, read_layer
 from pipeline.run import run_survey
-from pipeline.io.intermediate import load_cell_statistics
 
 from .lasfiles import random_points, write_points
 

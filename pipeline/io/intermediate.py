@@ -107,5 +107,5 @@ def _window_array(window: PixelWindow) -> np.ndarray:
 
 def _save_npz(path: str | os.PathLike, **arrays: np.ndarray) -> None:
     tmp = f"{path}.tmp.npz"
-    np.savez(tmp, **arrays)
+    np.savez(tmp, allow_pickle=False, **arrays)
     os.replace(tmp, path)

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import laspy
 import numpy as np
@@ -157,8 +157,9 @@ def iter_point_chunks(
         with laspy.open(path, laz_backend=backend, decompression_selection=selection) as reader:
             header = reader.header
             expected = int(header.point_count)
-            scales = tuple(float(v) for v in header.scales)
-            offsets = tuple(float(v) for v in header.offsets)
+            sx, sy, sz = (float(v) for v in header.scales)
+            ox, oy, oz = (float(v) for v in header.offsets)
+            scales, offsets = (sx, sy, sz), (ox, oy, oz)
             for chunk in reader.chunk_iterator(chunk_points):
                 n = len(chunk)
                 if n == 0:
@@ -185,7 +186,7 @@ def iter_point_chunks(
 
 def _class_and_withheld(records: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Class and withheld flag from the raw bytes of any point format (LAS 1.4 R15, tables 7-8 and 15-16)."""
-    names = records.dtype.names
+    names = records.dtype.names or ()
     if "raw_classification" in names:  # formats 0-5: class in bits 0-4, withheld in bit 7
         raw = records["raw_classification"]
         return raw & np.uint8(0x1F), (raw & np.uint8(0x80)) != 0

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import os
 import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import escape
@@ -111,7 +112,7 @@ def write_cog(
 
 def write_vrt(
     path: str | os.PathLike,
-    sources: list[tuple[str | os.PathLike, int, int, int, int]],
+    sources: Sequence[tuple[str | os.PathLike, int, int, int, int]],
     *,
     width: int,
     height: int,
