@@ -78,6 +78,7 @@ class HoleDecision:
     planned: bool
     reason: str
     pattern_id: int | None = None
+    geometry: shapely.Geometry | None = None
 
 
 @dataclass(frozen=True)
@@ -186,7 +187,7 @@ def plan_mission(
     )
     sortie_visits = [improve_route(v, unit_ends, home) for v in sortie_visits]
     home_ground = height_at(dsm, transform, home)
-    if not math.isfinite(home_ground):
+    if not math.isfinite(home_ground) and sortie_visits:
         raise ValueError(f"no DSM height within 10 m of home {home}; choose a home point on open ground with data")
     to_lonlat = pyproj.Transformer.from_crs(pyproj.CRS.from_user_input(crs_wkt), "EPSG:4326", always_xy=True)
     sorties = []
@@ -229,9 +230,9 @@ def _select(holes: list[HoleInput], params: FlightParams) -> tuple[list[HoleInpu
             reason = "empty geometry"
         else:
             selected.append(hole)
-            decisions.append(HoleDecision(hole.hole_id, hole.cause, hole.area_m2, True, ""))
+            decisions.append(HoleDecision(hole.hole_id, hole.cause, hole.area_m2, True, "", geometry=hole.geometry))
             continue
-        decisions.append(HoleDecision(hole.hole_id, hole.cause, hole.area_m2, False, reason))
+        decisions.append(HoleDecision(hole.hole_id, hole.cause, hole.area_m2, False, reason, geometry=hole.geometry))
     return selected, decisions
 
 
@@ -301,9 +302,9 @@ def _mark_unflyable(
         if d.planned:
             pid = pattern_of[d.hole_id]
             if pid in unflyable:
-                d = HoleDecision(d.hole_id, d.cause, d.area_m2, False, unflyable[pid], pid)
+                d = HoleDecision(d.hole_id, d.cause, d.area_m2, False, unflyable[pid], pid, d.geometry)
             else:
-                d = HoleDecision(d.hole_id, d.cause, d.area_m2, True, "", pid)
+                d = HoleDecision(d.hole_id, d.cause, d.area_m2, True, "", pid, d.geometry)
         out.append(d)
     return out
 
