@@ -215,7 +215,9 @@ def ellipsoid_transformer(
             vertical_crs.name,
             "has no vertical datum; set flightplan.vertical_crs (e.g. 'EPSG:5720') to use ellipsoidal heights",
         )
-    group = pyproj.transformer.TransformerGroup(vertical_crs, "EPSG:4979", always_xy=True)
+    with warnings.catch_warnings():  # the missing grid is reported below, as an error
+        warnings.simplefilter("ignore", UserWarning)
+        group = pyproj.transformer.TransformerGroup(vertical_crs, "EPSG:4979", always_xy=True)
     missing = sorted({g.short_name or g.full_name for op in group.unavailable_operations for g in op.grids if not g.available})
     if not group.transformers:
         raise CRSError(vertical_crs.name, "PROJ has no transformation to WGS84 ellipsoidal heights")
