@@ -94,16 +94,22 @@ def read_dsm(path: str | os.PathLike, bounds: tuple[float, float, float, float] 
         with rasterio.open(path) as src:
             window = None
             if bounds is not None:
-                w = rasterio.windows.from_bounds(*bounds, transform=src.transform)
-                col0, row0 = math.floor(w.col_off), math.floor(w.row_off)
-                col1, row1 = math.ceil(w.col_off + w.width), math.ceil(w.row_off + w.height)
+                t = src.transform
+                if t.b != 0 or t.d != 0:
+                    raise InputDataError(path, "rotated DSM rasters are not supported")
+                cols = sorted(((bounds[0] - t.c) / t.a, (bounds[2] - t.c) / t.a))
+                rows = sorted(((bounds[1] - t.f) / t.e, (bounds[3] - t.f) / t.e))
+                col0, col1 = math.floor(cols[0]), math.ceil(cols[1])
+                row0, row1 = math.floor(rows[0]), math.ceil(rows[1])
                 col0, row0 = max(0, col0), max(0, row0)
                 col1, row1 = min(src.width, col1), min(src.height, row1)
                 if col1 <= col0 or row1 <= row0:
                     raise InputDataError(path, f"the DSM does not cover the holes (bounds {bounds})")
                 window = rasterio.windows.Window(col0, row0, col1 - col0, row1 - row0)
             data = src.read(1, window=window, masked=True).astype(float).filled(np.nan)
-            transform = src.window_transform(window) if window is not None else src.transform
+            t = src.transform
+            transform = t if window is None else type(t)(
+                t.a, t.b, t.c + t.a * window.col_off, t.d, t.e, t.f + t.e * window.row_off)
             crs = src.crs.to_wkt() if src.crs else ""
     except (rasterio.errors.RasterioError, rasterio.errors.WindowError) as e:
         raise InputDataError(path, f"cannot read the DSM: {e}") from None
