@@ -28,7 +28,7 @@ def _opt(default: Any, doc: str, **rules: Any) -> Any:
     """A config field: its default, a one-line description and validation rules.
 
     Rules: ``choices`` (allowed values), ``gt``/``ge`` (lower bounds),
-    ``item_range`` (bounds of each list item).
+    ``item_range`` (bounds of each list item), ``item_choices`` (allowed list items).
     """
     if isinstance(default, list):
         return field(default_factory=lambda: list(default), metadata={"doc": doc, **rules})
@@ -143,6 +143,50 @@ class SurveyConfig:
 
 
 @dataclass(frozen=True)
+class FlightPlanConfig:
+    """Re-flight plans for the holes a drone can re-scan (docs/flightplans.md)."""
+
+    causes: list[str] = _opt(
+        ["missed_coverage"], "Hole causes that are re-flown; the others are listed, not flown.",
+        item_choices=("occlusion", "water", "missed_coverage", "unknown"),
+    )
+    min_area_m2: float = _opt(25.0, "Holes smaller than this (m2) are not re-flown.", ge=0)
+    altitude_agl_m: float = _opt(
+        60.0, "Flying height in metres above the highest DSM surface under the lidar swath.", gt=0
+    )
+    fov_deg: float = _opt(70.0, "Lidar cross-track field of view in degrees.", gt=0)
+    side_overlap: float = _opt(0.3, "Side overlap of neighbouring lanes (0 to 0.9).", ge=0)
+    speed_m_s: float = _opt(6.0, "Ground speed on scanning lanes (m/s).", gt=0)
+    transit_speed_m_s: float = _opt(12.0, "Ground speed between lanes and patterns (m/s).", gt=0)
+    run_in_m: float = _opt(20.0, "Lanes extend this far (m) beyond the hole so the lidar is steady.", ge=0)
+    turnaround_m: float = _opt(10.0, "Distance (m) flown beyond each lane end to turn, not scanning.", ge=0)
+    margin_m: float = _opt(5.0, "Each hole is buffered by this margin (m) before lanes are laid.", ge=0)
+    max_flight_time_s: float = _opt(
+        1200.0, "Longest sortie in seconds (transit included); longer routes are split.", gt=0
+    )
+    setup_time_s: float = _opt(
+        90.0, "Seconds added to every sortie for take-off, climb, descent and landing.", ge=0
+    )
+    terrain_step_m: float = _opt(
+        5.0, "A lane gets extra waypoints where the surface under it changes by more than this (m).", gt=0
+    )
+    home: list[float] = _opt(
+        [], "Take-off and landing point [x, y] in the survey CRS; empty: centre of the holes."
+    )
+    altitude_reference: str = _opt(
+        "takeoff", "Heights in drone files: relative to take-off, AMSL (the DSM's datum) or ellipsoidal.",
+        choices=("takeoff", "amsl", "ellipsoid"),
+    )
+    vertical_crs: str = _opt(
+        "", "Vertical CRS of DSM heights (e.g. 'EPSG:5720'); empty: from the DSM's CRS if compound."
+    )
+    dji_drone_enum: int = _opt(89, "DJI WPML droneEnumValue: 89 Matrice 350 RTK, 60 Matrice 300 RTK.", ge=0)
+    dji_payload_enum: int = _opt(
+        84, "DJI WPML payloadEnumValue of the lidar (84 Zenmuse L2, 90742 Zenmuse L1).", ge=0
+    )
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole resolved configuration of a run."""
 
@@ -153,6 +197,7 @@ class Config:
     dask: DaskConfig = field(default_factory=DaskConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     survey: SurveyConfig = field(default_factory=SurveyConfig)
+    flightplan: FlightPlanConfig = field(default_factory=FlightPlanConfig)
 
     @property
     def cell_size_px(self) -> int:
@@ -303,10 +348,13 @@ def _validate(key: str, value: Any, kind: Any, rules: dict[str, Any], where: str
         item_kind = get_args(kind)[0]
         if not isinstance(value, list) or not all(_is(v, item_kind) for v in value):
             raise fail(f"a list of {item_kind.__name__}")
-        low, high = rules.get("item_range", (-math.inf, math.inf))
-        if any(not low <= v <= high for v in value):
-            raise fail(f"items between {low} and {high}")
-        return list(value)
+        if "item_range" in rules:
+            low, high = rules["item_range"]
+            if any(not low <= v <= high for v in value):
+                raise fail(f"items between {low} and {high}")
+        if "item_choices" in rules and any(v not in rules["item_choices"] for v in value):
+            raise fail("items among " + ", ".join(repr(c) for c in rules["item_choices"]))
+        return [item_kind(v) for v in value]
     if not _is(value, kind):
         raise fail(f"a {kind.__name__}")
     value = kind(value)

@@ -1,0 +1,409 @@
+"""A whole re-flight plan: which holes, their patterns, the route, sorties and waypoints.
+
+:func:`plan_mission` is the one entry point; it chains the kernels of
+:mod:`.coverage`, :mod:`.route` and :mod:`.altitude` and returns a frozen
+:class:`FlightPlan` that the file writers (``pipeline.io.flightplan_files``)
+only serialise.
+
+Heights: every waypoint carries ``height_m``, its height in the DSM's vertical
+datum, and ``altitude_m``, the same height in the plan's reference
+(``"takeoff"``: minus the DSM height at home; ``"amsl"``: unchanged;
+``"ellipsoid"``: converted with a checked geoid transformation).
+
+Pure: numpy arrays, shapely geometries and pyproj in; dataclasses out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import pyproj
+import shapely
+
+from .altitude import AffineLike, height_at, lane_sections, max_height_along
+from .coverage import CoverageParams, CoveragePattern, Lane, Point2, cluster_holes, plan_pattern, split_pattern
+from .route import (
+    PatternEnds,
+    Visit,
+    greedy_route,
+    improve_route,
+    pattern_ends,
+    pattern_variants,
+    route_length,
+    sortie_duration,
+    split_sorties,
+)
+
+__all__ = ["FlightParams", "FlightPlan", "HoleDecision", "HoleInput", "Sortie", "Waypoint", "plan_mission"]
+
+REFERENCES = ("takeoff", "amsl", "ellipsoid")
+
+
+@dataclass(frozen=True)
+class FlightParams:
+    """Everything :func:`plan_mission` needs from ``[flightplan]`` (SI units)."""
+
+    coverage: CoverageParams = field(default_factory=CoverageParams)
+    causes: tuple[str, ...] = ("missed_coverage",)
+    min_area_m2: float = 25.0
+    speed_m_s: float = 6.0
+    transit_speed_m_s: float = 12.0
+    max_flight_time_s: float = 1200.0
+    setup_time_s: float = 90.0
+    terrain_step_m: float = 5.0
+    altitude_reference: str = "takeoff"
+
+
+@dataclass(frozen=True)
+class HoleInput:
+    """One hole as the caller knows it; ``azimuth_deg`` imposes the lane direction."""
+
+    hole_id: int
+    geometry: shapely.Geometry
+    cause: str
+    area_m2: float
+    azimuth_deg: float | None = None
+
+
+@dataclass(frozen=True)
+class HoleDecision:
+    """Whether a hole is flown, and why not when it is not."""
+
+    hole_id: int
+    cause: str
+    area_m2: float
+    planned: bool
+    reason: str
+    pattern_id: int | None = None
+    geometry: shapely.Geometry | None = None
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    """A point of a sortie; ``actions`` in order, e.g. ``("pattern_entry",)``, ``("lane_start",)``."""
+
+    sortie: int
+    sequence: int
+    x: float
+    y: float
+    lon: float
+    lat: float
+    height_m: float
+    altitude_m: float
+    actions: tuple[str, ...]
+    pattern_id: int | None = None
+    lane_index: int | None = None
+
+
+@dataclass(frozen=True)
+class FlownLane:
+    """A lane as flown: its sortie and direction."""
+
+    sortie: int
+    pattern_id: int
+    hole_ids: tuple[int, ...]
+    lane: Lane
+
+
+@dataclass(frozen=True)
+class Sortie:
+    """One flight from home and back."""
+
+    number: int
+    waypoints: tuple[Waypoint, ...]
+    lanes: tuple[FlownLane, ...]
+    length_m: float
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class FlightPlan:
+    """The result of :func:`plan_mission`."""
+
+    decisions: tuple[HoleDecision, ...]
+    patterns: tuple[CoveragePattern, ...]
+    sorties: tuple[Sortie, ...]
+    home: Point2
+    home_lonlat: Point2
+    home_ground_m: float
+    altitude_reference: str
+    crs_wkt: str
+    params: FlightParams
+    greedy_length_m: float
+    improved_length_m: float
+
+    @property
+    def flown_length_m(self) -> float:
+        return sum(s.length_m for s in self.sorties)
+
+
+def plan_mission(
+    holes: list[HoleInput],
+    dsm: np.ndarray,
+    transform: AffineLike,
+    *,
+    crs_wkt: str,
+    params: FlightParams,
+    home: Point2 | None = None,
+    to_ellipsoid: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
+) -> FlightPlan:
+    """Plan the re-flight of the holes a drone can re-scan.
+
+    Parameters
+    ----------
+    holes : list of HoleInput
+        In the survey's projected CRS (metres).
+    dsm : ndarray of shape (M, N)
+        Surface heights, NaN for no data; ``transform`` is its affine transform.
+    home : (x, y), optional
+        Take-off and landing point; default: the centroid of the planned holes.
+    to_ellipsoid : callable, optional
+        ``(x, y, height) -> ellipsoidal height``, checked by
+        :func:`~.altitude.ellipsoid_transformer`; required for ``"ellipsoid"``.
+
+    Raises
+    ------
+    ValueError
+        No DSM height at home, or an unknown altitude reference.
+    """
+    if params.altitude_reference not in REFERENCES:
+        raise ValueError(f"altitude_reference must be one of {REFERENCES}, got {params.altitude_reference!r}")
+    if params.altitude_reference == "ellipsoid" and to_ellipsoid is None:
+        raise ValueError("altitude_reference 'ellipsoid' needs a checked to_ellipsoid conversion")
+    selected, decisions = _select(holes, params)
+    patterns = _patterns(selected, params.coverage)
+    if home is None:
+        home = _default_home(patterns, holes)
+    units, unit_ends, unflyable = _flyable_units(patterns, home, params)
+    decisions = _mark_unflyable(decisions, unflyable, patterns)
+    greedy = greedy_route(unit_ends, home)
+    improved = improve_route(greedy, unit_ends, home)
+    sortie_visits = split_sorties(
+        improved, unit_ends, home, lane_speed_m_s=params.speed_m_s, transit_speed_m_s=params.transit_speed_m_s,
+        setup_time_s=params.setup_time_s, max_flight_time_s=params.max_flight_time_s,
+    )
+    sortie_visits = [improve_route(v, unit_ends, home) for v in sortie_visits]
+    home_ground = height_at(dsm, transform, home)
+    if not math.isfinite(home_ground) and sortie_visits:
+        raise ValueError(f"no DSM height within 10 m of home {home}; choose a home point on open ground with data")
+    to_lonlat = pyproj.Transformer.from_crs(pyproj.CRS.from_user_input(crs_wkt), "EPSG:4326", always_xy=True)
+    sorties = []
+    for number, visits in enumerate(sortie_visits, start=1):
+        raw = _sortie_points(visits, units, home, dsm, transform, params)
+        waypoints = _finish_waypoints(number, raw, to_lonlat, home_ground, params.altitude_reference, to_ellipsoid)
+        lanes = tuple(
+            FlownLane(number, units[v.pattern].pattern_id, units[v.pattern].hole_ids, lane)
+            for v in visits for lane in pattern_variants(units[v.pattern])[v.variant]
+        )
+        length = route_length(visits, unit_ends, home)
+        duration = sortie_duration(
+            visits, unit_ends, home, params.speed_m_s, params.transit_speed_m_s, params.setup_time_s
+        )
+        sorties.append(Sortie(number, waypoints, lanes, length, duration))
+    home_lonlat = to_lonlat.transform(*home)
+    return FlightPlan(
+        decisions=tuple(decisions),
+        patterns=tuple(patterns),
+        sorties=tuple(sorties),
+        home=(float(home[0]), float(home[1])),
+        home_lonlat=(float(home_lonlat[0]), float(home_lonlat[1])),
+        home_ground_m=home_ground,
+        altitude_reference=params.altitude_reference,
+        crs_wkt=crs_wkt,
+        params=params,
+        greedy_length_m=route_length(greedy, unit_ends, home),
+        improved_length_m=route_length(improved, unit_ends, home),
+    )
+
+
+def _select(holes: list[HoleInput], params: FlightParams) -> tuple[list[HoleInput], list[HoleDecision]]:
+    selected, decisions = [], []
+    for hole in holes:
+        if hole.cause not in params.causes:
+            reason = f"cause '{hole.cause}' is not re-flown (flightplan.causes = {list(params.causes)})"
+        elif hole.area_m2 < params.min_area_m2:
+            reason = f"area {hole.area_m2:.1f} m2 < flightplan.min_area_m2 = {params.min_area_m2:g}"
+        elif hole.geometry is None or hole.geometry.is_empty:
+            reason = "empty geometry"
+        else:
+            selected.append(hole)
+            decisions.append(HoleDecision(hole.hole_id, hole.cause, hole.area_m2, True, "", geometry=hole.geometry))
+            continue
+        decisions.append(HoleDecision(hole.hole_id, hole.cause, hole.area_m2, False, reason, geometry=hole.geometry))
+    return selected, decisions
+
+
+def _patterns(selected: list[HoleInput], coverage: CoverageParams) -> list[CoveragePattern]:
+    groups = cluster_holes([h.geometry for h in selected], coverage.spacing_m)
+    patterns = []
+    for pattern_id, group in enumerate(groups, start=1):
+        members = [selected[i] for i in group]
+        oriented = [h for h in members if h.azimuth_deg is not None]
+        azimuth = max(oriented, key=lambda h: h.area_m2).azimuth_deg if oriented else None
+        area = shapely.union_all([h.geometry for h in members])
+        patterns.append(
+            plan_pattern(area, params=coverage, pattern_id=pattern_id,
+                         hole_ids=tuple(h.hole_id for h in members), azimuth_deg=azimuth)
+        )
+    return patterns
+
+
+def _default_home(patterns: list[CoveragePattern], holes: list[HoleInput]) -> Point2:
+    geometries = [p.area for p in patterns] or [h.geometry for h in holes if h.geometry is not None]
+    if not geometries:
+        return (0.0, 0.0)
+    centre = shapely.union_all(geometries).centroid
+    return (float(centre.x), float(centre.y))
+
+
+def _flyable_units(
+    patterns: list[CoveragePattern], home: Point2, params: FlightParams
+) -> tuple[list[CoveragePattern], list[PatternEnds], dict[int, str]]:
+    """Patterns, each cut into parts of neighbouring lanes when it alone exceeds a sortie."""
+    units, ends, unflyable = [], [], {}
+
+    def alone(pattern: CoveragePattern) -> tuple[float, PatternEnds]:
+        e = pattern_ends(pattern)
+        best = min(
+            sortie_duration([Visit(0, v)], [e], home, params.speed_m_s, params.transit_speed_m_s, params.setup_time_s)
+            for v in range(len(e.entries))
+        )
+        return best, e
+
+    for pattern in patterns:
+        parts = 1
+        while True:
+            pieces = split_pattern(pattern, parts) if parts > 1 else [pattern]
+            timed = [alone(p) for p in pieces]
+            if all(t <= params.max_flight_time_s for t, _ in timed):
+                units += pieces
+                ends += [e for _, e in timed]
+                break
+            if parts >= len(pattern.lanes):
+                worst = max(t for t, _ in timed)
+                unflyable[pattern.pattern_id] = (
+                    f"one lane of pattern {pattern.pattern_id} needs {worst:.0f} s from home and back "
+                    f"> flightplan.max_flight_time_s = {params.max_flight_time_s:g}"
+                )
+                break
+            parts += 1
+    return units, ends, unflyable
+
+
+def _mark_unflyable(
+    decisions: list[HoleDecision], unflyable: dict[int, str], patterns: list[CoveragePattern]
+) -> list[HoleDecision]:
+    pattern_of = {h: p.pattern_id for p in patterns for h in p.hole_ids}
+    out = []
+    for d in decisions:
+        if d.planned:
+            pid = pattern_of[d.hole_id]
+            if pid in unflyable:
+                d = HoleDecision(d.hole_id, d.cause, d.area_m2, False, unflyable[pid], pid, d.geometry)
+            else:
+                d = HoleDecision(d.hole_id, d.cause, d.area_m2, True, "", pid, d.geometry)
+        out.append(d)
+    return out
+
+
+@dataclass
+class _Point:
+    xy: Point2
+    height: float
+    actions: list[str]
+    pattern_id: int | None = None
+    lane_index: int | None = None
+
+
+def _sortie_points(
+    visits: list[Visit], units: list[CoveragePattern], home: Point2, dsm: np.ndarray,
+    transform: AffineLike, params: FlightParams,
+) -> list[_Point]:
+    """The points of one sortie with safe heights in the DSM's datum."""
+    agl = params.coverage.altitude_agl_m
+    points = [_Point(home, -math.inf, ["takeoff"])]
+    for visit in visits:
+        pattern = units[visit.pattern]
+        lanes = pattern_variants(pattern)[visit.variant]
+        for k, lane in enumerate(lanes):
+            lane_points = _lane_points(lane, pattern, dsm, transform, params)
+            lane_points[0].actions = ["pattern_entry"] if k == 0 else ["turn"]
+            lane_points[-1].actions = ["pattern_exit"] if k == len(lanes) - 1 else ["turn"]
+            if k > 0:  # both turn points of a turn fly at the higher of the two lanes
+                high = max(points[-1].height, lane_points[0].height)
+                points[-1].height = lane_points[0].height = high
+            points += lane_points
+    points.append(_Point(home, -math.inf, ["home"]))
+    legs = [i for i, p in enumerate(points) if p.actions[0] in ("takeoff", "pattern_exit")]
+    for i in legs:  # transit legs: above the highest surface along them
+        a, b = points[i], points[i + 1]
+        surface = max_height_along(dsm, transform, a.xy, b.xy, half_width_m=max(params.coverage.swath_m / 2, 20.0))
+        if not math.isfinite(surface):
+            surface = max(a.height, b.height) - agl
+        high = surface + agl
+        a.height, b.height = max(a.height, high), max(b.height, high)
+    return _merge_coincident(points)
+
+
+def _lane_points(
+    lane: Lane, pattern: CoveragePattern, dsm: np.ndarray, transform: AffineLike, params: FlightParams
+) -> list[_Point]:
+    """Turn point, lane start, terrain breaks, lane end, turn point; heights per section."""
+    t = pattern.turnaround_m
+    length = lane.length_m
+    d = ((lane.end[0] - lane.start[0]) / length, (lane.end[1] - lane.start[1]) / length)
+    before = (lane.start[0] - d[0] * t, lane.start[1] - d[1] * t)
+    after = (lane.end[0] + d[0] * t, lane.end[1] + d[1] * t)
+    sections = lane_sections(
+        dsm, transform, before, after, half_width_m=params.coverage.swath_m / 2, terrain_step_m=params.terrain_step_m
+    )
+    agl = params.coverage.altitude_agl_m
+    cuts = [math.dist(before, s.end) for s in sections[:-1]]
+    along = [0.0, t] + [c for c in cuts if t < c < t + length] + [t + length, 2 * t + length]
+    actions = [["turn"], ["lane_start"]] + [["terrain"]] * (len(along) - 4) + [["lane_end"], ["turn"]]
+    points = []
+    for u, action in zip(along, actions):
+        touching = [s.surface_max_m for s in sections
+                    if math.dist(before, s.start) - 1e-6 <= u <= math.dist(before, s.end) + 1e-6]
+        xy = (before[0] + d[0] * u, before[1] + d[1] * u)
+        points.append(_Point(xy, max(touching) + agl, action, pattern.pattern_id, lane.index))
+    return points
+
+
+def _merge_coincident(points: list[_Point]) -> list[_Point]:
+    """Join consecutive points closer than 1 cm (e.g. a zero turnaround), keeping all actions."""
+    merged = [points[0]]
+    for p in points[1:]:
+        last = merged[-1]
+        if math.dist(last.xy, p.xy) < 0.01 and last.actions[0] != "takeoff" and p.actions[0] != "home":
+            last.actions += p.actions
+            last.height = max(last.height, p.height)
+            last.pattern_id = last.pattern_id if last.pattern_id is not None else p.pattern_id
+            last.lane_index = p.lane_index if p.lane_index is not None else last.lane_index
+        else:
+            merged.append(p)
+    return merged
+
+
+def _finish_waypoints(
+    sortie: int, points: list[_Point], to_lonlat: pyproj.Transformer, home_ground: float, reference: str,
+    to_ellipsoid: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None,
+) -> tuple[Waypoint, ...]:
+    x = np.array([p.xy[0] for p in points])
+    y = np.array([p.xy[1] for p in points])
+    heights = np.array([p.height for p in points])
+    lon, lat = to_lonlat.transform(x, y)
+    if reference == "takeoff":
+        altitude = heights - home_ground
+    elif reference == "amsl":
+        altitude = heights
+    else:
+        altitude = to_ellipsoid(x, y, heights)
+    return tuple(
+        Waypoint(sortie, i, float(x[i]), float(y[i]), float(lon[i]), float(lat[i]), float(heights[i]),
+                 float(altitude[i]), tuple(p.actions), p.pattern_id, p.lane_index)
+        for i, p in enumerate(points)
+    )

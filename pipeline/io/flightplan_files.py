@@ -1,0 +1,255 @@
+"""Re-planning flights from a finished run: read holes and DSM, plan, write every file.
+
+:func:`plan_flights` is the tool behind ``holefill plan OUT/holes.gpkg --dsm
+OUT/dsm.vrt --config drone.toml --out DIR``: it needs no point cloud, so a crew
+can change the drone settings and re-plan in seconds.
+
+Outputs in ``out_dir`` (docs/flightplans.md): ``flightplan.gpkg`` (layers
+``holes_status``, ``flight_lines``, ``waypoints``, ``route``) and, per sortie,
+``flightplan.plan``, ``flightplan.waypoints``, ``flightplan.kmz`` and
+``flightplan.kml``; with several sorties the names carry the sortie number
+(``flightplan_s1.plan``, ``flightplan_s2.plan``, ...).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyogrio
+import pyproj
+import rasterio
+import shapely
+from shapely.geometry import LineString, Point
+
+from ..config import Config, FlightPlanConfig
+from ..errors import ConfigError, CRSError, InputDataError, OutputError
+from ..flightplan.altitude import ellipsoid_transformer, vertical_crs_for
+from ..flightplan.coverage import CoverageParams
+from ..flightplan.mission import FlightParams, FlightPlan, HoleInput, plan_mission
+from .flightplan_formats import write_kml, write_kmz, write_plan, write_waypoints
+from .vector import write_layer
+
+__all__ = ["flight_params", "plan_flights", "read_dsm", "read_holes", "sortie_file_names", "write_flightplan"]
+
+
+def flight_params(config: FlightPlanConfig) -> FlightParams:
+    """The kernels' parameters from ``[flightplan]`` (the one adapter; checks what TOML rules cannot)."""
+    if not 0 <= config.side_overlap <= 0.9:
+        raise ConfigError(f"flightplan.side_overlap = {config.side_overlap!r} is invalid; expected 0 to 0.9")
+    if not 0 < config.fov_deg < 180:
+        raise ConfigError(f"flightplan.fov_deg = {config.fov_deg!r} is invalid; expected between 0 and 180")
+    if len(config.home) not in (0, 2):
+        raise ConfigError(f"flightplan.home = {config.home!r} is invalid; expected [] or [x, y] in the survey CRS")
+    coverage = CoverageParams(
+        altitude_agl_m=config.altitude_agl_m, fov_deg=config.fov_deg, side_overlap=config.side_overlap,
+        run_in_m=config.run_in_m, turnaround_m=config.turnaround_m, margin_m=config.margin_m,
+    )
+    return FlightParams(
+        coverage=coverage, causes=tuple(config.causes), min_area_m2=config.min_area_m2,
+        speed_m_s=config.speed_m_s, transit_speed_m_s=config.transit_speed_m_s,
+        max_flight_time_s=config.max_flight_time_s, setup_time_s=config.setup_time_s,
+        terrain_step_m=config.terrain_step_m, altitude_reference=config.altitude_reference,
+    )
+
+
+def read_holes(path: str | os.PathLike, *, layer: str = "holes") -> tuple[list[HoleInput], str]:
+    """Holes of a ``holes.gpkg`` layer and the layer's CRS (WKT).
+
+    An optional ``azimuth_deg`` field imposes each hole's lane direction.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputDataError(path, "holes file not found")
+    try:
+        frame = pyogrio.read_dataframe(path, layer=layer)
+    except Exception as e:
+        raise InputDataError(path, f"cannot read layer '{layer}': {e}") from None
+    missing = [c for c in ("hole_id", "area_m2", "cause") if c not in frame.columns]
+    if missing:
+        raise InputDataError(path, f"layer '{layer}' lacks the field(s) {', '.join(missing)}")
+    if frame.crs is None:
+        raise CRSError(path, f"layer '{layer}' has no CRS")
+    if not frame.crs.is_projected:
+        raise CRSError(path, f"layer '{layer}' is in {frame.crs.name}, not a projected CRS in metres")
+    azimuths = frame["azimuth_deg"] if "azimuth_deg" in frame.columns else [None] * len(frame)
+    holes = [
+        HoleInput(int(row.hole_id), row.geometry, str(row.cause), float(row.area_m2),
+                  None if az is None or (isinstance(az, float) and math.isnan(az)) else float(az))
+        for row, az in zip(frame.itertuples(), azimuths)
+    ]
+    return holes, frame.crs.to_wkt()
+
+
+def read_dsm(path: str | os.PathLike, bounds: tuple[float, float, float, float] | None = None):
+    """A DSM (GeoTIFF, COG or VRT) as float64 with NaN for nodata, its transform and CRS WKT.
+
+    ``bounds`` (minx, miny, maxx, maxy) limits the read to a window.
+    """
+    path = Path(path)
+    try:
+        with rasterio.open(path) as src:
+            window = None
+            if bounds is not None:
+                t = src.transform
+                if t.b != 0 or t.d != 0:
+                    raise InputDataError(path, "rotated DSM rasters are not supported")
+                cols = sorted(((bounds[0] - t.c) / t.a, (bounds[2] - t.c) / t.a))
+                rows = sorted(((bounds[1] - t.f) / t.e, (bounds[3] - t.f) / t.e))
+                col0, col1 = math.floor(cols[0]), math.ceil(cols[1])
+                row0, row1 = math.floor(rows[0]), math.ceil(rows[1])
+                col0, row0 = max(0, col0), max(0, row0)
+                col1, row1 = min(src.width, col1), min(src.height, row1)
+                if col1 <= col0 or row1 <= row0:
+                    raise InputDataError(path, f"the DSM does not cover the holes (bounds {bounds})")
+                window = rasterio.windows.Window(col0, row0, col1 - col0, row1 - row0)
+            data = src.read(1, window=window, masked=True).astype(float).filled(np.nan)
+            t = src.transform
+            transform = t if window is None else type(t)(
+                t.a, t.b, t.c + t.a * window.col_off, t.d, t.e, t.f + t.e * window.row_off)
+            crs = src.crs.to_wkt() if src.crs else ""
+    except (rasterio.errors.RasterioError, rasterio.errors.WindowError) as e:
+        raise InputDataError(path, f"cannot read the DSM: {e}") from None
+    if not crs:
+        raise CRSError(path, "the DSM has no CRS")
+    return data, transform, crs
+
+
+def plan_flights(
+    holes_gpkg: str | os.PathLike,
+    dsm_path: str | os.PathLike,
+    config: Config,
+    out_dir: str | os.PathLike,
+    *,
+    home: tuple[float, float] | None = None,
+) -> dict[str, Any]:
+    """Plan re-flights for the holes of ``holes_gpkg`` over ``dsm_path`` and write all files.
+
+    Parameters
+    ----------
+    config : Config
+        Its ``[flightplan]`` section is used.
+    home : (x, y), optional
+        Overrides ``flightplan.home`` (e.g. the AOI centroid from the pipeline).
+
+    Returns
+    -------
+    dict
+        The summary (counts, lengths, durations, files) that also goes into the
+        manifest of a run.
+    """
+    params = flight_params(config.flightplan)
+    holes, holes_crs = read_holes(holes_gpkg)
+    home = home or (tuple(config.flightplan.home) if config.flightplan.home else None)
+    reach = params.coverage.swath_m + params.coverage.margin_m + params.coverage.run_in_m + 500.0
+    extent = [h.geometry.bounds for h in holes if h.geometry is not None and not h.geometry.is_empty]
+    if home is not None:
+        extent.append((home[0], home[1], home[0], home[1]))
+    bounds = None
+    if extent:
+        b = np.array(extent)
+        bounds = (b[:, 0].min() - reach, b[:, 1].min() - reach, b[:, 2].max() + reach, b[:, 3].max() + reach)
+    dsm, transform, dsm_crs = read_dsm(dsm_path, bounds)
+    if not pyproj.CRS.from_user_input(dsm_crs).equals(pyproj.CRS.from_user_input(holes_crs), ignore_axis_order=True):
+        raise CRSError(dsm_path, f"the DSM's CRS differs from the holes' CRS ({pyproj.CRS(holes_crs).name})")
+    to_ellipsoid = None
+    if params.altitude_reference == "ellipsoid":
+        probe = home or _centre(holes)
+        to_ellipsoid = ellipsoid_transformer(vertical_crs_for(dsm_crs, config.flightplan.vertical_crs), probe=probe)
+    try:
+        plan = plan_mission(holes, dsm, transform, crs_wkt=holes_crs, params=params, home=home,
+                            to_ellipsoid=to_ellipsoid)
+    except ValueError as e:
+        raise InputDataError(dsm_path, str(e)) from None
+    files = write_flightplan(plan, out_dir, drone_enum=config.flightplan.dji_drone_enum,
+                             payload_enum=config.flightplan.dji_payload_enum)
+    return summarize(plan, files)
+
+
+def summarize(plan: FlightPlan, files: list[Path]) -> dict[str, Any]:
+    """Counts, route lengths (greedy vs improved) and sortie durations."""
+    planned = [d for d in plan.decisions if d.planned]
+    return {
+        "holes": len(plan.decisions),
+        "holes_planned": len(planned),
+        "holes_not_planned": {d.hole_id: d.reason for d in plan.decisions if not d.planned},
+        "patterns": len({p.pattern_id for p in plan.patterns}),
+        "lanes": sum(len(s.lanes) for s in plan.sorties),
+        "sorties": len(plan.sorties),
+        "sortie_durations_s": [round(s.duration_s, 1) for s in plan.sorties],
+        "greedy_route_m": round(plan.greedy_length_m, 1),
+        "improved_route_m": round(plan.improved_length_m, 1),
+        "flown_route_m": round(plan.flown_length_m, 1),
+        "home": list(plan.home),
+        "home_ground_m": round(plan.home_ground_m, 2),
+        "altitude_reference": plan.altitude_reference,
+        "files": [str(f) for f in files],
+    }
+
+
+def sortie_file_names(n_sorties: int) -> list[str]:
+    """``flightplan`` for one sortie; ``flightplan_s1``, ``flightplan_s2``, ... for several."""
+    return ["flightplan"] if n_sorties == 1 else [f"flightplan_s{k}" for k in range(1, n_sorties + 1)]
+
+
+def write_flightplan(plan: FlightPlan, out_dir: str | os.PathLike, *, drone_enum: int = 89, payload_enum: int = 84) -> list[Path]:
+    """Write ``flightplan.gpkg`` and the drone files of every sortie into ``out_dir``."""
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"{out_dir}: cannot create the output folder: {e}") from None
+    gpkg = out_dir / "flightplan.gpkg"
+    gpkg.unlink(missing_ok=True)
+    _write_gpkg(gpkg, plan)
+    files = [gpkg]
+    for stem, sortie in zip(sortie_file_names(len(plan.sorties)), plan.sorties):
+        files.append(write_plan(out_dir / f"{stem}.plan", plan, sortie))
+        files.append(write_waypoints(out_dir / f"{stem}.waypoints", plan, sortie))
+        files.append(write_kmz(out_dir / f"{stem}.kmz", plan, sortie, drone_enum=drone_enum, payload_enum=payload_enum))
+        files.append(write_kml(out_dir / f"{stem}.kml", plan, sortie))
+    return files
+
+
+def _write_gpkg(path: Path, plan: FlightPlan) -> None:
+    crs = plan.crs_wkt
+    reference = {"takeoff": "relative to take-off (DSM at home)", "amsl": "AMSL (DSM datum)",
+                 "ellipsoid": "WGS84 ellipsoid"}[plan.altitude_reference]
+    lines = [(s, lane) for s in plan.sorties for lane in s.lanes]
+    write_layer(
+        path, "flight_lines",
+        [{"hole_ids": ",".join(map(str, fl.hole_ids)), "pattern_id": fl.pattern_id, "sortie": fl.sortie,
+          "lane_index": fl.lane.index, "length_m": round(fl.lane.length_m, 2),
+          "azimuth_deg": round(fl.lane.azimuth_deg, 2)} for _, fl in lines],
+        [LineString([fl.lane.start, fl.lane.end]) for _, fl in lines],
+        crs_wkt=crs, geometry_type="LineString",
+    )
+    points = [w for s in plan.sorties for w in s.waypoints]
+    write_layer(
+        path, "waypoints",
+        [{"sortie": w.sortie, "sequence": w.sequence, "altitude_m": round(w.altitude_m, 2),
+          "altitude_ref": reference, "height_dsm_m": round(w.height_m, 2), "action": ",".join(w.actions),
+          "pattern_id": w.pattern_id, "lane_index": w.lane_index, "lon": w.lon, "lat": w.lat} for w in points],
+        [Point(w.x, w.y) for w in points], crs_wkt=crs, geometry_type="Point",
+    )
+    write_layer(
+        path, "route",
+        [{"sortie": s.number, "length_m": round(s.length_m, 1), "duration_s": round(s.duration_s, 1),
+          "waypoints": len(s.waypoints)} for s in plan.sorties],
+        [LineString([(w.x, w.y) for w in s.waypoints]) for s in plan.sorties],
+        crs_wkt=crs, geometry_type="LineString",
+    )
+    write_layer(
+        path, "holes_status",
+        [{"hole_id": d.hole_id, "cause": d.cause, "area_m2": round(d.area_m2, 2), "planned": d.planned,
+          "reason": d.reason, "pattern_id": d.pattern_id} for d in plan.decisions],
+        [d.geometry for d in plan.decisions], crs_wkt=crs, geometry_type="MultiPolygon",
+    )
+
+
+def _centre(holes: list[HoleInput]) -> tuple[float, float]:
+    c = shapely.union_all([h.geometry for h in holes]).centroid
+    return (c.x, c.y)
