@@ -146,6 +146,7 @@ class SurveyConfig:
 class FlightPlanConfig:
     """Re-flight plans for the holes a drone can re-scan (docs/flightplans.md)."""
 
+    enabled: bool = _opt(True, "Write re-flight plans after a run (needs holes.enabled).")
     causes: list[str] = _opt(
         ["missed_coverage"], "Hole causes that are re-flown; the others are listed, not flown.",
         item_choices=("occlusion", "water", "missed_coverage", "unknown"),

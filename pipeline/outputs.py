@@ -36,6 +36,9 @@ from .survey import tile_index_records
 #: Products a run moves from the staging folder into OUT (and replaces there).
 PRODUCTS = ("dsm", "dsm.vrt", "holes.gpkg", "manifest.json", "report.html")
 
+#: Flight-plan products: their number depends on the sorties, so older ones are matched by name.
+FLIGHTPLAN_PRODUCTS = ("flightplan.gpkg", "flightplan*.plan", "flightplan*.waypoints", "flightplan*.kmz", "flightplan*.kml")
+
 #: ``holes.outline`` values -> modes of :func:`pipeline.outlines.hole_outline`.
 OUTLINE_MODES = {"pixel": "exact", "simplified": "simplified", "straight": "straight"}
 
@@ -54,6 +57,7 @@ class RunSummary:
     skipped: list[dict[str, str]] = field(default_factory=list)
     dsm_tiles: list[str] = field(default_factory=list)
     holes: dict[str, Any] = field(default_factory=dict)
+    flightplan: dict[str, Any] = field(default_factory=dict)
 
     @property
     def points_per_second(self) -> float:
@@ -320,6 +324,7 @@ def write_manifest(
             "dsm_vrt": "dsm.vrt" if summary.dsm_tiles else None,
             "dsm_tiles": summary.dsm_tiles,
             "holes_gpkg": "holes.gpkg",
+            "flightplan": [os.path.basename(f) for f in summary.flightplan.get("files", [])],
         },
         "summary": {
             "tiles": summary.tiles,
@@ -332,6 +337,7 @@ def write_manifest(
             "empty_pixels": sum(r.empty_pixels for r in cell_results),
         },
         "holes": summary.holes,
+        "flightplan": {k: v for k, v in summary.flightplan.items() if k != "files"},
     }
     path.write_text(json.dumps(manifest, indent=2, default=str))
     return manifest

@@ -26,7 +26,16 @@ from typing import Any
 from .config import Config
 from .errors import HolefillError, InputDataError, TaskError
 from .io.vector import read_survey_area
-from .outputs import PRODUCTS, RunSummary, write_dsm_vrt, write_hole_layers, write_manifest, write_survey_layers
+from .io.flightplan_files import plan_flights
+from .outputs import (
+    FLIGHTPLAN_PRODUCTS,
+    PRODUCTS,
+    RunSummary,
+    write_dsm_vrt,
+    write_hole_layers,
+    write_manifest,
+    write_survey_layers,
+)
 from .plan import SurveyPlan, hole_params, plan_survey
 from .report import write_report
 from .stages import bin_tiles, detect_holes, link_holes, merge_cells, write_rasters
@@ -93,7 +102,8 @@ def run_survey(
                 detected, holes = _run_holes(runner, plan, config, rasters.cells, water_area, staging)
                 timer.lap("holes")
         summary = _write_products(staging, plan, config, rasters, detected, holes, started, timer)
-        staging.commit(PRODUCTS, keep_work=config.output.keep_intermediate)
+        flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
+        staging.commit(PRODUCTS + flight_files, keep_work=config.output.keep_intermediate, replaces=FLIGHTPLAN_PRODUCTS)
     except BaseException:
         staging.remove()
         if created_out:
@@ -224,7 +234,14 @@ def _write_products(staging: Staging, plan: SurveyPlan, config: Config, rasters:
     gpkg = staging.product("holes.gpkg")
     write_survey_layers(gpkg, plan, rasters.tiles, rasters.cells, rasters.written, skipped)
     hole_summary = write_hole_layers(gpkg, plan, config, holes, detected) if holes is not None else {}
+    vrt = staging.product("dsm.vrt")
+    flight_summary = {}
+    if holes is not None and config.flightplan.enabled and vrt.exists():
+        centroid = plan.survey_area.centroid
+        flight_summary = plan_flights(gpkg, vrt, config, staging.root, home=(centroid.x, centroid.y))
+        timer.lap("flightplan")
     summary = RunSummary(
+        flightplan=flight_summary,
         holes=hole_summary,
         out_dir=str(staging.out),
         tiles=len(rasters.tiles),

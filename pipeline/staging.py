@@ -81,8 +81,17 @@ class Staging:
     def product(self, name: str) -> Path:
         return self.root / name
 
-    def commit(self, products: tuple[str, ...], *, keep_work: bool) -> None:
-        """Move every product into OUT, replacing older ones, then delete the staging folder."""
+    def commit(self, products: tuple[str, ...], *, keep_work: bool, replaces: tuple[str, ...] = ()) -> None:
+        """Move every product into OUT, replacing older ones, then delete the staging folder.
+
+        ``replaces``: glob patterns of products an older run may have left in OUT that
+        this run does not write again (e.g. the files of a sortie no longer planned);
+        they are removed so that OUT never mixes two runs.
+        """
+        for pattern in replaces:
+            for stale in self.out.glob(pattern):
+                if stale.name not in products and stale.is_file():
+                    stale.unlink()
         for name in products + (("work",) if keep_work else ()):
             source = self.root / name
             if not source.exists():

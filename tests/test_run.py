@@ -97,7 +97,9 @@ def test_outputs_are_valid_cogs_and_layers(tmp_path, survey_points, dask_client)
     out = tmp_path / "out"
     summary = run(inputs, out, dask_client, "grid.cell_size_m=25")
     assert summary.points_read == len(survey_points[0])
-    assert sorted(p.name for p in out.iterdir()) == ["dsm", "dsm.vrt", "holes.gpkg", "manifest.json", "report.html", "work"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "dsm", "dsm.vrt", "flightplan.gpkg", "holes.gpkg", "manifest.json", "report.html", "work"
+    ]  # fmt: skip
     report = (out / "report.html").read_text()
     assert "By cause" in report and f"{summary.points_read:,}" in report
     tiles = sorted((out / "dsm").glob("*.tif"))
