@@ -20,7 +20,7 @@ import shapely
 
 from .holes import CAUSES, classify_causes, link_holes, ring_metrics
 from .io.vector import write_layer
-from .outlines import hole_outline, merge_outlines, to_world
+from .holes.outlines import hole_outline, merge_outlines, to_world
 
 #: ``holes.outline`` values -> modes of :func:`pipeline.outlines.hole_outline`.
 OUTLINE_MODES = {"pixel": "exact", "simplified": "simplified", "straight": "straight"}

@@ -23,8 +23,8 @@ from .errors import InputDataError
 from .footprint import BlockMap, aoi_mask, occupied_blocks, window_union_mask
 from .grid import Cell, Grid, PixelWindow
 from .holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
-from .outlines import label_outlines
-from .walls import Wall, find_walls
+from .holes.outlines import label_outlines
+from .holes.walls import Wall, find_walls
 from .io.las import iter_point_chunks
 from .io.raster import RasterOptions, geometry_mask, label_polygons, write_cog
 from .rasterize import (

@@ -9,7 +9,7 @@ import pytest
 from affine import Affine
 
 from pipeline.holes import height_jumps
-from pipeline.walls import find_walls, fit_wall, wall_segments
+from pipeline.holes.walls import find_walls, fit_wall, wall_segments
 
 LOW, HIGH = 10.0, 22.0
 

@@ -43,7 +43,7 @@ from scipy import sparse
 from scipy.optimize import least_squares
 from scipy.sparse import csgraph
 
-from .holes import height_jumps
+from .masks import height_jumps
 
 __all__ = ["Wall", "WallSegment", "find_walls", "fit_wall", "wall_segments"]
 
