@@ -18,6 +18,56 @@ _BIG = np.int64(1) << 40  # row stride of packed (row, column) keys; grids are f
 _NO_LINE = -1
 
 
+class HolePixelSums(NamedTuple):
+    """Per-label results of the pass over the hole pixels (index = label; 0 is unused).
+
+    Rows and columns are core coordinates (0 = the core's first row/column).
+    """
+
+    area: np.ndarray  # hole pixels
+    row_sum: np.ndarray  # sums of row, column, row^2, column^2, row x column
+    col_sum: np.ndarray
+    row_sq_sum: np.ndarray
+    col_sq_sum: np.ndarray
+    row_col_sum: np.ndarray
+    row_min: np.ndarray  # bounding box
+    row_max: np.ndarray
+    col_min: np.ndarray
+    col_max: np.ndarray
+    first_col: np.ndarray  # column of the first pixel in raster order (its row is row_min)
+    edge_len: np.ndarray  # pixel edges to non-hole pixels (4-neighbours)
+    aoi_edge: np.ndarray  # pixels next to the outside of the AOI/grid (by the connectivity)
+    near_data: np.ndarray  # pixels 4-adjacent to measured data
+    water: np.ndarray  # pixels with water-class points
+    in_mask: np.ndarray  # pixels inside the water mask
+
+
+def hole_pixel_sums(
+    labels: np.ndarray,
+    n: int,
+    hole_w: np.ndarray,
+    aoi_w: np.ndarray,
+    data_w: np.ndarray,
+    water_w: np.ndarray | None,
+    mask_w: np.ndarray | None,
+    R: int,
+    *,
+    eight: bool,
+) -> HolePixelSums:
+    """One raster-order pass over the hole pixels of the core (see :func:`_hole_pixel_kernel`).
+
+    ``labels`` covers the core; the ``*_w`` arrays cover the core grown by ``R``
+    pixels. ``water_w`` (bool: the pixel holds water-class points) and ``mask_w``
+    may be None.
+    """
+    no_flag = np.zeros((1, 1), bool)
+    return HolePixelSums(*_hole_pixel_kernel(
+        labels, n, hole_w, aoi_w, data_w,
+        no_flag if water_w is None else water_w, no_flag if mask_w is None else mask_w, R, eight,
+        water_w is not None, mask_w is not None,
+    ))  # fmt: skip
+
+
 @numba.njit(cache=True, nogil=True)
 def _hole_pixel_kernel(labels, n, hole_w, aoi_w, data_w, water_w, mask_w, R, eight, has_water,
                        has_mask):  # pragma: no cover - compiled
@@ -89,6 +139,60 @@ def _hole_pixel_kernel(labels, n, hole_w, aoi_w, data_w, water_w, mask_w, R, eig
                 masked[lab] += 1
     return (area, sr, sc, srr, scc, src, rmin, rmax, cmin, cmax, fcol, edge_len, aoi_edge, near_data, wet,
             masked)
+
+
+class RingSums(NamedTuple):
+    """Results of the pass over the ring pixels of the core (see :func:`_ring_kernel`).
+
+    Per-label arrays have index = label (0 unused). ``hist_*`` has one row per (ring
+    pixel, part) counted in this cell, for the histograms; ``shared_*`` one row per
+    ring pixel and hole key left to the client. Rows and columns are core coordinates.
+    """
+
+    ring_px: np.ndarray  # ring pixels per part
+    ring_jump: np.ndarray  # ... that are height jumps
+    ring_low: np.ndarray  # ... at the local minimum
+    ring_water: np.ndarray  # ... with water-class points
+    sums: np.ndarray  # (9, n + 1): sums of r, c, z, rr, cc, rc, rz, cz, zz
+    span_sum: np.ndarray  # sum of zmax - zmin over the jump pixels
+    z_min: np.ndarray  # lowest and highest ring height
+    z_max: np.ndarray
+    hist_part: np.ndarray
+    hist_z: np.ndarray
+    hist_line: np.ndarray  # -1: unknown
+    shared_row: np.ndarray
+    shared_col: np.ndarray
+    shared_key: np.ndarray  # > 0: a part label of this cell; < 0: -1 - flat index of a work-window hole pixel
+    shared_z: np.ndarray
+    shared_span: np.ndarray
+    shared_flags: np.ndarray  # 1 jump, 2 low, 4 water
+    shared_line: np.ndarray
+
+
+def ring_sums(
+    labels: np.ndarray,
+    hole_w: np.ndarray,
+    data_w: np.ndarray,
+    zmax_w: np.ndarray,
+    zmin_w: np.ndarray,
+    row_min: np.ndarray,
+    water_w: np.ndarray | None,
+    line_w: np.ndarray | None,
+    settled: np.ndarray,
+    R: int,
+    *,
+    local_radius_px: int,
+    jump_threshold: float,
+    low_tolerance: float,
+) -> RingSums:
+    """The ring pixels of the core (see :func:`_ring_kernel`); ``water_w`` and ``line_w`` may be None."""
+    return RingSums(*_ring_kernel(
+        labels, hole_w, data_w, zmax_w, zmin_w, row_min,
+        np.zeros((1, 1), bool) if water_w is None else water_w,
+        np.zeros((1, 1), np.int64) if line_w is None else line_w,
+        settled, R, local_radius_px, float(jump_threshold), float(low_tolerance), len(settled) - 1,
+        water_w is not None, line_w is not None,
+    ))  # fmt: skip
 
 
 @numba.njit(cache=True, nogil=True)

@@ -8,12 +8,13 @@ shared ring rows for linking on the client. See ``docs/holes.md``.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 import scipy.ndimage as ndi
 
 from ..grid import Cell, PixelWindow
-from ._kernels import _NO_LINE, _coo_counts, _hole_pixel_kernel, _perimeter_flat, _ring_kernel
+from ._kernels import _NO_LINE, RingSums, _coo_counts, _perimeter_flat, hole_pixel_sums, ring_sums
 from .stats import HEIGHT_HIST_DTYPE, LINE_HIST_DTYPE, SHARED_RING_DTYPE, HoleStats, _empty_columns
 
 __all__ = ["PART_DTYPE", "SIDE_BITS", "SIDES", "CellHoles", "EdgeStrip", "detect_cell_holes"]
@@ -182,9 +183,62 @@ def detect_cell_holes(
     ValueError
         On arrays of the wrong shape, a bad parameter, or a halo narrower than needed.
     """
-    core, halo = cell.window, cell.halo_window
     arrays = {"count": count, "zmax": zmax, "zmin": zmin, "aoi": aoi, "water_points": water_points,
               "water_mask": water_mask, "flight_line": flight_line}
+    R = _check_inputs(arrays, cell, grid_window, connectivity=connectivity, local_radius_px=local_radius_px,
+                      height_bin=height_bin)
+    core = cell.window
+    work = _work_arrays(arrays, cell, R)
+    structure = ndi.generate_binary_structure(2, 1 if connectivity == 4 else 2)
+    labels, n = ndi.label(work.core(work.hole), structure=structure)
+    labels = labels.astype(np.int32, copy=False)
+    data_core = work.core(work.data)
+    core_has_data = bool(data_core.any())
+    edges = _edge_strips(labels, core)
+    if n == 0:
+        return CellHoles(cell, connectivity, labels, np.zeros(0, PART_DTYPE),
+                         HoleStats.empty(0, height_bin=height_bin), edges,
+                         np.zeros(0, SHARED_RING_DTYPE), core_has_data, 0, 0)
+
+    cols = _empty_columns(n)
+    _pixel_statistics(cols, labels, n, core, work, connectivity)
+    closed = _closed_parts(cols, edges, n)
+    small = closed & (cols["area_px"] < min_area_px)  # complete holes: small ones are settled here
+    small_void_count, small_void_px = int(small.sum()), int(cols["area_px"][small].sum())
+    if small_void_count:
+        labels, cols, closed = _drop_parts(labels, cols, closed, small)
+        n = len(closed)
+        edges = _edge_strips(labels, core)
+    height_hist, line_hist, shared = _ring_statistics(
+        cols, labels, closed, work, core, local_radius_px=local_radius_px, jump_threshold=jump_threshold,
+        low_tolerance=low_tolerance, height_bin=height_bin,
+    )
+    parts = _part_topology(labels, n, work.hole, data_core, R, cols, core_has_data, connectivity)
+    return CellHoles(
+        cell=cell,
+        connectivity=connectivity,
+        labels=labels,
+        parts=parts,
+        stats=HoleStats(cols, height_hist, line_hist, float(height_bin)),
+        edges=edges,
+        shared_ring=shared,
+        core_has_data=core_has_data,
+        small_void_count=small_void_count,
+        small_void_px=small_void_px,
+    )
+
+
+def _check_inputs(
+    arrays: dict[str, np.ndarray | None],
+    cell: Cell,
+    grid_window: PixelWindow,
+    *,
+    connectivity: int,
+    local_radius_px: int,
+    height_bin: float,
+) -> int:
+    """Validate :func:`detect_cell_holes`'s arguments; return the work margin R (pixels)."""
+    core, halo = cell.window, cell.halo_window
     for name, arr in arrays.items():
         if arr is not None and np.shape(arr) != halo.shape:
             raise ValueError(
@@ -205,136 +259,144 @@ def detect_cell_holes(
             f"cell {cell.id}: the halo must reach {R} pixel(s) beyond the core wherever the grid "
             f"continues (local_radius_px={local_radius_px}); got halo {halo} for core {core}"
         )
+    return R
 
-    # -- the work window: core + R pixels, padded beyond the grid ----------------------------
-    h, w = core.shape
-    W2 = w + 2 * R
-    count_w = _work_view(np.asarray(count), cell, work, 0)
-    if aoi is None:
-        aoi_w = _work_view(np.ones(halo.shape, dtype=bool), cell, work, False)
+
+class _Work(NamedTuple):
+    """A cell's arrays over the work window: the core grown by ``R`` pixels, padded beyond the grid."""
+
+    R: int
+    hole: np.ndarray  # empty and inside the AOI
+    aoi: np.ndarray
+    data: np.ndarray  # count > 0
+    zmax: np.ndarray
+    zmin: np.ndarray
+    water: np.ndarray | None  # holds water-class points
+    mask: np.ndarray | None  # inside the water mask
+    line: np.ndarray | None  # flight line id, < 0 unknown
+
+    def core(self, arr: np.ndarray) -> np.ndarray:
+        """The view of a work-window array over the core."""
+        R = self.R
+        return arr[R : arr.shape[0] - R, R : arr.shape[1] - R]
+
+
+def _work_arrays(arrays: dict[str, np.ndarray | None], cell: Cell, R: int) -> _Work:
+    """The arrays of :func:`detect_cell_holes` cut to the work window (see :class:`_Work`)."""
+    work = cell.window.expand(R)
+
+    def view(name: str, fill, dtype=None) -> np.ndarray | None:
+        arr = arrays[name]
+        return None if arr is None else _work_view(np.asarray(arr, dtype=dtype), cell, work, fill)
+
+    count_w = view("count", 0)
+    if arrays["aoi"] is None:
+        aoi_w = _work_view(np.ones(cell.halo_window.shape, dtype=bool), cell, work, False)
     else:
-        aoi_w = _work_view(np.asarray(aoi, dtype=bool), cell, work, False)
+        aoi_w = view("aoi", False, bool)
     data_w = count_w > 0
-    hole_w = ~data_w & aoi_w
-
-    def around(arr: np.ndarray, dr: int, dc: int) -> np.ndarray:
-        """The (h, w) view of ``arr`` shifted by (dr, dc) relative to the core."""
-        return arr[R + dr : R + dr + h, R + dc : R + dc + w]
-
-    hole_core = around(hole_w, 0, 0)
-    data_core = around(data_w, 0, 0)
-    structure = ndi.generate_binary_structure(2, 1 if connectivity == 4 else 2)
-    labels, n = ndi.label(hole_core, structure=structure)
-    labels = labels.astype(np.int32, copy=False)
-    core_has_data = bool(data_core.any())
-    edges = _edge_strips(labels, core)
-    if n == 0:
-        return CellHoles(cell, connectivity, labels, np.zeros(0, PART_DTYPE),
-                         HoleStats.empty(0, height_bin=height_bin), edges,
-                         np.zeros(0, SHARED_RING_DTYPE), core_has_data, 0, 0)
-
-    cols = _empty_columns(n)
-    # -- every hole pixel once: area, moments, box; its borders; evidence inside it -----------
-    wp_w = wm_w = line_w = None
-    if water_points is not None:
-        wp_w = _work_view(np.asarray(water_points), cell, work, 0)
-    if water_mask is not None:
-        wm_w = _work_view(np.asarray(water_mask, dtype=bool), cell, work, False)
-    if flight_line is not None:
-        line_w = _work_view(np.asarray(flight_line, dtype=np.int64), cell, work, _NO_LINE)
-    no_flag = np.zeros((1, 1), bool)
-    _pixel_statistics(
-        cols, labels, n, core, hole_w, aoi_w, data_w,
-        no_flag if wp_w is None else wp_w > 0, no_flag if wm_w is None else wm_w, R, connectivity,
+    water_points = view("water_points", 0)
+    return _Work(
+        R=R,
+        hole=~data_w & aoi_w,
+        aoi=aoi_w,
+        data=data_w,
+        zmax=view("zmax", np.nan),
+        zmin=view("zmin", np.nan),
+        water=None if water_points is None else water_points > 0,
+        mask=view("water_mask", False, bool),
+        line=view("flight_line", _NO_LINE, np.int64),
     )
 
-    # -- closed parts are complete holes: settle the small ones here --------------------------
+
+def _closed_parts(cols: dict[str, np.ndarray], edges: tuple[EdgeStrip, ...], n: int) -> np.ndarray:
+    """Parts touching neither the core edge nor the AOI boundary: complete holes."""
     on_edge = np.zeros(n + 1, bool)
     for strip in edges:
         on_edge[strip.labels] = True
-    closed = ~on_edge[1:] & (cols["aoi_edge_px"] == 0)
-    small = closed & (cols["area_px"] < min_area_px)
-    small_void_count = int(small.sum())
-    small_void_px = int(cols["area_px"][small].sum())
-    if small_void_count:
-        keep = np.flatnonzero(~small)
-        relabel = np.full(n + 1, -1, np.int32)
-        relabel[0] = 0
-        relabel[keep + 1] = np.arange(1, len(keep) + 1, dtype=np.int32)
-        labels = relabel[labels]
-        cols = {k: v[keep] for k, v in cols.items()}
-        closed = closed[keep]
-        n = len(keep)
-        edges = _edge_strips(labels, core)
+    return ~on_edge[1:] & (cols["aoi_edge_px"] == 0)
 
-    # -- the ring: measured core pixels 4-adjacent to a hole pixel ([UAS] 3.2) ----------------
-    # A ring pixel counts here for every closed part it touches (a closed part is a whole
-    # hole, distinct from all others) and for the single open part it touches; when it
-    # touches several open parts, or a hole pixel of a neighbouring cell, it becomes one
-    # shared row per such part/pixel, which the client resolves once parts are linked, so
-    # that each ring pixel counts once per hole whatever the cell size.
-    zmax_w = _work_view(np.asarray(zmax), cell, work, np.nan)
-    zmin_w = _work_view(np.asarray(zmin), cell, work, np.nan)
+
+def _drop_parts(
+    labels: np.ndarray, cols: dict[str, np.ndarray], closed: np.ndarray, drop: np.ndarray
+) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
+    """Label the dropped parts -1 and number the others 1..k again, in order."""
+    keep = np.flatnonzero(~drop)
+    relabel = np.full(len(drop) + 1, -1, np.int32)
+    relabel[0] = 0
+    relabel[keep + 1] = np.arange(1, len(keep) + 1, dtype=np.int32)
+    return relabel[labels], {k: v[keep] for k, v in cols.items()}, closed[keep]
+
+
+def _ring_statistics(
+    cols: dict[str, np.ndarray],
+    labels: np.ndarray,
+    closed: np.ndarray,
+    work: _Work,
+    core: PixelWindow,
+    *,
+    local_radius_px: int,
+    jump_threshold: float,
+    low_tolerance: float,
+    height_bin: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ring: measured core pixels 4-adjacent to a hole pixel ([UAS] 3.2).
+
+    Fills the ring columns of ``cols``; returns the height and flight-line histograms
+    and the shared ring rows. A ring pixel counts here for every closed part it
+    touches (a closed part is a whole hole, distinct from all others) and for the
+    single open part it touches; when it touches several open parts, or a hole pixel
+    of a neighbouring cell, it becomes one shared row per such part/pixel, which the
+    client resolves once parts are linked, so that each ring pixel counts once per
+    hole whatever the cell size.
+    """
     lr = int(local_radius_px)
     if lr > 0:
-        zmin_data = np.where(data_w, zmin_w, np.inf).astype(np.float32)
+        zmin_data = np.where(work.data, work.zmin, np.inf).astype(np.float32)
         row_min = ndi.minimum_filter1d(zmin_data, 2 * lr + 1, axis=1, mode="constant", cval=np.inf)
     else:
         row_min = np.zeros((1, 1), np.float32)
-    no_water = np.zeros((1, 1), bool)
-    no_line = np.zeros((1, 1), np.int64)
-    ring = _ring_kernel(
-        labels, hole_w, data_w, zmax_w, zmin_w, row_min,
-        no_water if wp_w is None else wp_w > 0, no_line if line_w is None else line_w,
-        np.concatenate([[False], closed]), R, lr, float(jump_threshold), float(low_tolerance), n,
-        wp_w is not None, line_w is not None,
+    ring = ring_sums(
+        labels, work.hole, work.data, work.zmax, work.zmin, row_min, work.water, work.line,
+        np.concatenate([[False], closed]), work.R, local_radius_px=lr, jump_threshold=jump_threshold,
+        low_tolerance=low_tolerance,
     )
-    (ring_px, ring_jump, ring_low, ring_water, ring_sums, span_sum, z_lo, z_hi,
-     s_part, s_z, s_line, sh_r, sh_c, sh_key, sh_z, sh_span, sh_flags, sh_line) = ring
-    cols["ring_px"] = ring_px[1:]
-    cols["ring_jump_px"] = ring_jump[1:]
-    cols["ring_low_px"] = ring_low[1:]
-    cols["ring_water_px"] = ring_water[1:]
-    _ring_moments(cols, ring_px[1:], ring_sums[:, 1:], core)
-    cols["ring_jump_span_sum"] = span_sum[1:]
-    cols["ring_z_min"] = z_lo[1:]
-    cols["ring_z_max"] = z_hi[1:]
-    finite = np.isfinite(s_z)
-    height_hist = _coo_counts(s_part[finite] - 1, np.floor(s_z[finite] / height_bin).astype(np.int64),
-                              HEIGHT_HIST_DTYPE)
-    known = s_line >= 0
-    line_hist = _coo_counts(s_part[known] - 1, s_line[known], LINE_HIST_DTYPE)
+    cols["ring_px"] = ring.ring_px[1:]
+    cols["ring_jump_px"] = ring.ring_jump[1:]
+    cols["ring_low_px"] = ring.ring_low[1:]
+    cols["ring_water_px"] = ring.ring_water[1:]
+    _ring_moments(cols, ring.ring_px[1:], ring.sums[:, 1:], core)
+    cols["ring_jump_span_sum"] = ring.span_sum[1:]
+    cols["ring_z_min"] = ring.z_min[1:]
+    cols["ring_z_max"] = ring.z_max[1:]
+    finite = np.isfinite(ring.hist_z)
+    height_hist = _coo_counts(ring.hist_part[finite] - 1,
+                              np.floor(ring.hist_z[finite] / height_bin).astype(np.int64), HEIGHT_HIST_DTYPE)
+    known = ring.hist_line >= 0
+    line_hist = _coo_counts(ring.hist_part[known] - 1, ring.hist_line[known], LINE_HIST_DTYPE)
+    return height_hist, line_hist, _shared_rows(ring, core, work.R, work.hole.shape[1])
 
-    shared = np.zeros(len(sh_r), SHARED_RING_DTYPE)
-    if len(sh_r):
-        shared["row"] = sh_r + core.row_off
-        shared["col"] = sh_c + core.col_off
-        foreign = sh_key < 0
-        shared["label"] = np.where(foreign, 0, sh_key)
-        fr, fc = np.divmod(np.where(foreign, -1 - sh_key, 0), W2)
-        shared["ref_row"] = np.where(foreign, fr - R + core.row_off, -1)
-        shared["ref_col"] = np.where(foreign, fc - R + core.col_off, -1)
-        shared["z"] = sh_z
-        shared["span"] = sh_span
-        shared["jump"] = (sh_flags & 1) != 0
-        shared["low"] = (sh_flags & 2) != 0
-        shared["water"] = (sh_flags & 4) != 0
-        shared["line"] = sh_line
 
-    # -- topology per part: cell edges, AOI boundary, islands, [OPEN] category and shape -----
-    parts = _part_topology(labels, n, hole_w, data_core, R, cols, core_has_data, connectivity)
-    return CellHoles(
-        cell=cell,
-        connectivity=connectivity,
-        labels=labels,
-        parts=parts,
-        stats=HoleStats(cols, height_hist, line_hist, float(height_bin)),
-        edges=edges,
-        shared_ring=shared,
-        core_has_data=core_has_data,
-        small_void_count=small_void_count,
-        small_void_px=small_void_px,
-    )
+def _shared_rows(ring: RingSums, core: PixelWindow, R: int, work_width: int) -> np.ndarray:
+    """The ring kernel's shared rows as a SHARED_RING_DTYPE table in global coordinates."""
+    shared = np.zeros(len(ring.shared_row), SHARED_RING_DTYPE)
+    if not len(shared):
+        return shared
+    key = ring.shared_key
+    shared["row"] = ring.shared_row + core.row_off
+    shared["col"] = ring.shared_col + core.col_off
+    foreign = key < 0
+    shared["label"] = np.where(foreign, 0, key)
+    fr, fc = np.divmod(np.where(foreign, -1 - key, 0), work_width)
+    shared["ref_row"] = np.where(foreign, fr - R + core.row_off, -1)
+    shared["ref_col"] = np.where(foreign, fc - R + core.col_off, -1)
+    shared["z"] = ring.shared_z
+    shared["span"] = ring.shared_span
+    shared["jump"] = (ring.shared_flags & 1) != 0
+    shared["low"] = (ring.shared_flags & 2) != 0
+    shared["water"] = (ring.shared_flags & 4) != 0
+    shared["line"] = ring.shared_line
+    return shared
 
 
 def _work_view(arr: np.ndarray, cell: Cell, work: PixelWindow, fill: float | int | bool) -> np.ndarray:
@@ -375,41 +437,30 @@ def _first_occurrence(labels_in_order: np.ndarray, n: int) -> np.ndarray:
 
 
 def _pixel_statistics(
-    cols: dict[str, np.ndarray],
-    labels: np.ndarray,
-    n: int,
-    core: PixelWindow,
-    hole_w: np.ndarray,
-    aoi_w: np.ndarray,
-    data_w: np.ndarray,
-    water_w: np.ndarray,
-    mask_w: np.ndarray,
-    R: int,
-    connectivity: int,
+    cols: dict[str, np.ndarray], labels: np.ndarray, n: int, core: PixelWindow, work: _Work, connectivity: int
 ) -> None:
     """Area, box, first pixel, moments, edge length, AOI contact, data contact, evidence."""
-    (area, sr, sc, srr, scc, src, rmin, rmax, cmin, cmax, fcol, edge_len, aoi_edge, near_data, wet,
-     masked) = _hole_pixel_kernel(labels, n, hole_w, aoi_w, data_w, water_w, mask_w, R, connectivity == 8,
-                                  water_w.shape == hole_w.shape, mask_w.shape == hole_w.shape)
-    area, sr, sc = area[1:], sr[1:], sc[1:]
+    sums = hole_pixel_sums(labels, n, work.hole, work.aoi, work.data, work.water, work.mask, work.R,
+                           eight=connectivity == 8)
+    area, sr, sc = sums.area[1:], sums.row_sum[1:], sums.col_sum[1:]
     mr, mc = sr / area, sc / area
     cols["area_px"] = area
     cols["mean_row"] = mr + core.row_off
     cols["mean_col"] = mc + core.col_off
-    cols["m2_rr"] = srr[1:] - sr * mr  # local coordinates (< cell size): no cancellation
-    cols["m2_cc"] = scc[1:] - sc * mc
-    cols["m2_rc"] = src[1:] - sr * mc
-    cols["row_min"] = rmin[1:] + core.row_off
-    cols["row_max"] = rmax[1:] + core.row_off
-    cols["col_min"] = cmin[1:] + core.col_off
-    cols["col_max"] = cmax[1:] + core.col_off
+    cols["m2_rr"] = sums.row_sq_sum[1:] - sr * mr  # local coordinates (< cell size): no cancellation
+    cols["m2_cc"] = sums.col_sq_sum[1:] - sc * mc
+    cols["m2_rc"] = sums.row_col_sum[1:] - sr * mc
+    cols["row_min"] = sums.row_min[1:] + core.row_off
+    cols["row_max"] = sums.row_max[1:] + core.row_off
+    cols["col_min"] = sums.col_min[1:] + core.col_off
+    cols["col_max"] = sums.col_max[1:] + core.col_off
     cols["first_row"] = cols["row_min"].copy()
-    cols["first_col"] = fcol[1:] + core.col_off
-    cols["edge_len_px"] = edge_len[1:]
-    cols["aoi_edge_px"] = aoi_edge[1:]
-    cols["touches_data"] = near_data[1:] > 0
-    cols["hole_water_px"] = wet[1:]
-    cols["water_mask_px"] = masked[1:]
+    cols["first_col"] = sums.first_col[1:] + core.col_off
+    cols["edge_len_px"] = sums.edge_len[1:]
+    cols["aoi_edge_px"] = sums.aoi_edge[1:]
+    cols["touches_data"] = sums.near_data[1:] > 0
+    cols["hole_water_px"] = sums.water[1:]
+    cols["water_mask_px"] = sums.in_mask[1:]
 
 
 def _ring_moments(cols: dict[str, np.ndarray], count: np.ndarray, sums: np.ndarray, core: PixelWindow) -> None:

@@ -149,45 +149,86 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
     connectivity = cells[0].connectivity
     if any(c.connectivity != connectivity for c in cells):
         raise ValueError("all cells must use the same connectivity")
-    height_bin = cells[0].stats.height_bin
     sizes = np.array([c.n_parts for c in cells], dtype=np.int64)
-    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    offsets = np.concatenate([[0], np.cumsum(sizes)])  # parts of cell k are nodes offsets[k]..offsets[k + 1]
     n_nodes = int(offsets[-1])
+    edges = _EdgePixels.of(cells, offsets)
+    graph = _contact_graph(edges, connectivity, n_nodes)
+    n_comp, comp = csgraph.connected_components(graph, directed=False)
+    entries, e_comp = _shared_ring_entries(cells, offsets, comp, edges)
+    merged = merge_hole_stats(
+        [c.stats for c in cells] + [_shared_ring_stats(entries, cells[0].stats.height_bin)],
+        [comp[offsets[k] : offsets[k + 1]] for k in range(len(cells))] + [e_comp],
+        n_comp,
+    )
+    # hole ids 1..H in raster order of first pixels
+    order = np.lexsort((merged["first_col"], merged["first_row"]))
+    hole_id_of_comp = np.empty(n_comp, np.int64)
+    hole_id_of_comp[order] = np.arange(1, n_comp + 1)
+    stats = merged.take(order)
+    parts = _parts_table(cells, offsets, hole_id_of_comp[comp], _layers(cells, graph))
+    graph.sort_indices()
+    return HoleCatalog(
+        holes=_holes_table(parts, stats, n_cells=len(cells), min_area_px=min_area_px),
+        stats=stats,
+        parts=parts,
+        neighbour_ptr=graph.indptr.astype(np.int64),
+        neighbour_idx=graph.indices.astype(np.int64),
+        connectivity=connectivity,
+        min_area_px=int(min_area_px),
+        settled_small_voids=sum(c.small_void_count for c in cells),
+        settled_small_void_px=sum(c.small_void_px for c in cells),
+    )
 
-    # every hole pixel on a cell edge, by global position
-    empty = np.zeros(0, np.int64)
-    e_rows, e_cols, e_nodes, e_side = [empty], [empty], [empty], [empty]
-    for k, c in enumerate(cells):
-        for strip in c.edges:
-            m = strip.labels > 0
-            e_rows.append(strip.rows[m])
-            e_cols.append(strip.cols[m])
-            e_nodes.append(offsets[k] + strip.labels[m].astype(np.int64) - 1)
-            e_side.append(np.full(int(m.sum()), SIDES.index(strip.side), np.int64))
-    e_rows, e_cols, e_nodes, e_side = (np.concatenate(x) for x in (e_rows, e_cols, e_nodes, e_side))
-    table_key, first_index = np.unique((e_rows + 1) * _BIG + (e_cols + 1), return_index=True)
-    table_node = e_nodes[first_index]
 
-    def node_at(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+@dataclass(frozen=True)
+class _EdgePixels:
+    """Every hole pixel on a cell edge (global row/column), its part (node) and its side."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    nodes: np.ndarray
+    side: np.ndarray  # index into SIDES
+    keys: np.ndarray  # sorted unique packed positions, for node_at
+    key_nodes: np.ndarray
+
+    @classmethod
+    def of(cls, cells: Sequence[CellHoles], offsets: np.ndarray) -> _EdgePixels:
+        empty = np.zeros(0, np.int64)
+        rows, cols, nodes, side = [empty], [empty], [empty], [empty]
+        for k, c in enumerate(cells):
+            for strip in c.edges:
+                m = strip.labels > 0
+                rows.append(strip.rows[m])
+                cols.append(strip.cols[m])
+                nodes.append(offsets[k] + strip.labels[m].astype(np.int64) - 1)
+                side.append(np.full(int(m.sum()), SIDES.index(strip.side), np.int64))
+        rows, cols, nodes, side = (np.concatenate(x) for x in (rows, cols, nodes, side))
+        keys, first_index = np.unique((rows + 1) * _BIG + (cols + 1), return_index=True)
+        return cls(rows, cols, nodes, side, keys, nodes[first_index])
+
+    def node_at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """The part (node) holding the edge hole pixel at (rows, cols); -1 where none."""
         key = (rows + 1) * _BIG + (cols + 1)
-        if not len(table_key):
+        if not len(self.keys):
             return np.full(len(key), -1, np.int64)
-        i = np.minimum(np.searchsorted(table_key, key), len(table_key) - 1)
-        return np.where(table_key[i] == key, table_node[i], -1)
+        i = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
+        return np.where(self.keys[i] == key, self.key_nodes[i], -1)
 
-    # contacts across edges -> contact graph -> components
+
+def _contact_graph(edges: _EdgePixels, connectivity: int, n_nodes: int) -> sparse.csr_matrix:
+    """Symmetric 0/1 adjacency of the parts whose edge pixels touch across a cell edge."""
     a_list, b_list = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     for s, side in enumerate(SIDES):
-        m = e_side == s
+        m = edges.side == s
         dr, dc = _ACROSS[side]
         steps = [(dr, dc)]
         if connectivity == 8:
             steps += [(dr, -1), (dr, 1)] if dr else [(-1, dc), (1, dc)]
         for sr, sc in steps:
-            other = node_at(e_rows[m] + sr, e_cols[m] + sc)
+            other = edges.node_at(edges.rows[m] + sr, edges.cols[m] + sc)
             ok = other >= 0
-            a_list.append(e_nodes[m][ok])
+            a_list.append(edges.nodes[m][ok])
             b_list.append(other[ok])
     a, b = np.concatenate(a_list), np.concatenate(b_list)
     keep = a != b
@@ -198,9 +239,13 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
     ).tocsr()
     graph.sum_duplicates()
     graph.data[:] = 1
-    n_comp, comp = csgraph.connected_components(graph, directed=False)
+    return graph
 
-    # shared ring pixels: find the hole on the other side, count each pixel once per hole
+
+def _shared_ring_entries(
+    cells: Sequence[CellHoles], offsets: np.ndarray, comp: np.ndarray, edges: _EdgePixels
+) -> tuple[np.ndarray, np.ndarray]:
+    """Shared ring pixels with the hole (component) on their other side, each once per hole."""
     ent_all, ent_comp = [np.zeros(0, SHARED_RING_DTYPE)], [np.zeros(0, np.int64)]
     for k, c in enumerate(cells):
         e = c.shared_ring
@@ -209,7 +254,7 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
         node = np.where(e["label"] > 0, offsets[k] + e["label"].astype(np.int64) - 1, -1)
         foreign = e["label"] == 0
         if foreign.any():
-            node[foreign] = node_at(e["ref_row"][foreign], e["ref_col"][foreign])
+            node[foreign] = edges.node_at(e["ref_row"][foreign], e["ref_col"][foreign])
         ok = node >= 0  # a neighbour cell that was not given leaves its side unresolved
         ent_all.append(e[ok])
         ent_comp.append(comp[node[ok]])
@@ -218,30 +263,28 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
         pixel = (entries["row"] + 1) * _BIG + (entries["col"] + 1)
         _, uniq = np.unique(np.stack([pixel, e_comp], axis=1), axis=0, return_index=True)
         entries, e_comp = entries[uniq], e_comp[uniq]
+    return entries, e_comp
 
-    merged = merge_hole_stats(
-        [c.stats for c in cells] + [_shared_ring_stats(entries, height_bin)],
-        [comp[offsets[k] : offsets[k + 1]] for k in range(len(cells))] + [e_comp],
-        n_comp,
-    )
-    # hole ids 1..H in raster order of first pixels
-    order = np.lexsort((merged["first_col"], merged["first_row"]))
-    hole_id_of_comp = np.empty(n_comp, np.int64)
-    hole_id_of_comp[order] = np.arange(1, n_comp + 1)
-    stats = merged.take(order)
 
-    # layers: breadth-first distance from the parts that touch measured data
+def _layers(cells: Sequence[CellHoles], graph: sparse.csr_matrix) -> np.ndarray:
+    """[OPEN] 3.2: 1 + the breadth-first distance from the parts that touch measured data (0: none reached)."""
     touches = np.concatenate([c.parts["touches_data"] for c in cells])
-    layer = np.zeros(n_nodes, np.int64)
+    layer = np.zeros(graph.shape[0], np.int64)
     sources = np.flatnonzero(touches)
     if len(sources):
         dist = csgraph.dijkstra(graph, directed=False, indices=sources, unweighted=True, min_only=True)
         finite = np.isfinite(dist)
         layer[finite] = dist[finite].astype(np.int64) + 1
+    return layer
 
+
+def _parts_table(
+    cells: Sequence[CellHoles], offsets: np.ndarray, hole_id: np.ndarray, layer: np.ndarray
+) -> np.ndarray:
+    """One row per part of every cell (see :attr:`HoleCatalog.parts`)."""
     id_len = max([len(c.cell.id) for c in cells] + [1])
     parts = np.zeros(
-        n_nodes,
+        len(hole_id),
         [("hole_id", np.int64), ("cell", np.int64), ("cell_id", f"U{id_len}"), ("index_x", np.int64),
          ("index_y", np.int64), ("label", np.int32), ("layer", np.int64), ("area_px", np.int64),
          ("category", "U6"), ("shape", "U1")],
@@ -256,10 +299,14 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
         parts["area_px"][sl] = c.stats["area_px"]
         parts["category"][sl] = c.parts["category"]
         parts["shape"][sl] = c.parts["shape"]
-    parts["hole_id"] = hole_id_of_comp[comp]
+    parts["hole_id"] = hole_id
     parts["layer"] = layer
-    graph.sort_indices()
+    return parts
 
+
+def _holes_table(parts: np.ndarray, stats: HoleStats, *, n_cells: int, min_area_px: int) -> np.ndarray:
+    """One row per hole (see :attr:`HoleCatalog.holes`)."""
+    n_comp = len(stats)
     holes = np.zeros(
         n_comp,
         [("hole_id", np.int64), ("area_px", np.int64), ("n_parts", np.int64), ("n_cells", np.int64),
@@ -269,21 +316,11 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
     holes["hole_id"] = np.arange(1, n_comp + 1)
     holes["area_px"] = stats["area_px"]
     holes["n_parts"] = np.bincount(hid, minlength=n_comp)
-    hole_cells = np.unique(hid * (len(cells) + 1) + parts["cell"])
-    holes["n_cells"] = np.bincount(hole_cells // (len(cells) + 1), minlength=n_comp)
+    hole_cells = np.unique(hid * (n_cells + 1) + parts["cell"])
+    holes["n_cells"] = np.bincount(hole_cells // (n_cells + 1), minlength=n_comp)
     max_layer = np.zeros(n_comp, np.int64)
-    np.maximum.at(max_layer, hid, layer)
+    np.maximum.at(max_layer, hid, parts["layer"])
     holes["max_layer"] = max_layer
     holes["touches_aoi_boundary"] = stats["aoi_edge_px"] > 0
     holes["is_small"] = holes["area_px"] < min_area_px
-    return HoleCatalog(
-        holes=holes,
-        stats=stats,
-        parts=parts,
-        neighbour_ptr=graph.indptr.astype(np.int64),
-        neighbour_idx=graph.indices.astype(np.int64),
-        connectivity=connectivity,
-        min_area_px=int(min_area_px),
-        settled_small_voids=sum(c.small_void_count for c in cells),
-        settled_small_void_px=sum(c.small_void_px for c in cells),
-    )
+    return holes
