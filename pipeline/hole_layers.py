@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import shapely
 
-from .holes import CAUSES, classify_causes, link_holes, ring_metrics
+from .holes import CAUSES, CauseRules, classify_causes, link_holes, ring_metrics
 from .io.vector import write_layer
 from .holes.outlines import hole_outline, merge_outlines, to_world
 
@@ -40,9 +40,7 @@ def write_hole_layers(path: Path, plan, config, params, detected: list) -> dict[
     holes_config = config.holes
     catalog = link_holes([d.cell_holes for d in detected], min_area_px=params.min_area_px)
     causes = classify_causes(
-        catalog.stats,
-        pixel_size=pixel_size * unit / z_unit,
-        jump_threshold=params.jump_threshold,
+        catalog.stats, CauseRules.from_config(config, pixel_size_m=pixel_size * unit, vertical_unit_m=z_unit)
     )
     ring = ring_metrics(catalog.stats)
 

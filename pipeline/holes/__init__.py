@@ -56,7 +56,7 @@ Pipeline contract
 
 from __future__ import annotations
 
-from .causes import CAUSE_DTYPE, CAUSES, classify_causes
+from .causes import CAUSE_DTYPE, CAUSES, CauseRules, classify_causes
 from .detect import PART_DTYPE, SIDE_BITS, SIDES, CellHoles, EdgeStrip, detect_cell_holes
 from .link import HoleCatalog, PartRecord, link_holes
 from .masks import height_jumps, hole_mask, vertical_holes
@@ -69,6 +69,7 @@ __all__ = [
     "SIDES",
     "SIDE_BITS",
     "STATS_COLUMNS",
+    "CauseRules",
     "CellHoles",
     "EdgeStrip",
     "HoleCatalog",
