@@ -1,4 +1,4 @@
-"""Tests of pipeline.outlines: exact, merged, world, simplified and straight outlines."""
+"""Tests of pipeline.holes.outlines: exact, merged, world, simplified and straight outlines."""
 
 from __future__ import annotations
 

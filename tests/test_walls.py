@@ -1,4 +1,4 @@
-"""Tests of pipeline.walls: wall segments from jump pixels and the S-curve fit ([WALL])."""
+"""Tests of pipeline.holes.walls: wall segments from jump pixels and the S-curve fit ([WALL])."""
 
 from __future__ import annotations
 
