@@ -27,8 +27,9 @@ HOLE_CONTEXT_PX = 8
 def _opt(default: Any, doc: str, **rules: Any) -> Any:
     """A config field: its default, a one-line description and validation rules.
 
-    Rules: ``choices`` (allowed values), ``gt``/``ge`` (lower bounds),
-    ``item_range`` (bounds of each list item), ``item_choices`` (allowed list items).
+    Rules: ``choices`` (allowed values), ``gt``/``ge`` (lower bounds), ``le``
+    (upper bound), ``item_range`` (bounds of each list item), ``item_choices``
+    (allowed list items).
     """
     if isinstance(default, list):
         return field(default_factory=lambda: list(default), metadata={"doc": doc, **rules})
@@ -98,6 +99,68 @@ class HolesConfig:
         2.0, "Groups of vertical-hole pixels smaller than this are not listed.", ge=0
     )
     wall_min_length_m: float = _opt(4.0, "Wall segments shorter than this are not fitted.", gt=0)
+
+
+@dataclass(frozen=True)
+class CausesConfig:
+    """Thresholds of the hole-cause rules (docs/holes.md, "Causes"); the first rule that holds wins."""
+
+    water_min_mask_fraction: float = _opt(
+        0.5, "water_mask rule: share of the hole inside the given water polygons.", ge=0, le=1
+    )
+    water_min_point_fraction: float = _opt(
+        0.1, "water_points rule: share of the ring (or of the hole) holding water-class points.", ge=0, le=1
+    )
+    occlusion_min_jump_fraction: float = _opt(
+        0.5, "jumps rule (occlusion): share of the ring pixels that are height jumps.", ge=0, le=1
+    )
+    shadow_min_high_fraction: float = _opt(
+        0.15, "shadow rule (occlusion): share of the ring more than jump_threshold_m above its low level.",
+        ge=0, le=1,
+    )
+    shadow_min_residual_ratio: float = _opt(
+        0.35, "shadow rule: ring scatter about its plane, as a multiple of jump_threshold_m, that rules out a slope.",
+        ge=0,
+    )
+    max_terrain_slope: float = _opt(
+        1.0, "shadow rule: a plane through the ring steeper than this (rise over run) is no terrain slope.", gt=0
+    )
+    max_shadow_ratio: float = _opt(
+        0.8, "Occlusion rules: the hole's thickness must not exceed this times the height of the step beside it.",
+        gt=0,
+    )
+    strip_min_fill: float = _opt(
+        0.7, "strip rule (missed coverage): area / (length x width) of the hole, ~1 for a straight band.", ge=0
+    )
+    strip_min_length_px: float = _opt(20.0, "strip rule: least length of the band, in pixels.", ge=0)
+    strip_min_elongation: float = _opt(
+        4.0, "strip rule without flight-line ids: least length / width of the band.", ge=1
+    )
+    strip_min_elongation_with_lines: float = _opt(
+        2.0, "strip rule with flight-line ids: least length / width of the band.", ge=1
+    )
+    strip_min_line_share: float = _opt(
+        0.2, "strip rule: share of the ring a flight line must hold to count; two lines must.", ge=0, le=1
+    )
+    strip_two_line_share: float = _opt(
+        0.8, "strip rule: share of the ring held by its two most common flight lines.", ge=0, le=1
+    )
+    water_flat_tolerance: float = _opt(
+        0.5, "flat_low_rim rule: ring heights within this of the low level are flat (survey z units, not converted).",
+        ge=0,
+    )
+    water_min_flat_fraction: float = _opt(
+        0.7, "flat_low_rim rule: share of the ring that is flat.", ge=0, le=1
+    )
+    water_min_low_fraction: float = _opt(
+        0.5, "flat_low_rim rule: share of the ring at the local minimum height.", ge=0, le=1
+    )
+    low_quantile: float = _opt(
+        0.05, "Quantile of the ring heights taken as the ring's low level.", ge=0, le=1
+    )
+    high_quantile: float = _opt(
+        0.95, "Quantile of the ring heights taken as its high level (step = high - low level).", ge=0, le=1
+    )
 
 
 @dataclass(frozen=True)
@@ -195,6 +258,7 @@ class Config:
     filter: FilterConfig = field(default_factory=FilterConfig)
     rasterize: RasterizeConfig = field(default_factory=RasterizeConfig)
     holes: HolesConfig = field(default_factory=HolesConfig)
+    causes: CausesConfig = field(default_factory=CausesConfig)
     dask: DaskConfig = field(default_factory=DaskConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     survey: SurveyConfig = field(default_factory=SurveyConfig)
@@ -339,6 +403,12 @@ def _check_across_keys(config: Config, sources: dict[str, str]) -> None:
             f"{where}: grid.halo_px = {config.grid.halo_px} is too small; hole detection reads "
             f"{HOLE_CONTEXT_PX} pixels around each cell (set holes.enabled = false to build the DSM only)"
         )
+    if not config.causes.low_quantile < config.causes.high_quantile:
+        where = sources.get("causes.low_quantile", sources.get("causes.high_quantile", "default"))
+        raise ConfigError(
+            f"{where}: causes.low_quantile ({config.causes.low_quantile}) must be below "
+            f"causes.high_quantile ({config.causes.high_quantile})"
+        )
 
 
 def _validate(key: str, value: Any, kind: Any, rules: dict[str, Any], where: str) -> Any:
@@ -365,6 +435,8 @@ def _validate(key: str, value: Any, kind: Any, rules: dict[str, Any], where: str
         raise fail(f"a number > {rules['gt']}")
     if "ge" in rules and not value >= rules["ge"]:
         raise fail(f"a number >= {rules['ge']}")
+    if "le" in rules and not value <= rules["le"]:
+        raise fail(f"a number <= {rules['le']}")
     if kind is float and not math.isfinite(value):
         raise fail("a finite number")
     return value

@@ -9,7 +9,7 @@ flight lines are.
 The footprint needs a global view (whether a void is enclosed is not a local
 question), which must not mean a survey-sized fine raster: each cell reports
 which blocks of ``block_px`` x ``block_px`` pixels hold data; the client closes
-and fills that coarse map (:func:`pipeline.holes.data_footprint`). Blocks lie on
+and fills that coarse map (:func:`data_footprint`). Blocks lie on
 the absolute lattice, so the result does not depend on the cell size. At pixel
 level, blocks on the footprint's border keep only what a small closing of the
 occupied pixels covers (a local operation inside the cell's halo); interior
@@ -27,10 +27,48 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from .grid import Grid, PixelWindow
-from .holes import data_footprint
 
 #: Radius (pixels) of the closing of occupied pixels in border blocks.
 EDGE_CLOSING_PX = 2
+
+
+def data_footprint(occupied: np.ndarray, *, closing_px: int) -> np.ndarray:
+    """The area covered by the survey: the default AOI when no polygon is given.
+
+    The occupied pixels are closed with a Euclidean disc of radius ``closing_px``
+    (gaps narrower than about ``2 * closing_px`` between data are bridged, so
+    missed flight lines and scan gaps stay inside), then every void enclosed by
+    data is filled. What remains outside is the empty area that opens to the
+    raster's border, e.g. the corners of a rectangular tile around a diagonal
+    flight strip: those are not holes.
+
+    Parameters
+    ----------
+    occupied : ndarray of bool, shape (M, N)
+        True where there is at least one point. Give a coarse raster for a whole
+        survey (e.g. occupancy in 4-16 m blocks): the closing is not local to a cell.
+    closing_px : int
+        Radius of the closing disc, in pixels of ``occupied``; 0 only fills
+        enclosed voids.
+
+    Returns
+    -------
+    ndarray of bool, shape (M, N)
+        True inside the footprint.
+    """
+    occ = np.asarray(occupied, dtype=bool)
+    if occ.ndim != 2:
+        raise ValueError(f"occupied must be a 2-dimensional array, got shape {occ.shape}")
+    closing_px = int(closing_px)
+    if closing_px < 0:
+        raise ValueError(f"closing_px must be >= 0, got {closing_px}")
+    pad = closing_px + 1
+    work = np.pad(occ, pad)  # outside the raster counts as empty
+    if closing_px > 0 and work.any():
+        dilated = ndi.distance_transform_edt(~work) <= closing_px
+        work = ndi.distance_transform_edt(dilated) > closing_px
+    work = ndi.binary_fill_holes(work)
+    return work[pad:-pad, pad:-pad]
 
 
 @dataclass(frozen=True)

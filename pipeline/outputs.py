@@ -24,7 +24,7 @@ from .config import Config, to_dict
 from .holes import CAUSES
 from .io.raster import write_vrt
 from .io.vector import write_layer
-from .outlines import hole_outline, merge_outlines, to_world
+from .holes.outlines import hole_outline, merge_outlines, to_world
 from .plan import SurveyPlan
 from .stages.bin_tiles import TileResult
 from .stages.detect_holes import DetectResult

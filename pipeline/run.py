@@ -221,7 +221,7 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
     runner.gather(futures, collect)
     order = {r.cell_id: i for i, r in enumerate(cells)}
     detected.sort(key=lambda d: order[d.cell_holes.cell.id])
-    holes = link_holes.link_cells(detected, plan, params)
+    holes = link_holes.link_cells(detected, plan, config, params)
     link_holes.keep_hole_set(holes, str(staging.hole_catalog))
     return detected, holes
 

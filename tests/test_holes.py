@@ -123,22 +123,6 @@ def test_vertical_holes_eq2():
     assert vh.tolist() == [[False, True, False, False]]
 
 
-def test_data_footprint_diagonal_strip():
-    n = 120
-    r, c = np.mgrid[:n, :n]
-    strip = np.abs(r - c) < 25  # a diagonal flight strip: most of the tile is empty
-    occupied = strip.copy()
-    occupied[50:60, 50:60] = False  # a void enclosed by data
-    occupied[:, 80:84] &= False  # a missed line across the strip (opens to the outside)
-    fp = H.data_footprint(occupied, closing_px=3)
-    assert fp[55, 55] and fp[82, 82]  # enclosed void and bridged gap are inside
-    assert not fp[5, 110] and not fp[110, 5]  # the empty corners are outside
-    assert fp.sum() < 0.5 * n * n
-    # without closing, the gap opening to the outside stays exterior
-    assert not H.data_footprint(occupied, closing_px=0)[82, 82]
-    assert H.data_footprint(occupied, closing_px=0)[55, 55]
-
-
 # --------------------------------------------------------------------------------------
 # per cell: closed / open, type I / II, shapes A-D ([OPEN] 3.1)
 # --------------------------------------------------------------------------------------
@@ -326,7 +310,7 @@ def test_same_holes_whatever_the_cell_size(connectivity):
         cells = detect_all(grid, count, zmax, zmin, aoi, connectivity=connectivity,
                            water_points=water, flight_line=line)
         cat = H.link_holes([c.without_labels() for c in cells], min_area_px=4)
-        causes = H.classify_causes(cat.stats, pixel_size=1.0, jump_threshold=JUMP)
+        causes = H.classify_causes(cat.stats, H.CauseRules.with_defaults(pixel_size=1.0, jump_threshold=JUMP))
         results[cell_px] = (hole_raster(grid, cells, cat), cat, causes, len(cells))
     base_raster, base, base_causes, _ = results[1000]
     assert results[64][3] > 9 and results[48][3] > 9 and results[1000][3] == 1
@@ -366,7 +350,7 @@ def test_same_holes_whatever_the_cell_size(connectivity):
 def classify(count, z, zmin=None, **kw):
     rules = {k: kw.pop(k) for k in list(kw) if k in ("max_shadow_ratio",)}
     _, _, cat = run(count, z, zmin=zmin, cell_px=64, min_area_px=10, **kw)
-    causes = H.classify_causes(cat.stats, pixel_size=1.0, jump_threshold=JUMP, **rules)
+    causes = H.classify_causes(cat.stats, H.CauseRules.with_defaults(pixel_size=1.0, jump_threshold=JUMP, **rules))
     big = np.argmax(cat.holes["area_px"])
     return causes[big], cat
 
@@ -458,7 +442,7 @@ def test_cause_hole_on_a_hillside_is_not_occlusion():
 def test_cause_without_ring_is_unknown():
     count = np.zeros((64, 64), np.uint32)
     _, _, cat = run(count, cell_px=32)
-    causes = H.classify_causes(cat.stats, pixel_size=1.0, jump_threshold=JUMP)
+    causes = H.classify_causes(cat.stats, H.CauseRules.with_defaults(pixel_size=1.0, jump_threshold=JUMP))
     assert causes["cause"].tolist() == ["unknown"] and causes["rule"].tolist() == ["no_ring"]
 
 

@@ -7,7 +7,39 @@ import sys
 
 import pytest
 
-KERNELS = ["pipeline.grid", "pipeline.rasterize", "pipeline.config"]
+KERNELS = [
+    "pipeline.grid",
+    "pipeline.rasterize",
+    "pipeline.config",
+    "pipeline.footprint",
+    "pipeline.holes",
+    "pipeline.holes._kernels",
+    "pipeline.holes.masks",
+    "pipeline.holes.stats",
+    "pipeline.holes.detect",
+    "pipeline.holes.link",
+    "pipeline.holes.causes",
+    "pipeline.holes.walls",
+    "pipeline.holes.outlines",
+]
+
+#: The kernel modules in the order of the data flow: each may import only modules before it
+#: (and pipeline.config / pipeline.errors, which depend on nothing). stats comes before detect:
+#: it defines the statistics tables that detection fills.
+FLOW = [
+    "pipeline.grid",
+    "pipeline.rasterize",
+    "pipeline.footprint",
+    "pipeline.holes._kernels",
+    "pipeline.holes.masks",
+    "pipeline.holes.stats",
+    "pipeline.holes.detect",
+    "pipeline.holes.link",
+    "pipeline.holes.causes",
+    "pipeline.holes.walls",
+    "pipeline.holes.outlines",
+]
+LEAVES = {"pipeline.config", "pipeline.errors"}
 IO_LIBRARIES = ["laspy", "rasterio", "pyogrio", "geopandas", "distributed", "dask"]
 
 
@@ -32,3 +64,38 @@ def test_only_run_module_imports_dask():
         if p.name != "run.py" and ("import distributed" in p.read_text() or "from distributed" in p.read_text() or "import dask" in p.read_text())
     ]
     assert offenders == []
+
+
+def _pipeline_imports(module: str) -> set[str]:
+    """The pipeline modules a module imports (at module level and inside functions)."""
+    import ast
+    import importlib.util
+
+    path = importlib.util.find_spec(module).origin
+    package = module if path.endswith("__init__.py") else module.rsplit(".", 1)[0]
+    found = set()
+    for node in ast.walk(ast.parse(open(path).read())):
+        if isinstance(node, ast.ImportFrom):
+            base = package.rsplit(".", node.level - 1)[0] if node.level else ""
+            target = ".".join(p for p in (base, node.module) if p)
+            for alias in node.names:  # "from package import module" imports the module
+                found.add(f"{target}.{alias.name}" if _is_module(f"{target}.{alias.name}") else target)
+        elif isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+    return {m for m in found if m.startswith("pipeline.") and m != module}
+
+
+def _is_module(name: str) -> bool:
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec(name) is not None
+    except ModuleNotFoundError:
+        return False
+
+
+@pytest.mark.parametrize("module", FLOW)
+def test_kernels_import_only_earlier_stages(module):
+    earlier = set(FLOW[: FLOW.index(module)]) | LEAVES
+    later = _pipeline_imports(module) - earlier
+    assert not later, f"{module} imports {sorted(later)}: later in the data flow, or not a kernel"

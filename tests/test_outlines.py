@@ -1,4 +1,4 @@
-"""Tests of pipeline.outlines: exact, merged, world, simplified and straight outlines."""
+"""Tests of pipeline.holes.outlines: exact, merged, world, simplified and straight outlines."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from shapely import affinity
 from shapely.geometry import MultiPolygon, Polygon
 
 from pipeline import holes as H
-from pipeline import outlines as O
+from pipeline.holes import outlines as O
 from pipeline.grid import Grid
 
 

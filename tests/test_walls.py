@@ -1,4 +1,4 @@
-"""Tests of pipeline.walls: wall segments from jump pixels and the S-curve fit ([WALL])."""
+"""Tests of pipeline.holes.walls: wall segments from jump pixels and the S-curve fit ([WALL])."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from affine import Affine
 
 from pipeline.holes import height_jumps
-from pipeline.walls import find_walls, fit_wall, wall_segments
+from pipeline.holes.walls import find_walls, fit_wall, wall_segments
 
 LOW, HIGH = 10.0, 22.0
 

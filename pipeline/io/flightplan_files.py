@@ -153,7 +153,7 @@ def plan_flights(
         b = np.array(extent)
         bounds = (b[:, 0].min() - reach, b[:, 1].min() - reach, b[:, 2].max() + reach, b[:, 3].max() + reach)
     dsm, transform, dsm_crs = read_dsm(dsm_path, bounds)
-    if not pyproj.CRS.from_user_input(dsm_crs).equals(pyproj.CRS.from_user_input(holes_crs), ignore_axis_order=True):
+    if not _same_crs(dsm_crs, holes_crs):
         raise CRSError(dsm_path, f"the DSM's CRS differs from the holes' CRS ({pyproj.CRS(holes_crs).name})")
     to_ellipsoid = None
     if params.altitude_reference == "ellipsoid":
@@ -167,6 +167,19 @@ def plan_flights(
     files = write_flightplan(plan, out_dir, drone_enum=config.flightplan.dji_drone_enum,
                              payload_enum=config.flightplan.dji_payload_enum)
     return summarize(plan, files)
+
+
+def _same_crs(a: str, b: str) -> bool:
+    """Whether two CRS definitions mean the same CRS.
+
+    GDAL writes WKT1 and pyogrio reads WKT2 of one EPSG CRS, and PROJ does not always
+    find them equal (datum ensemble names differ); the same EPSG code settles it.
+    """
+    crs_a, crs_b = pyproj.CRS.from_user_input(a), pyproj.CRS.from_user_input(b)
+    if crs_a.equals(crs_b, ignore_axis_order=True):
+        return True
+    code = crs_a.to_epsg(min_confidence=90)
+    return code is not None and code == crs_b.to_epsg(min_confidence=90)
 
 
 def summarize(plan: FlightPlan, files: list[Path]) -> dict[str, Any]:

@@ -17,11 +17,11 @@ from ..grid import Cell, Grid, PixelWindow
 from ..holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
 from ..io.intermediate import load_cell_statistics, save_labels
 from ..io.raster import geometry_mask, label_polygons
-from ..outlines import label_outlines
+from ..holes.outlines import label_outlines
+from ..holes.walls import Wall, find_walls
 from ..plan import HoleParams, SurveyPlan
 from ..rasterize import PixelStatistics
 from ..staging import Staging
-from ..walls import Wall, find_walls
 from .merge_cells import CellResult
 
 

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..holes import HoleCatalog, classify_causes, link_holes, ring_metrics
+from ..config import Config
+from ..holes import CauseRules, HoleCatalog, classify_causes, link_holes, ring_metrics
 from ..io.intermediate import save_object
 from ..plan import HoleParams, SurveyPlan
 from .detect_holes import DetectResult
@@ -31,15 +32,15 @@ class HoleSet:
     ring: np.ndarray
 
 
-def link_cells(detected: list[DetectResult], plan: SurveyPlan, params: HoleParams) -> HoleSet:
+def link_cells(detected: list[DetectResult], plan: SurveyPlan, config: Config, params: HoleParams) -> HoleSet:
     """Gather: link the detected parts of every cell (in plan order) and classify the holes."""
-    unit = plan.survey.horizontal_unit_m
     catalog = link_holes([d.cell_holes for d in detected], min_area_px=params.min_area_px)
-    causes = classify_causes(
-        catalog.stats,
-        pixel_size=plan.grid.resolution * unit / plan.survey.vertical_unit_m,
-        jump_threshold=params.jump_threshold,
+    rules = CauseRules.from_config(
+        config,
+        pixel_size_m=plan.grid.resolution * plan.survey.horizontal_unit_m,
+        vertical_unit_m=plan.survey.vertical_unit_m,
     )
+    causes = classify_causes(catalog.stats, rules)
     return HoleSet(catalog=catalog, causes=causes, ring=ring_metrics(catalog.stats))
 
 

@@ -33,7 +33,6 @@ import math
 from typing import Iterable
 
 import numpy as np
-import rasterio.features
 import shapely
 from affine import Affine
 from shapely.geometry import MultiPolygon, Polygon
@@ -84,8 +83,12 @@ def label_outlines(
     mask = labels > 0
     if not mask.any():
         return {}
+    # GDAL's polygonize, in memory (no file is opened); imported here so that importing
+    # the hole kernels loads no I/O library (tests/test_layering.py)
+    from rasterio.features import shapes
+
     pieces: dict[int, list[Polygon]] = {}
-    for geojson, value in rasterio.features.shapes(
+    for geojson, value in shapes(
         labels.astype(np.int32, copy=False),
         mask=mask,
         connectivity=connectivity,

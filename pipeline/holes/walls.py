@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -43,7 +44,7 @@ from scipy import sparse
 from scipy.optimize import least_squares
 from scipy.sparse import csgraph
 
-from .holes import height_jumps
+from .masks import height_jumps
 
 __all__ = ["Wall", "WallSegment", "find_walls", "fit_wall", "wall_segments"]
 
@@ -158,14 +159,34 @@ def wall_segments(
     if not jumps.any():
         return []
     gx, gy = _uphill(np.asarray(zmax, dtype=np.float64))
+    rows, cols = np.nonzero(jumps)
+    gxs, gys = gx[rows, cols], gy[rows, cols]
+    tol = math.radians(angle_tolerance_deg)
+    n_groups, group = _group_jump_pixels(jumps, rows, cols, gxs, gys, tol)
+    order = np.argsort(group, kind="stable")
+    bounds = np.searchsorted(group[order], np.arange(n_groups + 1))
+    segments = []
+    for g in range(n_groups):
+        members = order[bounds[g] : bounds[g + 1]]
+        if len(members) < min_pixels:
+            continue
+        segment = _straight_segment(rows[members], cols[members], gxs[members], gys[members], tol,
+                                    min_length_px=min_length_px, max_thickness_px=max_thickness_px)
+        if segment is not None:
+            segments.append(segment)
+    segments.sort(key=lambda s: -s.n_pixels)
+    return segments
+
+
+def _group_jump_pixels(
+    jumps: np.ndarray, rows: np.ndarray, cols: np.ndarray, gxs: np.ndarray, gys: np.ndarray, tol: float
+) -> tuple[int, np.ndarray]:
+    """Connected groups of 8-adjacent jump pixels whose uphill directions differ by less than ``tol``."""
     h, w = jumps.shape
     index = np.full(jumps.shape, -1, np.int64)
-    rows, cols = np.nonzero(jumps)
     index[rows, cols] = np.arange(len(rows))
-    gxs, gys = gx[rows, cols], gy[rows, cols]
     angle = np.mod(np.arctan2(gys, gxs), np.pi)  # undirected: a wall's two sides agree
     strong = np.hypot(gxs, gys) > 0
-    tol = math.radians(angle_tolerance_deg)
     a_list, b_list = [], []
     for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
         r2, c2 = rows + dr, cols + dc
@@ -181,33 +202,30 @@ def wall_segments(
         b_list.append(b[keep])
     a, b = np.concatenate(a_list), np.concatenate(b_list)
     graph = sparse.coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(len(rows), len(rows)))
-    n_groups, group = csgraph.connected_components(graph, directed=False)
-    order = np.argsort(group, kind="stable")
-    bounds = np.searchsorted(group[order], np.arange(n_groups + 1))
-    segments = []
-    for g in range(n_groups):
-        members = order[bounds[g] : bounds[g + 1]]
-        if len(members) < min_pixels:
-            continue
-        r, c = rows[members], cols[members]
-        pts = np.stack([c + 0.5, r + 0.5], axis=1)
-        centred = pts - pts.mean(axis=0)
-        evals, evecs = np.linalg.eigh(centred.T @ centred / len(pts))
-        along = evecs[:, 1]
-        if math.sqrt(max(evals[0], 0.0)) > max_thickness_px or math.sqrt(12 * evals[1]) < min_length_px:
-            continue
-        normal = np.array([-along[1], along[0]])
-        unit = np.stack([gxs[members], gys[members]], axis=1)
-        unit /= np.linalg.norm(unit, axis=1, keepdims=True)
-        uphill = unit.mean(axis=0)
-        # a wall: the uphill directions agree and cross the segment's main axis
-        if np.linalg.norm(uphill) < math.cos(tol) or abs(normal @ uphill) < math.cos(tol) * np.linalg.norm(uphill):
-            continue
-        if normal @ uphill < 0:
-            normal = -normal
-        segments.append(WallSegment(r.astype(np.int64), c.astype(np.int64), (float(normal[0]), float(normal[1]))))
-    segments.sort(key=lambda s: -s.n_pixels)
-    return segments
+    return csgraph.connected_components(graph, directed=False)
+
+
+def _straight_segment(
+    r: np.ndarray, c: np.ndarray, gx: np.ndarray, gy: np.ndarray, tol: float, *, min_length_px: float,
+    max_thickness_px: float,
+) -> WallSegment | None:
+    """The group as a wall segment, or None: too thick, too short, or its uphill directions disagree."""
+    pts = np.stack([c + 0.5, r + 0.5], axis=1)
+    centred = pts - pts.mean(axis=0)
+    evals, evecs = np.linalg.eigh(centred.T @ centred / len(pts))
+    along = evecs[:, 1]
+    if math.sqrt(max(evals[0], 0.0)) > max_thickness_px or math.sqrt(12 * evals[1]) < min_length_px:
+        return None
+    normal = np.array([-along[1], along[0]])
+    unit = np.stack([gx, gy], axis=1)
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    uphill = unit.mean(axis=0)
+    # a wall: the uphill directions agree and cross the segment's main axis
+    if np.linalg.norm(uphill) < math.cos(tol) or abs(normal @ uphill) < math.cos(tol) * np.linalg.norm(uphill):
+        return None
+    if normal @ uphill < 0:
+        normal = -normal
+    return WallSegment(r.astype(np.int64), c.astype(np.int64), (float(normal[0]), float(normal[1])))
 
 
 def fit_wall(
@@ -271,17 +289,73 @@ def fit_wall(
     """
     if pixel_values not in ("extremes", "centre"):
         raise ValueError(f"pixel_values must be 'extremes' or 'centre', got {pixel_values!r}")
-    zmax = np.asarray(zmax, dtype=np.float64)
-    zmin_arr = None if zmin is None else np.asarray(zmin, dtype=np.float64)
-    h, w = zmax.shape
     n0 = np.asarray(segment.normal, dtype=np.float64)
     along0 = np.array([n0[1], -n0[0]])
     pts = np.stack([segment.cols + 0.5, segment.rows + 0.5], axis=1)
     rho0 = float((pts @ n0).mean())
-    t = pts @ along0
-    t_lo, t_hi = float(t.min()) + 1.0, float(t.max()) - 1.0  # keep clear of corners
+    sp = _support(zmax, zmin, count, segment, n0, rho0, support_px=support_px, pixel_values=pixel_values,
+                  points_per_pixel=points_per_pixel)
+    measured = np.isfinite(sp.zx)
+    d0 = sp.d0
+    if measured.sum() < 6 or (d0[measured] < 0).sum() < 3 or (d0[measured] > 0).sum() < 3:
+        return None
+    lows = np.concatenate([sp.zn[measured & (d0 < -0.5)], sp.zx[measured & (d0 < -0.5)]])
+    highs = sp.zx[measured & (d0 > 0.5)]
+    low0 = float(np.nanpercentile(lows, 20)) if np.isfinite(lows).any() else float(np.nanmin(sp.zx))
+    high0 = float(np.percentile(highs, 80)) if len(highs) else float(np.nanmax(sp.zx))
+    if not high0 > low0:
+        return None
+    step0 = high0 - low0
+    has_min = measured & np.isfinite(sp.zn)
+    empty = ~measured if empty_is_low else np.zeros(len(sp.zx), bool)
+    k_hi, k_lo = np.maximum(sp.k[measured], 1.0), np.maximum(sp.k[has_min], 1.0)
+    phi0 = math.atan2(n0[1], n0[0])
+    # observations: highest points (measured), lowest points (has_min), empty pixels (low side)
+    observations = (
+        sp.xc[measured], sp.yc[measured], k_hi, sp.zx[measured],
+        sp.xc[has_min], sp.yc[has_min], k_lo, sp.zn[has_min],
+        sp.xc[empty], sp.yc[empty], _LOGISTIC_NODES,
+    )  # fmt: skip
+    x0 = np.array([phi0, rho0, low0, high0, math.log(0.2)])
+    lower = [phi0 - 0.6, rho0 - support_px, low0 - step0, low0, math.log(0.001)]
+    upper = [phi0 + 0.6, rho0 + support_px, high0, high0 + step0, math.log(support_px)]
+    fit = _fit_step(observations, x0, lower, upper, step0)
+    if fit is None or not fit.x[3] - fit.x[2] > min_height:
+        return None
+    n_measured = int(measured.sum() + has_min.sum())
+    return _wall(fit, segment, pts, n_measured=n_measured, n_support=len(sp.zx), transform=transform)
 
-    # the support: pixels near the initial line, beside the segment
+
+class _Support(NamedTuple):
+    """The pixels of a wall fit: centres (x = column, y = row), initial signed distance, values, points."""
+
+    xc: np.ndarray
+    yc: np.ndarray
+    d0: np.ndarray
+    zx: np.ndarray  # zmax
+    zn: np.ndarray  # zmin (NaN where not given)
+    k: np.ndarray  # points per pixel
+
+
+def _support(
+    zmax: np.ndarray,
+    zmin: np.ndarray | None,
+    count: np.ndarray | None,
+    segment: WallSegment,
+    n0: np.ndarray,
+    rho0: float,
+    *,
+    support_px: float,
+    pixel_values: str,
+    points_per_pixel: float,
+) -> _Support:
+    """Pixels whose centre lies within ``support_px`` of the initial line, beside the segment."""
+    zmax = np.asarray(zmax, dtype=np.float64)
+    zmin_arr = None if zmin is None else np.asarray(zmin, dtype=np.float64)
+    h, w = zmax.shape
+    along0 = np.array([n0[1], -n0[0]])
+    t = np.stack([segment.cols + 0.5, segment.rows + 0.5], axis=1) @ along0
+    t_lo, t_hi = float(t.min()) + 1.0, float(t.max()) - 1.0  # keep clear of corners
     pad = int(math.ceil(support_px)) + 2
     r0, r1 = max(int(segment.rows.min()) - pad, 0), min(int(segment.rows.max()) + pad + 1, h)
     c0, c1 = max(int(segment.cols.min()) - pad, 0), min(int(segment.cols.max()) + pad + 1, w)
@@ -290,7 +364,6 @@ def fit_wall(
     d0 = xc * n0[0] + yc * n0[1] - rho0
     tt = xc * along0[0] + yc * along0[1]
     near = (np.abs(d0) <= support_px) & (tt >= t_lo) & (tt <= t_hi)
-    xc, yc, d0 = xc[near], yc[near], d0[near]
     zx = zmax[r0:r1, c0:c1].ravel()[near]
     zn = zmin_arr[r0:r1, c0:c1].ravel()[near] if zmin_arr is not None else np.full(len(zx), np.nan)
     if pixel_values == "centre":
@@ -299,47 +372,29 @@ def fit_wall(
         k = np.asarray(count, dtype=np.float64)[r0:r1, c0:c1].ravel()[near]
     else:
         k = np.full(len(zx), float(points_per_pixel))
-    measured = np.isfinite(zx)
-    if measured.sum() < 6 or (d0[measured] < 0).sum() < 3 or (d0[measured] > 0).sum() < 3:
-        return None
-    lows = np.concatenate([zn[measured & (d0 < -0.5)], zx[measured & (d0 < -0.5)]])
-    highs = zx[measured & (d0 > 0.5)]
-    low0 = float(np.nanpercentile(lows, 20)) if np.isfinite(lows).any() else float(np.nanmin(zx))
-    high0 = float(np.percentile(highs, 80)) if len(highs) else float(np.nanmax(zx))
-    if not high0 > low0:
-        return None
-    step0 = high0 - low0
-    has_min = measured & np.isfinite(zn)
-    empty = ~measured if empty_is_low else np.zeros(len(zx), bool)
-    k_hi, k_lo = np.maximum(k[measured], 1.0), np.maximum(k[has_min], 1.0)
-    phi0 = math.atan2(n0[1], n0[0])
+    return _Support(xc[near], yc[near], d0[near], zx, zn, k)
 
-    # observations: highest points (measured), lowest points (has_min), empty pixels (low side)
-    observations = (
-        xc[measured], yc[measured], k_hi, zx[measured],
-        xc[has_min], yc[has_min], k_lo, zn[has_min],
-        xc[empty], yc[empty], _LOGISTIC_NODES,
-    )  # fmt: skip
+
+def _fit_step(observations: tuple, x0: np.ndarray, lower: list, upper: list, step0: float):
+    """Least squares of the S-curve step (a good basin), then a robust soft-L1 polish against outliers.
+
+    Returns scipy's result, or None when the fit fails.
+    """
 
     def residuals(params):
         return _step_residuals(np.asarray(params, dtype=np.float64), *observations)
 
-    x0 = np.array([phi0, rho0, low0, high0, math.log(0.2)])
-    lower = [phi0 - 0.6, rho0 - support_px, low0 - step0, low0, math.log(0.001)]
-    upper = [phi0 + 0.6, rho0 + support_px, high0, high0 + step0, math.log(support_px)]
-    # least squares first (a good basin), then a robust (soft-L1) polish against outliers
+    bounds_array = (np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64))
+
+    def jacobian(params):
+        return _step_jacobian(np.asarray(params, dtype=np.float64), *bounds_array, *observations)
+
     scale = [0.05, 0.1, 0.1 * step0, 0.1 * step0, 0.5]
+    # tolerances of 1e-6 (relative) are far below the 0.2-pixel accuracy a wall needs,
+    # and take half the evaluations of scipy's 1e-8 defaults
+    options = {"ftol": 1e-6, "xtol": 1e-6, "gtol": 1e-6, "jac": jacobian}
     try:
-        # tolerances of 1e-6 (relative) are far below the 0.2-pixel accuracy a wall needs,
-        # and take half the evaluations of scipy's 1e-8 defaults
-        tolerances = {"ftol": 1e-6, "xtol": 1e-6, "gtol": 1e-6}
-        bounds_array = (np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64))
-
-        def jacobian(params):
-            return _step_jacobian(np.asarray(params, dtype=np.float64), *bounds_array, *observations)
-
-        tolerances["jac"] = jacobian
-        fit = least_squares(residuals, x0, bounds=(lower, upper), x_scale=scale, max_nfev=200, **tolerances)
+        fit = least_squares(residuals, x0, bounds=(lower, upper), x_scale=scale, max_nfev=200, **options)
         f_scale = max(0.05 * step0, 1e-6)
         robust = None
         # the robust polish only changes a fit that has outliers (residuals beyond the soft-L1 knee)
@@ -347,7 +402,7 @@ def fit_wall(
             start = np.clip(fit.x, np.nextafter(lower, upper), np.nextafter(upper, lower))
             robust = least_squares(
                 residuals, start, bounds=(lower, upper), x_scale=scale, max_nfev=100,
-                loss="soft_l1", f_scale=f_scale, **tolerances,
+                loss="soft_l1", f_scale=f_scale, **options,
             )
     except ValueError:
         return None
@@ -355,22 +410,25 @@ def fit_wall(
         fit = robust
     if fit.status < 0:  # status 0 (evaluation budget spent) still carries the best fit found
         return None
+    return fit
+
+
+def _wall(fit, segment: WallSegment, pts: np.ndarray, *, n_measured: int, n_support: int,
+          transform: Affine | None) -> Wall:
+    """The fitted line as a :class:`Wall`, its ends at the segment's extent."""
     phi, rho, low, high, log_w = fit.x
-    if not high - low > min_height:
-        return None
     normal = np.array([math.cos(phi), math.sin(phi)])
     along = np.array([normal[1], -normal[0]])
     foot = normal * rho
     proj = pts @ along
     ends = [foot + along * (proj.min() - 0.5), foot + along * (proj.max() + 0.5)]
-    n_measured = int(measured.sum() + has_min.sum())
     rms = float(np.sqrt(np.mean(fit.fun[:n_measured] ** 2)))
     transform = Affine.identity() if transform is None else transform
     (x0w, y0w), (x1w, y1w) = (transform @ (float(e[0]), float(e[1])) for e in ends)
     return Wall(
         x0=x0w, y0=y0w, x1=x1w, y1=y1w,
         bottom=float(low), top=float(high), rms=rms, width_px=float(math.exp(log_w)),
-        n_support=int(len(zx)), n_jump_px=segment.n_pixels,
+        n_support=int(n_support), n_jump_px=segment.n_pixels,
         line_px=(float(ends[0][0]), float(ends[0][1]), float(ends[1][0]), float(ends[1][1])),
         normal_px=(float(normal[0]), float(normal[1])), offset_px=float(rho),
     )
@@ -499,18 +557,16 @@ def _soft_l1_cost(residuals: np.ndarray, f_scale: float) -> float:
     return float(0.5 * f_scale**2 * np.sum(2 * (np.sqrt(1 + z) - 1)))
 
 
-def _square_share(d: np.ndarray, u: float, v: float, width: float) -> np.ndarray:
-    """Share of a unit pixel on the high side of an S-curve step whose centre line is
-    at signed distance ``-d`` from the pixel centre (normal components ``u``, ``v``).
-
-    The mean of :func:`_square_cdf` over the logistic quadrature nodes, compiled:
-    the least-squares fit evaluates it thousands of times on small arrays.
-    """
-    return _square_share_kernel(np.ascontiguousarray(d, dtype=np.float64), float(u), float(v), float(width), _LOGISTIC_NODES)
-
-
 @numba.njit(cache=True)
 def _square_share_kernel(d, u, v, width, nodes):  # pragma: no cover - compiled
+    """Share of a unit pixel on the high side of an S-curve step, per signed distance ``d``.
+
+    For a sharp step, the area of the unit square centred at 0 where ``x u + y v <=
+    t`` (``u``, ``v`` >= 0 the normal's components) is the distribution of ``u U1 +
+    v U2`` for independent uniform U1, U2 on [-1/2, 1/2]: a trapezoid, piecewise
+    quadratic/linear in ``t``. The S-curve of ``width`` smooths it: the mean over the
+    logistic quadrature ``nodes``.
+    """
     big, small = max(u, v), min(u, v)
     half_diff, half_sum = 0.5 * (big - small), 0.5 * (big + small)
     out = np.empty(len(d))
@@ -531,23 +587,6 @@ def _square_share_kernel(d, u, v, width, nodes):  # pragma: no cover - compiled
             total += min(max(value, 0.0), 1.0)
         out[i] = total / len(nodes)
     return out
-
-
-def _square_cdf(t: np.ndarray, u: float, v: float) -> np.ndarray:
-    """Area of the unit square centred at 0 where ``x * u + y * v <= t`` (u, v >= 0).
-
-    The distribution of ``u * U1 + v * U2`` for independent uniform U1, U2 on
-    [-1/2, 1/2]: a trapezoid, so the area is piecewise quadratic/linear in ``t``.
-    """
-    u, v = max(u, v), min(u, v)
-    t = np.asarray(t, dtype=np.float64)
-    if v < 1e-9:
-        return np.clip(t / u + 0.5, 0.0, 1.0)
-    a, b = 0.5 * (u - v), 0.5 * (u + v)
-    tail = lambda x: np.clip(x + b, 0.0, None) ** 2 / (2 * u * v)  # noqa: E731
-    mid = (t + 0.5 * u) / u
-    out = np.where(t <= -a, tail(t), np.where(t < a, mid, 1.0 - tail(-t)))
-    return np.clip(out, 0.0, 1.0)
 
 
 def _uphill(zmax: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

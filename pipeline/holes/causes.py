@@ -1,0 +1,276 @@
+"""Why each hole is there: occlusion, water, missed coverage or unknown (docs/holes.md, "Causes").
+
+:func:`classify_causes` is a function of the merged per-hole statistics and a
+:class:`CauseRules` holding every threshold. The rules are data: the thresholds
+are the ``[causes]`` configuration keys (plus the pixel size and the height-jump
+threshold), put into survey units once by :meth:`CauseRules.from_config`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from ..config import CausesConfig, Config
+from .stats import HoleStats, _hist_quantiles, ring_metrics, shape_metrics
+
+__all__ = ["CAUSE_DTYPE", "CAUSES", "CONFIG_KEYS", "RULES", "CauseRules", "classify_causes"]
+
+#: Causes :func:`classify_causes` can return.
+CAUSES: tuple[str, ...] = ("occlusion", "water", "missed_coverage", "unknown")
+
+#: The rules in the order they are tried (the first that holds wins): (rule, cause).
+#: A hole no rule claims is ``unknown`` / ``none`` (``no_ring`` without any measured neighbour).
+RULES: tuple[tuple[str, str], ...] = (
+    ("water_mask", "water"),
+    ("water_points", "water"),
+    ("jumps", "occlusion"),
+    ("shadow", "occlusion"),
+    ("strip", "missed_coverage"),
+    ("flat_low_rim", "water"),
+)
+
+CAUSE_DTYPE = np.dtype([("cause", "U16"), ("rule", "U16")])
+
+
+@dataclass(frozen=True)
+class CauseRules:
+    """Every threshold of :func:`classify_causes`, in survey units.
+
+    Build it with :meth:`from_config` (a run) or :meth:`with_defaults` (the
+    ``[causes]`` defaults, for kernels used on their own). Heights are in z
+    units, lengths in pixels, shares are fractions; ``configs/default.toml``
+    documents each key and ``CONFIG_KEYS`` names the key behind each field.
+
+    Attributes
+    ----------
+    pixel_size : float
+        Pixel side in z units (``grid.resolution_m`` in the survey's units).
+    jump_threshold : float
+        Height-jump threshold in z units, as used for detection (``holes.jump_threshold_m``).
+    water_min_mask_fraction, water_min_point_fraction
+        ``water_mask`` / ``water_points`` rules.
+    occlusion_min_jump_fraction
+        ``jumps`` rule.
+    shadow_min_high_fraction, shadow_min_residual_ratio, max_terrain_slope
+        ``shadow`` rule.
+    max_shadow_ratio
+        Both occlusion rules: ``thickness_px * pixel_size <= max_shadow_ratio * step``.
+    strip_min_fill, strip_min_length_px, strip_min_elongation, strip_min_elongation_with_lines,
+    strip_min_line_share, strip_two_line_share
+        ``strip`` rule.
+    water_flat_tolerance, water_min_flat_fraction, water_min_low_fraction
+        ``flat_low_rim`` rule (``water_flat_tolerance`` in z units).
+    low_quantile, high_quantile
+        Quantiles of the ring heights taken as its low and high level.
+    """
+
+    pixel_size: float
+    jump_threshold: float
+    water_min_mask_fraction: float
+    water_min_point_fraction: float
+    occlusion_min_jump_fraction: float
+    shadow_min_high_fraction: float
+    shadow_min_residual_ratio: float
+    max_terrain_slope: float
+    max_shadow_ratio: float
+    strip_min_fill: float
+    strip_min_length_px: float
+    strip_min_elongation: float
+    strip_min_elongation_with_lines: float
+    strip_min_line_share: float
+    strip_two_line_share: float
+    water_flat_tolerance: float
+    water_min_flat_fraction: float
+    water_min_low_fraction: float
+    low_quantile: float
+    high_quantile: float
+
+    @classmethod
+    def from_config(cls, config: Config, *, pixel_size_m: float, vertical_unit_m: float) -> CauseRules:
+        """The rules of a run, in the survey's units.
+
+        Parameters
+        ----------
+        config : Config
+            The ``[causes]`` thresholds and ``holes.jump_threshold_m``.
+        pixel_size_m : float
+            The grid's pixel side in metres (``grid.resolution`` times the CRS's horizontal unit).
+        vertical_unit_m : float
+            Metres per z unit.
+        """
+        return cls(
+            pixel_size=pixel_size_m / vertical_unit_m,
+            jump_threshold=config.holes.jump_threshold_m / vertical_unit_m,
+            **_thresholds(config.causes),
+        )
+
+    @classmethod
+    def with_defaults(cls, *, pixel_size: float, jump_threshold: float, **thresholds: float) -> CauseRules:
+        """The ``[causes]`` defaults, some of them replaced by ``thresholds`` (z units, pixels)."""
+        return cls(pixel_size=pixel_size, jump_threshold=jump_threshold,
+                   **{**_thresholds(CausesConfig()), **thresholds})
+
+
+#: The fields :meth:`CauseRules.from_config` derives from other sections, in survey units.
+_DERIVED: dict[str, str] = {"pixel_size": "grid.resolution_m", "jump_threshold": "holes.jump_threshold_m"}
+
+#: The configuration key behind each field of :class:`CauseRules`: the others are ``[causes]`` keys of the same name.
+CONFIG_KEYS: dict[str, str] = {
+    f.name: _DERIVED.get(f.name, f"causes.{f.name}") for f in dataclasses.fields(CauseRules)
+}
+
+
+def _thresholds(causes: CausesConfig) -> dict[str, float]:
+    """The ``[causes]`` values by CauseRules field."""
+    return {name: getattr(causes, name) for name in CONFIG_KEYS if name not in _DERIVED}
+
+
+def classify_causes(stats: HoleStats, rules: CauseRules) -> np.ndarray:
+    """Why each hole is there: occlusion, water, missed coverage or unknown.
+
+    The rules of ``RULES`` are tried in order and the first that holds wins (the
+    reasoning is in ``docs/holes.md``). From the ring-height histogram: low level =
+    the ``low_quantile`` of ring heights; step = the larger of (``high_quantile`` -
+    ``low_quantile``) and the mean span ``zmax - zmin`` of the ring's jump pixels
+    (a wall seen from above). From the ring's co-moments (:func:`ring_metrics`): the
+    slope of the plane through the ring and the scatter about it.
+
+    1. ``water`` / ``water_mask``: at least ``water_min_mask_fraction`` of the hole
+       lies inside the given water mask.
+    2. ``water`` / ``water_points``: at least ``water_min_point_fraction`` of the
+       ring (or of the hole) holds water-class points.
+    3. ``occlusion`` ([UAS] 3.2), if the step exceeds ``jump_threshold`` and the hole
+       is thin enough to lie in its shadow (``thickness_px * pixel_size <=
+       max_shadow_ratio * step``), and either ``jumps``: at least
+       ``occlusion_min_jump_fraction`` of the ring pixels are height jumps; or
+       ``shadow``: at least ``shadow_min_high_fraction`` of the ring is more than
+       ``jump_threshold`` above the low level, and that is no terrain slope (the
+       ring's plane is steeper than ``max_terrain_slope``, or the ring scatters
+       about it by at least ``shadow_min_residual_ratio * jump_threshold``).
+    4. ``missed_coverage`` / ``strip``: a long straight strip (``fill >=
+       strip_min_fill``, ``length_px >= strip_min_length_px``, ``elongation >=
+       strip_min_elongation``); where flight-line ids were given, its ring must also
+       come from two or more lines each holding at least ``strip_min_line_share`` of
+       it, the two most common holding at least ``strip_two_line_share``, and the
+       elongation needed is ``strip_min_elongation_with_lines``.
+    5. ``water`` / ``flat_low_rim``: at least ``water_min_flat_fraction`` of the ring
+       lies within ``water_flat_tolerance`` above the low level and at least
+       ``water_min_low_fraction`` of it is at the local minimum (``ring_low_px``).
+    6. ``unknown`` / ``none`` (``no_ring`` when no measured pixel borders the hole).
+
+    Parameters
+    ----------
+    stats : HoleStats
+        Per-hole (merged) statistics; per-part statistics work too.
+    rules : CauseRules
+        The thresholds, in survey units.
+
+    Returns
+    -------
+    ndarray of CAUSE_DTYPE
+        ``cause`` (one of ``CAUSES``) and ``rule`` (the rule that decided).
+    """
+    out = np.zeros(len(stats), CAUSE_DTYPE)
+    if len(stats) == 0:
+        return out
+    ring = _RingEvidence.of(stats, rules)
+    holds = _rule_conditions(stats, ring, rules)
+    conditions = [holds[rule] for rule, _ in RULES]
+    out["cause"] = np.select(conditions, [cause for _, cause in RULES], default="unknown")
+    out["rule"] = np.select(conditions, [rule for rule, _ in RULES], default="none")
+    out["rule"][~ring.has_ring & (out["cause"] == "unknown")] = "no_ring"
+    return out
+
+
+class _RingEvidence(NamedTuple):
+    """What the ring of each hole shows, as shares of its pixels."""
+
+    has_ring: np.ndarray
+    size: np.ndarray  # ring pixels, at least 1 (a divisor)
+    jump_frac: np.ndarray  # height-jump pixels
+    low_frac: np.ndarray  # pixels at the local minimum
+    high_frac: np.ndarray  # pixels more than jump_threshold above the low level
+    flat_frac: np.ndarray  # pixels within water_flat_tolerance above the low level
+    step: np.ndarray  # height of the step beside the hole
+
+    @classmethod
+    def of(cls, stats: HoleStats, rules: CauseRules) -> _RingEvidence:
+        k = len(stats)
+        ring = stats["ring_px"].astype(np.float64)
+        ring1 = np.maximum(ring, 1.0)
+        q_lo, q_hi = _hist_quantiles(stats, (rules.low_quantile, rules.high_quantile))
+        hist = stats.height_hist
+        centres = (hist["bin"] + 0.5) * stats.height_bin
+        hrow = hist["row"]
+        hcount = hist["count"].astype(np.float64)
+        high = np.where(centres > q_lo[hrow] + rules.jump_threshold, hcount, 0.0)
+        flat = np.where(centres <= q_lo[hrow] + rules.water_flat_tolerance, hcount, 0.0)
+        mean_jump_span = stats["ring_jump_span_sum"] / np.maximum(stats["ring_jump_px"], 1)
+        return cls(
+            has_ring=ring > 0,
+            size=ring1,
+            jump_frac=stats["ring_jump_px"] / ring1,
+            low_frac=stats["ring_low_px"] / ring1,
+            high_frac=np.bincount(hrow, high, minlength=k) / ring1,
+            flat_frac=np.bincount(hrow, flat, minlength=k) / ring1,
+            step=np.fmax(np.nan_to_num(q_hi - q_lo, nan=0.0), mean_jump_span),
+        )
+
+
+def _rule_conditions(stats: HoleStats, ring: _RingEvidence, rules: CauseRules) -> dict[str, np.ndarray]:
+    """Whether each rule of ``RULES`` holds, per hole."""
+    shape = shape_metrics(stats)
+    ring_fit = ring_metrics(stats)
+    area1 = np.maximum(stats["area_px"].astype(np.float64), 1.0)
+    shadow_like = (
+        ring.has_ring
+        & (ring.step > rules.jump_threshold)
+        & (shape["thickness_px"] * rules.pixel_size <= rules.max_shadow_ratio * ring.step)
+    )
+    not_terrain = (np.nan_to_num(ring_fit["plane_slope"]) / rules.pixel_size > rules.max_terrain_slope) | (
+        np.nan_to_num(ring_fit["plane_residual_std"]) >= rules.shadow_min_residual_ratio * rules.jump_threshold
+    )
+    strip_shape = (shape["fill"] >= rules.strip_min_fill) & (shape["length_px"] >= rules.strip_min_length_px)
+    strip = strip_shape & (shape["elongation"] >= rules.strip_min_elongation)
+    if len(stats.line_hist):
+        has_lines, between_two_lines = _between_two_lines(stats, ring.size, rules)
+        strip_with_lines = (
+            strip_shape & between_two_lines & (shape["elongation"] >= rules.strip_min_elongation_with_lines)
+        )
+        strip = np.where(has_lines, strip_with_lines, strip)
+    return {
+        "water_mask": stats["water_mask_px"] / area1 >= rules.water_min_mask_fraction,
+        "water_points": (ring.has_ring & (stats["ring_water_px"] / ring.size >= rules.water_min_point_fraction))
+        | (stats["hole_water_px"] / area1 >= rules.water_min_point_fraction),
+        "jumps": shadow_like & (ring.jump_frac >= rules.occlusion_min_jump_fraction),
+        "shadow": shadow_like & (ring.high_frac >= rules.shadow_min_high_fraction) & not_terrain,
+        "strip": strip,
+        "flat_low_rim": ring.has_ring
+        & (ring.flat_frac >= rules.water_min_flat_fraction)
+        & (ring.low_frac >= rules.water_min_low_fraction),
+    }
+
+
+def _between_two_lines(stats: HoleStats, ring_size: np.ndarray, rules: CauseRules) -> tuple[np.ndarray, np.ndarray]:
+    """Per hole: whether flight-line ids are known, and whether its ring comes from two lines.
+
+    Two or more lines each hold at least ``strip_min_line_share`` of the ring, and
+    the two most common lines hold at least ``strip_two_line_share`` of it.
+    """
+    k = len(stats)
+    lrow = stats.line_hist["row"]
+    share = stats.line_hist["count"] / ring_size[lrow]
+    n_lines = np.bincount(lrow, share >= rules.strip_min_line_share, minlength=k)
+    has_lines = np.bincount(lrow, minlength=k) > 0
+    # share of the ring held by each row's two most common lines
+    order = np.lexsort((-share, lrow))
+    ranked_rows = lrow[order]
+    starts = np.r_[True, ranked_rows[1:] != ranked_rows[:-1]]
+    position = np.arange(len(order))
+    rank = position - np.maximum.accumulate(np.where(starts, position, 0))
+    top_two = np.bincount(ranked_rows[rank < 2], share[order][rank < 2], minlength=k)
+    return has_lines, (n_lines >= 2) & (top_two >= rules.strip_two_line_share)

@@ -1,0 +1,561 @@
+"""Per cell: hole parts, their [OPEN] classification and mergeable statistics.
+
+[OPEN] section 3.1 on a raster (closed / open type I / open type II, shapes A-D);
+the ring of measured pixels around each part ([UAS] section 3.2); edge strips and
+shared ring rows for linking on the client. See ``docs/holes.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import NamedTuple
+
+import numpy as np
+import scipy.ndimage as ndi
+
+from ..grid import Cell, PixelWindow
+from ._kernels import _NO_LINE, RingSums, _coo_counts, _perimeter_flat, hole_pixel_sums, ring_sums
+from .stats import HEIGHT_HIST_DTYPE, LINE_HIST_DTYPE, SHARED_RING_DTYPE, HoleStats, _empty_columns
+
+__all__ = ["PART_DTYPE", "SIDE_BITS", "SIDES", "CellHoles", "EdgeStrip", "detect_cell_holes"]
+
+#: Cell sides, in the order of :attr:`CellHoles.edges`, and their bits in ``sides`` masks.
+SIDES: tuple[str, ...] = ("north", "east", "south", "west")
+
+SIDE_BITS: dict[str, int] = {"north": 1, "east": 2, "south": 4, "west": 8}
+
+#: Per-part topology and classification within one cell ([OPEN] section 3.1).
+PART_DTYPE = np.dtype(
+    [
+        ("label", np.int32),  # the part's label in CellHoles.labels (1..n)
+        ("category", "U6"),  # "closed", "I" (open, internal) or "II" (open, on the AOI boundary)
+        ("shape", "U1"),  # open parts: "A" hollow, "B" semi-enclosed, "C" crossing, "D" island
+        ("touches_edge", np.bool_),  # has a pixel on the cell core's outermost rows/columns
+        ("touches_aoi_boundary", np.bool_),  # neighbours (by `connectivity`) a pixel outside the AOI/grid
+        ("touches_data", np.bool_),  # 4-neighbours a measured pixel (core or halo): layer-1 candidate
+        ("sides", np.uint8),  # SIDE_BITS of the core edges it touches
+        ("continues", np.uint8),  # SIDE_BITS of the edges across which the hole goes on (4-adjacency)
+        ("edge_runs", np.int32),  # separate stretches of the core perimeter it occupies
+        ("data_sides", np.int32),  # stretches of perimeter between those that hold measured data
+        ("islands", np.int32),  # pieces of data inside the core that it surrounds completely
+    ]
+)
+
+
+@dataclass(frozen=True)
+class EdgeStrip:
+    """Part labels along one edge of a cell core, for linking with the neighbour.
+
+    Attributes
+    ----------
+    side : str
+        One of ``SIDES``.
+    rows, cols : ndarray of int64
+        Global grid row and column of each pixel of the strip.
+    labels : ndarray of int32
+        Part label of each pixel (0: not a hole).
+    """
+
+    side: str
+    rows: np.ndarray
+    cols: np.ndarray
+    labels: np.ndarray
+
+
+@dataclass(frozen=True)
+class CellHoles:
+    """The hole parts of one cell: what :func:`detect_cell_holes` returns.
+
+    Attributes
+    ----------
+    cell : Cell
+        The cell.
+    connectivity : int
+        4 or 8, the connectivity of hole pixels used.
+    labels : ndarray of int32, shape ``cell.window.shape``, or None
+        Part label per core pixel (0: not a hole, -1: a settled small void).
+        Drop it with :meth:`without_labels` before sending the result to the client.
+    parts : ndarray of PART_DTYPE, shape (n,)
+        Topology and [OPEN] classification of parts ``1..n`` (row ``i`` is label ``i + 1``).
+    stats : HoleStats
+        Mergeable statistics, rows aligned with ``parts``.
+    edges : tuple of EdgeStrip
+        The labels along the four core edges, in ``SIDES`` order.
+    shared_ring : ndarray of SHARED_RING_DTYPE
+        Ring pixels of this core whose hole must be resolved across cells.
+    core_has_data : bool
+        Whether any pixel of the core holds a point.
+    small_void_count, small_void_px : int
+        Closed parts below ``min_area_px`` settled in the cell (labelled -1).
+    """
+
+    cell: Cell
+    connectivity: int
+    labels: np.ndarray | None
+    parts: np.ndarray
+    stats: HoleStats
+    edges: tuple[EdgeStrip, ...]
+    shared_ring: np.ndarray
+    core_has_data: bool
+    small_void_count: int = 0
+    small_void_px: int = 0
+
+    @property
+    def n_parts(self) -> int:
+        return len(self.parts)
+
+    def without_labels(self) -> CellHoles:
+        """The same result without the label raster (what the client needs)."""
+        return replace(self, labels=None)
+
+
+def detect_cell_holes(
+    count: np.ndarray,
+    zmax: np.ndarray,
+    zmin: np.ndarray,
+    aoi: np.ndarray | None = None,
+    *,
+    cell: Cell,
+    grid_window: PixelWindow,
+    jump_threshold: float,
+    connectivity: int = 4,
+    local_radius_px: int = 8,
+    low_tolerance: float = 0.5,
+    height_bin: float = 0.25,
+    water_points: np.ndarray | None = None,
+    water_mask: np.ndarray | None = None,
+    flight_line: np.ndarray | None = None,
+    min_area_px: int = 0,
+) -> CellHoles:
+    """Find, classify and measure the hole parts of one cell.
+
+    A part is a connected set of empty AOI pixels of the cell core. Parts are
+    classified per [OPEN] section 3.1 (closed / open type I / open type II,
+    shapes A-D, see ``docs/holes.md``) and measured with statistics that merge
+    exactly across cells (:func:`merge_hole_stats`, :func:`link_holes`): the
+    results do not depend on the cell size.
+
+    Parameters
+    ----------
+    count : ndarray of shape ``cell.halo_window.shape``
+        Points per pixel over the cell's halo window.
+    zmax, zmin : ndarray of float, same shape
+        Highest and lowest point per pixel, NaN where empty.
+    aoi : ndarray of bool, same shape, optional
+        True inside the area of interest; None: the whole grid.
+    cell : Cell
+        The cell; the arrays cover ``cell.halo_window``.
+    grid_window : PixelWindow
+        The survey grid (``Grid.window``): beyond it is outside the AOI.
+    jump_threshold : float
+        Height-jump threshold in z units ([UAS] eq. 1).
+    connectivity : {4, 8}
+        Connectivity of hole pixels. 4 (default) follows [UAS] section 3.2 and
+        gives outlines whose polygons are always valid; see ``docs/holes.md``.
+    local_radius_px : int
+        A ring pixel is "low" when its height (``zmin``) is within ``low_tolerance``
+        of the lowest ``zmin`` within this many pixels (square window; 0 disables).
+        The halo must reach this far (and at least 1 pixel) on every side that is
+        not the grid's edge.
+    low_tolerance : float
+        In z units.
+    height_bin : float
+        Bin width (z units) of the ring-height histogram.
+    water_points : ndarray, same shape, optional
+        Water-class points per pixel (e.g. ASPRS class 9).
+    water_mask : ndarray of bool, same shape, optional
+        True inside known water polygons.
+    flight_line : ndarray of int, same shape, optional
+        An id of a flight line covering each pixel (e.g. a point_source_id), < 0: unknown.
+    min_area_px : int
+        Closed parts (complete holes: they touch neither the core edge nor the AOI
+        boundary) smaller than this are settled here as small voids: counted in
+        ``small_void_count``/``small_void_px``, labelled -1, and not listed. Open
+        parts are always kept, whatever their size: their hole's area is only
+        known after linking. 0 (default) keeps every part.
+
+    Returns
+    -------
+    CellHoles
+
+    Raises
+    ------
+    ValueError
+        On arrays of the wrong shape, a bad parameter, or a halo narrower than needed.
+    """
+    arrays = {"count": count, "zmax": zmax, "zmin": zmin, "aoi": aoi, "water_points": water_points,
+              "water_mask": water_mask, "flight_line": flight_line}
+    R = _check_inputs(arrays, cell, grid_window, connectivity=connectivity, local_radius_px=local_radius_px,
+                      height_bin=height_bin)
+    core = cell.window
+    work = _work_arrays(arrays, cell, R)
+    structure = ndi.generate_binary_structure(2, 1 if connectivity == 4 else 2)
+    labels, n = ndi.label(work.core(work.hole), structure=structure)
+    labels = labels.astype(np.int32, copy=False)
+    data_core = work.core(work.data)
+    core_has_data = bool(data_core.any())
+    edges = _edge_strips(labels, core)
+    if n == 0:
+        return CellHoles(cell, connectivity, labels, np.zeros(0, PART_DTYPE),
+                         HoleStats.empty(0, height_bin=height_bin), edges,
+                         np.zeros(0, SHARED_RING_DTYPE), core_has_data, 0, 0)
+
+    cols = _empty_columns(n)
+    _pixel_statistics(cols, labels, n, core, work, connectivity)
+    closed = _closed_parts(cols, edges, n)
+    small = closed & (cols["area_px"] < min_area_px)  # complete holes: small ones are settled here
+    small_void_count, small_void_px = int(small.sum()), int(cols["area_px"][small].sum())
+    if small_void_count:
+        labels, cols, closed = _drop_parts(labels, cols, closed, small)
+        n = len(closed)
+        edges = _edge_strips(labels, core)
+    height_hist, line_hist, shared = _ring_statistics(
+        cols, labels, closed, work, core, local_radius_px=local_radius_px, jump_threshold=jump_threshold,
+        low_tolerance=low_tolerance, height_bin=height_bin,
+    )
+    parts = _part_topology(labels, n, work.hole, data_core, R, cols, core_has_data, connectivity)
+    return CellHoles(
+        cell=cell,
+        connectivity=connectivity,
+        labels=labels,
+        parts=parts,
+        stats=HoleStats(cols, height_hist, line_hist, float(height_bin)),
+        edges=edges,
+        shared_ring=shared,
+        core_has_data=core_has_data,
+        small_void_count=small_void_count,
+        small_void_px=small_void_px,
+    )
+
+
+def _check_inputs(
+    arrays: dict[str, np.ndarray | None],
+    cell: Cell,
+    grid_window: PixelWindow,
+    *,
+    connectivity: int,
+    local_radius_px: int,
+    height_bin: float,
+) -> int:
+    """Validate :func:`detect_cell_holes`'s arguments; return the work margin R (pixels)."""
+    core, halo = cell.window, cell.halo_window
+    for name, arr in arrays.items():
+        if arr is not None and np.shape(arr) != halo.shape:
+            raise ValueError(
+                f"{name} has shape {np.shape(arr)}; expected the cell's halo window shape {halo.shape}"
+            )
+    if connectivity not in (4, 8):
+        raise ValueError(f"connectivity must be 4 or 8, got {connectivity!r}")
+    if local_radius_px < 0:
+        raise ValueError(f"local_radius_px must be >= 0, got {local_radius_px}")
+    if not height_bin > 0:
+        raise ValueError(f"height_bin must be > 0, got {height_bin!r}")
+    if core.is_empty:
+        raise ValueError(f"cell {cell.id} has an empty core window")
+    R = max(1, int(local_radius_px))
+    work = core.expand(R)
+    if work.intersection(grid_window) != work.intersection(halo):
+        raise ValueError(
+            f"cell {cell.id}: the halo must reach {R} pixel(s) beyond the core wherever the grid "
+            f"continues (local_radius_px={local_radius_px}); got halo {halo} for core {core}"
+        )
+    return R
+
+
+class _Work(NamedTuple):
+    """A cell's arrays over the work window: the core grown by ``R`` pixels, padded beyond the grid."""
+
+    R: int
+    hole: np.ndarray  # empty and inside the AOI
+    aoi: np.ndarray
+    data: np.ndarray  # count > 0
+    zmax: np.ndarray
+    zmin: np.ndarray
+    water: np.ndarray | None  # holds water-class points
+    mask: np.ndarray | None  # inside the water mask
+    line: np.ndarray | None  # flight line id, < 0 unknown
+
+    def core(self, arr: np.ndarray) -> np.ndarray:
+        """The view of a work-window array over the core."""
+        R = self.R
+        return arr[R : arr.shape[0] - R, R : arr.shape[1] - R]
+
+
+def _work_arrays(arrays: dict[str, np.ndarray | None], cell: Cell, R: int) -> _Work:
+    """The arrays of :func:`detect_cell_holes` cut to the work window (see :class:`_Work`)."""
+    work = cell.window.expand(R)
+
+    def view(name: str, fill, dtype=None) -> np.ndarray | None:
+        arr = arrays[name]
+        return None if arr is None else _work_view(np.asarray(arr, dtype=dtype), cell, work, fill)
+
+    count_w = view("count", 0)
+    if arrays["aoi"] is None:
+        aoi_w = _work_view(np.ones(cell.halo_window.shape, dtype=bool), cell, work, False)
+    else:
+        aoi_w = view("aoi", False, bool)
+    data_w = count_w > 0
+    water_points = view("water_points", 0)
+    return _Work(
+        R=R,
+        hole=~data_w & aoi_w,
+        aoi=aoi_w,
+        data=data_w,
+        zmax=view("zmax", np.nan),
+        zmin=view("zmin", np.nan),
+        water=None if water_points is None else water_points > 0,
+        mask=view("water_mask", False, bool),
+        line=view("flight_line", _NO_LINE, np.int64),
+    )
+
+
+def _closed_parts(cols: dict[str, np.ndarray], edges: tuple[EdgeStrip, ...], n: int) -> np.ndarray:
+    """Parts touching neither the core edge nor the AOI boundary: complete holes."""
+    on_edge = np.zeros(n + 1, bool)
+    for strip in edges:
+        on_edge[strip.labels] = True
+    return ~on_edge[1:] & (cols["aoi_edge_px"] == 0)
+
+
+def _drop_parts(
+    labels: np.ndarray, cols: dict[str, np.ndarray], closed: np.ndarray, drop: np.ndarray
+) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
+    """Label the dropped parts -1 and number the others 1..k again, in order."""
+    keep = np.flatnonzero(~drop)
+    relabel = np.full(len(drop) + 1, -1, np.int32)
+    relabel[0] = 0
+    relabel[keep + 1] = np.arange(1, len(keep) + 1, dtype=np.int32)
+    return relabel[labels], {k: v[keep] for k, v in cols.items()}, closed[keep]
+
+
+def _ring_statistics(
+    cols: dict[str, np.ndarray],
+    labels: np.ndarray,
+    closed: np.ndarray,
+    work: _Work,
+    core: PixelWindow,
+    *,
+    local_radius_px: int,
+    jump_threshold: float,
+    low_tolerance: float,
+    height_bin: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ring: measured core pixels 4-adjacent to a hole pixel ([UAS] 3.2).
+
+    Fills the ring columns of ``cols``; returns the height and flight-line histograms
+    and the shared ring rows. A ring pixel counts here for every closed part it
+    touches (a closed part is a whole hole, distinct from all others) and for the
+    single open part it touches; when it touches several open parts, or a hole pixel
+    of a neighbouring cell, it becomes one shared row per such part/pixel, which the
+    client resolves once parts are linked, so that each ring pixel counts once per
+    hole whatever the cell size.
+    """
+    lr = int(local_radius_px)
+    if lr > 0:
+        zmin_data = np.where(work.data, work.zmin, np.inf).astype(np.float32)
+        row_min = ndi.minimum_filter1d(zmin_data, 2 * lr + 1, axis=1, mode="constant", cval=np.inf)
+    else:
+        row_min = np.zeros((1, 1), np.float32)
+    ring = ring_sums(
+        labels, work.hole, work.data, work.zmax, work.zmin, row_min, work.water, work.line,
+        np.concatenate([[False], closed]), work.R, local_radius_px=lr, jump_threshold=jump_threshold,
+        low_tolerance=low_tolerance,
+    )
+    cols["ring_px"] = ring.ring_px[1:]
+    cols["ring_jump_px"] = ring.ring_jump[1:]
+    cols["ring_low_px"] = ring.ring_low[1:]
+    cols["ring_water_px"] = ring.ring_water[1:]
+    _ring_moments(cols, ring.ring_px[1:], ring.sums[:, 1:], core)
+    cols["ring_jump_span_sum"] = ring.span_sum[1:]
+    cols["ring_z_min"] = ring.z_min[1:]
+    cols["ring_z_max"] = ring.z_max[1:]
+    finite = np.isfinite(ring.hist_z)
+    height_hist = _coo_counts(ring.hist_part[finite] - 1,
+                              np.floor(ring.hist_z[finite] / height_bin).astype(np.int64), HEIGHT_HIST_DTYPE)
+    known = ring.hist_line >= 0
+    line_hist = _coo_counts(ring.hist_part[known] - 1, ring.hist_line[known], LINE_HIST_DTYPE)
+    return height_hist, line_hist, _shared_rows(ring, core, work.R, work.hole.shape[1])
+
+
+def _shared_rows(ring: RingSums, core: PixelWindow, R: int, work_width: int) -> np.ndarray:
+    """The ring kernel's shared rows as a SHARED_RING_DTYPE table in global coordinates."""
+    shared = np.zeros(len(ring.shared_row), SHARED_RING_DTYPE)
+    if not len(shared):
+        return shared
+    key = ring.shared_key
+    shared["row"] = ring.shared_row + core.row_off
+    shared["col"] = ring.shared_col + core.col_off
+    foreign = key < 0
+    shared["label"] = np.where(foreign, 0, key)
+    fr, fc = np.divmod(np.where(foreign, -1 - key, 0), work_width)
+    shared["ref_row"] = np.where(foreign, fr - R + core.row_off, -1)
+    shared["ref_col"] = np.where(foreign, fc - R + core.col_off, -1)
+    shared["z"] = ring.shared_z
+    shared["span"] = ring.shared_span
+    shared["jump"] = (ring.shared_flags & 1) != 0
+    shared["low"] = (ring.shared_flags & 2) != 0
+    shared["water"] = (ring.shared_flags & 4) != 0
+    shared["line"] = ring.shared_line
+    return shared
+
+
+def _work_view(arr: np.ndarray, cell: Cell, work: PixelWindow, fill: float | int | bool) -> np.ndarray:
+    """``arr`` (over the halo window) cut to ``work``; ``fill`` where ``work`` leaves the grid."""
+    halo = cell.halo_window
+    have = work.intersection(halo)
+    if have == work:
+        return arr[work.slices_within(halo)]
+    dtype = arr.dtype
+    if isinstance(fill, float) and np.isnan(fill) and not np.issubdtype(dtype, np.floating):
+        dtype = np.dtype(np.float32)
+    out = np.full(work.shape, fill, dtype=dtype)
+    out[have.slices_within(work)] = arr[have.slices_within(halo)]
+    return out
+
+
+def _edge_strips(labels: np.ndarray, core: PixelWindow) -> tuple[EdgeStrip, ...]:
+    h, w = labels.shape
+    cols = np.arange(core.col_off, core.col_end, dtype=np.int64)
+    rows = np.arange(core.row_off, core.row_end, dtype=np.int64)
+    return (
+        EdgeStrip("north", np.full(w, core.row_off, np.int64), cols, labels[0, :].copy()),
+        EdgeStrip("east", rows, np.full(h, core.col_end - 1, np.int64), labels[:, w - 1].copy()),
+        EdgeStrip("south", np.full(w, core.row_end - 1, np.int64), cols, labels[h - 1, :].copy()),
+        EdgeStrip("west", rows, np.full(h, core.col_off, np.int64), labels[:, 0].copy()),
+    )
+
+
+def _first_occurrence(labels_in_order: np.ndarray, n: int) -> np.ndarray:
+    """Index of the first occurrence of labels 1..n in a sequence where they appear in order."""
+    seen = np.maximum.accumulate(labels_in_order)
+    new = np.ones(len(seen), bool)
+    new[1:] = seen[1:] > seen[:-1]
+    first = np.flatnonzero(new)
+    if len(first) != n or not np.array_equal(labels_in_order[first], np.arange(1, n + 1)):
+        first = np.unique(labels_in_order, return_index=True)[1]  # not numbered in raster order
+    return first
+
+
+def _pixel_statistics(
+    cols: dict[str, np.ndarray], labels: np.ndarray, n: int, core: PixelWindow, work: _Work, connectivity: int
+) -> None:
+    """Area, box, first pixel, moments, edge length, AOI contact, data contact, evidence."""
+    sums = hole_pixel_sums(labels, n, work.hole, work.aoi, work.data, work.water, work.mask, work.R,
+                           eight=connectivity == 8)
+    area, sr, sc = sums.area[1:], sums.row_sum[1:], sums.col_sum[1:]
+    mr, mc = sr / area, sc / area
+    cols["area_px"] = area
+    cols["mean_row"] = mr + core.row_off
+    cols["mean_col"] = mc + core.col_off
+    cols["m2_rr"] = sums.row_sq_sum[1:] - sr * mr  # local coordinates (< cell size): no cancellation
+    cols["m2_cc"] = sums.col_sq_sum[1:] - sc * mc
+    cols["m2_rc"] = sums.row_col_sum[1:] - sr * mc
+    cols["row_min"] = sums.row_min[1:] + core.row_off
+    cols["row_max"] = sums.row_max[1:] + core.row_off
+    cols["col_min"] = sums.col_min[1:] + core.col_off
+    cols["col_max"] = sums.col_max[1:] + core.col_off
+    cols["first_row"] = cols["row_min"].copy()
+    cols["first_col"] = sums.first_col[1:] + core.col_off
+    cols["edge_len_px"] = sums.edge_len[1:]
+    cols["aoi_edge_px"] = sums.aoi_edge[1:]
+    cols["touches_data"] = sums.near_data[1:] > 0
+    cols["hole_water_px"] = sums.water[1:]
+    cols["water_mask_px"] = sums.in_mask[1:]
+
+
+def _ring_moments(cols: dict[str, np.ndarray], count: np.ndarray, sums: np.ndarray, core: PixelWindow) -> None:
+    """Centroid and co-moments of (row, column, height) of the ring from raw sums."""
+    k = np.maximum(count, 1).astype(np.float64)
+    means = sums[:3] / k
+    cols["ring_mean_row"] = np.where(count > 0, means[0] + core.row_off, 0.0)
+    cols["ring_mean_col"] = np.where(count > 0, means[1] + core.col_off, 0.0)
+    cols["ring_mean_z"] = np.where(count > 0, means[2], 0.0)
+    for name, (i, j), raw in (("ring_m2_rr", (0, 0), 3), ("ring_m2_cc", (1, 1), 4), ("ring_m2_rc", (0, 1), 5),
+                              ("ring_m2_rz", (0, 2), 6), ("ring_m2_cz", (1, 2), 7), ("ring_m2_zz", (2, 2), 8)):
+        cols[name] = np.where(count > 0, sums[raw] - sums[i] * means[j], 0.0)
+
+
+def _part_topology(
+    labels: np.ndarray,
+    n: int,
+    hole_w: np.ndarray,
+    data_core: np.ndarray,
+    R: int,
+    cols: dict[str, np.ndarray],
+    core_has_data: bool,
+    connectivity: int,
+) -> np.ndarray:
+    """[OPEN] section 3.1 on a raster: open/closed, type I/II, shapes A-D (see docs/holes.md)."""
+    h, w = labels.shape
+    parts = np.zeros(n, PART_DTYPE)
+    parts["label"] = np.arange(1, n + 1)
+    parts["touches_data"] = cols["touches_data"]
+
+    # core edges touched, and edges across which the hole goes on (4-adjacency)
+    sides = np.zeros(n + 1, np.uint8)
+    continues = np.zeros(n + 1, np.uint8)
+    side_cuts = {
+        "north": (labels[0, :], hole_w[R - 1, R : R + w]),
+        "east": (labels[:, w - 1], hole_w[R : R + h, R + w]),
+        "south": (labels[h - 1, :], hole_w[R + h, R : R + w]),
+        "west": (labels[:, 0], hole_w[R : R + h, R - 1]),
+    }
+    for side, (edge_labels, across_hole) in side_cuts.items():
+        bit = np.uint8(SIDE_BITS[side])
+        sides[np.bincount(edge_labels, minlength=n + 1) > 0] |= bit
+        continues[np.bincount(edge_labels[across_hole], minlength=n + 1) > 0] |= bit
+    sides[0] = continues[0] = 0
+    parts["sides"] = sides[1:]
+    parts["continues"] = continues[1:]
+    parts["touches_edge"] = sides[1:] != 0
+    parts["touches_aoi_boundary"] = cols["aoi_edge_px"] > 0
+
+    # stretches of the perimeter each part occupies, and the stretches of data between them
+    perimeter = _perimeter_flat(h, w)
+    ring_lab = labels.ravel()[perimeter]
+    ring_data = data_core.ravel()[perimeter]
+    run_start = (ring_lab != np.roll(ring_lab, 1)) & (ring_lab > 0)
+    runs = np.bincount(ring_lab[run_start], minlength=n + 1)
+    on_edge = np.bincount(ring_lab, minlength=n + 1) > 0
+    runs[on_edge & (runs == 0)] = 1  # the part covers the whole perimeter
+    data_sides = np.where(on_edge, int(ring_data.any()), 0)
+    for L in np.flatnonzero(runs >= 2):
+        data_sides[L] = _data_gaps(ring_lab == L, ring_data)
+    parts["edge_runs"] = runs[1:]
+    parts["data_sides"] = data_sides[1:]
+
+    # islands: pieces of the rest of the core (dual connectivity) that touch no core edge and
+    # hold data; each is surrounded by exactly one part, the one just above its first pixel
+    islands = np.zeros(n + 1, np.int64)
+    dual = ndi.generate_binary_structure(2, 2 if connectivity == 4 else 1)
+    rest, n_rest = ndi.label(labels <= 0, structure=dual)
+    if n_rest:
+        touching = np.zeros(n_rest + 1, bool)
+        touching[rest.ravel()[perimeter]] = True
+        if not touching[1:].all():
+            flat = rest.ravel()
+            ridx = np.flatnonzero(flat)
+            rlab = flat[ridx]
+            first = ridx[_first_occurrence(rlab, n_rest)]
+            has_data = np.bincount(rest[data_core], minlength=n_rest + 1)[1:] > 0
+            sel = first[~touching[1:] & has_data]
+            islands += np.bincount(labels.ravel()[sel - w], minlength=n + 1)
+    parts["islands"] = islands[1:]
+
+    is_open = parts["touches_edge"] | parts["touches_aoi_boundary"]
+    parts["category"] = np.where(~is_open, "closed", np.where(parts["touches_aoi_boundary"], "II", "I"))
+    if core_has_data:
+        shape = np.where(parts["islands"] > 0, "D", np.where(parts["data_sides"] >= 2, "C", "B"))
+    else:
+        shape = np.full(n, "A")
+    parts["shape"] = np.where(is_open, shape, "")
+    return parts
+
+
+def _data_gaps(mine: np.ndarray, ring_data: np.ndarray) -> int:
+    """Cyclic runs of ``~mine`` along the perimeter that hold at least one data pixel."""
+    shift = int(np.flatnonzero(mine)[0])  # start the cycle on one of my pixels: no gap wraps
+    m = np.roll(mine, -shift)
+    d = np.roll(ring_data, -shift)
+    gap_id = np.cumsum(m)  # constant along a gap
+    return int(len(np.unique(gap_id[~m & d])))

@@ -1,0 +1,326 @@
+"""On the client: hole parts linked across cell edges into global holes, and their layers ([OPEN] 3.2)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse import csgraph
+
+from ._kernels import _BIG
+from .detect import SIDES, CellHoles
+from .stats import SHARED_RING_DTYPE, HoleStats, _shared_ring_stats, merge_hole_stats
+
+__all__ = ["HoleCatalog", "PartRecord", "link_holes"]
+
+_ACROSS = {"north": (-1, 0), "east": (0, 1), "south": (1, 0), "west": (0, -1)}
+
+
+@dataclass(frozen=True)
+class PartRecord:
+    """One part of a global hole: a row of the hierarchy table ([OPEN] section 3.2)."""
+
+    hole_id: int
+    cell_id: str
+    part_label: int
+    layer: int
+    neighbours: tuple[tuple[str, int], ...]  # (cell_id, part_label) of linked parts in other cells
+    area_px: int
+    category: str
+    shape: str
+
+
+@dataclass(frozen=True)
+class HoleCatalog:
+    """Global holes linked across cells, with their parts and layers.
+
+    Attributes
+    ----------
+    holes : ndarray, shape (H,)
+        One row per hole, ordered by hole id (``1..H``, by first pixel in raster
+        order): ``hole_id``, ``area_px``, ``n_parts``, ``n_cells``, ``max_layer``,
+        ``touches_aoi_boundary``, ``is_small`` (area below ``min_area_px``: a small
+        void, counted but not listed).
+    stats : HoleStats
+        Merged statistics, rows aligned with ``holes``.
+    parts : ndarray, shape (P,)
+        One row per part of every cell: ``hole_id``, ``cell`` (index into the
+        cells given to :func:`link_holes`), ``cell_id``, ``index_x``, ``index_y``,
+        ``label``, ``layer`` (1 = touches measured data, n + 1 = linked to a
+        layer-n part, 0 = no path to data), ``area_px``, ``category``, ``shape``.
+    neighbour_ptr, neighbour_idx : ndarray of int64
+        CSR adjacency: the parts linked to part ``i`` across cell edges are rows
+        ``neighbour_idx[neighbour_ptr[i]:neighbour_ptr[i + 1]]`` of ``parts``.
+    connectivity : int
+        The connectivity used.
+    min_area_px : int
+        Holes with fewer pixels are small voids.
+    settled_small_voids, settled_small_void_px : int
+        Small closed voids the cells settled themselves (``detect_cell_holes(...,
+        min_area_px=...)``): counted here, absent from ``holes`` and ``parts``.
+    """
+
+    holes: np.ndarray
+    stats: HoleStats
+    parts: np.ndarray
+    neighbour_ptr: np.ndarray
+    neighbour_idx: np.ndarray
+    connectivity: int
+    min_area_px: int
+    settled_small_voids: int = 0
+    settled_small_void_px: int = 0
+
+    @property
+    def listed(self) -> np.ndarray:
+        """Rows of ``holes`` that are reported (not small voids)."""
+        return self.holes[~self.holes["is_small"]]
+
+    @property
+    def small_void_count(self) -> int:
+        """Holes below ``min_area_px``, including those the cells settled."""
+        return int(self.holes["is_small"].sum()) + self.settled_small_voids
+
+    @property
+    def small_void_px(self) -> int:
+        return int(self.holes["area_px"][self.holes["is_small"]].sum()) + self.settled_small_void_px
+
+    def hole_id_lookup(self, cell_id: str) -> np.ndarray:
+        """Array mapping a cell's part labels to hole ids.
+
+        ``catalog.hole_id_lookup(cell.id)[labels]`` is the cell's hole-id raster:
+        0 where there is no hole, -1 on small voids the cell settled (label -1).
+        """
+        rows = np.flatnonzero(self.parts["cell_id"] == cell_id)
+        n = int(self.parts["label"][rows].max()) if len(rows) else 0
+        lookup = np.zeros(n + 2, dtype=np.int64)  # the extra last entry serves label -1
+        lookup[self.parts["label"][rows]] = self.parts["hole_id"][rows]
+        lookup[-1] = -1
+        return lookup
+
+    def part_records(self) -> list[PartRecord]:
+        """The hierarchy as records: hole, cell, part, layer, linked parts."""
+        p = self.parts
+        out = []
+        for i in range(len(p)):
+            nb = self.neighbour_idx[self.neighbour_ptr[i] : self.neighbour_ptr[i + 1]]
+            out.append(
+                PartRecord(
+                    hole_id=int(p["hole_id"][i]),
+                    cell_id=str(p["cell_id"][i]),
+                    part_label=int(p["label"][i]),
+                    layer=int(p["layer"][i]),
+                    neighbours=tuple((str(p["cell_id"][j]), int(p["label"][j])) for j in nb),
+                    area_px=int(p["area_px"][i]),
+                    category=str(p["category"][i]),
+                    shape=str(p["shape"][i]),
+                )
+            )
+        return out
+
+
+def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatalog:
+    """Link hole parts across cell edges into global holes and layer them.
+
+    Parts of adjacent cells whose edge pixels touch (4-adjacency across the
+    shared edge; with 8-connectivity also diagonally, including across cell
+    corners) belong to one hole: the connected components of that contact graph
+    (a union-find) are the global holes. Layers follow [OPEN] section 3.2:
+    layer 1 = parts that touch measured data (a measured pixel 4-adjacent, in
+    the core or the halo), layer n + 1 = parts linked to a layer-n part.
+
+    Only the small per-cell results are used (edge strips, part tables,
+    statistics, shared ring pixels); no survey-sized array is built.
+
+    Parameters
+    ----------
+    cells : sequence of CellHoles
+        Every cell of the survey (labels may have been dropped).
+    min_area_px : int
+        Holes with fewer pixels are small voids (flagged ``is_small``).
+
+    Returns
+    -------
+    HoleCatalog
+    """
+    if not cells:
+        raise ValueError("link_holes needs at least one cell")
+    connectivity = cells[0].connectivity
+    if any(c.connectivity != connectivity for c in cells):
+        raise ValueError("all cells must use the same connectivity")
+    sizes = np.array([c.n_parts for c in cells], dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(sizes)])  # parts of cell k are nodes offsets[k]..offsets[k + 1]
+    n_nodes = int(offsets[-1])
+    edges = _EdgePixels.of(cells, offsets)
+    graph = _contact_graph(edges, connectivity, n_nodes)
+    n_comp, comp = csgraph.connected_components(graph, directed=False)
+    entries, e_comp = _shared_ring_entries(cells, offsets, comp, edges)
+    merged = merge_hole_stats(
+        [c.stats for c in cells] + [_shared_ring_stats(entries, cells[0].stats.height_bin)],
+        [comp[offsets[k] : offsets[k + 1]] for k in range(len(cells))] + [e_comp],
+        n_comp,
+    )
+    # hole ids 1..H in raster order of first pixels
+    order = np.lexsort((merged["first_col"], merged["first_row"]))
+    hole_id_of_comp = np.empty(n_comp, np.int64)
+    hole_id_of_comp[order] = np.arange(1, n_comp + 1)
+    stats = merged.take(order)
+    parts = _parts_table(cells, offsets, hole_id_of_comp[comp], _layers(cells, graph))
+    graph.sort_indices()
+    return HoleCatalog(
+        holes=_holes_table(parts, stats, n_cells=len(cells), min_area_px=min_area_px),
+        stats=stats,
+        parts=parts,
+        neighbour_ptr=graph.indptr.astype(np.int64),
+        neighbour_idx=graph.indices.astype(np.int64),
+        connectivity=connectivity,
+        min_area_px=int(min_area_px),
+        settled_small_voids=sum(c.small_void_count for c in cells),
+        settled_small_void_px=sum(c.small_void_px for c in cells),
+    )
+
+
+@dataclass(frozen=True)
+class _EdgePixels:
+    """Every hole pixel on a cell edge (global row/column), its part (node) and its side."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    nodes: np.ndarray
+    side: np.ndarray  # index into SIDES
+    keys: np.ndarray  # sorted unique packed positions, for node_at
+    key_nodes: np.ndarray
+
+    @classmethod
+    def of(cls, cells: Sequence[CellHoles], offsets: np.ndarray) -> _EdgePixels:
+        empty = np.zeros(0, np.int64)
+        rows, cols, nodes, side = [empty], [empty], [empty], [empty]
+        for k, c in enumerate(cells):
+            for strip in c.edges:
+                m = strip.labels > 0
+                rows.append(strip.rows[m])
+                cols.append(strip.cols[m])
+                nodes.append(offsets[k] + strip.labels[m].astype(np.int64) - 1)
+                side.append(np.full(int(m.sum()), SIDES.index(strip.side), np.int64))
+        rows, cols, nodes, side = (np.concatenate(x) for x in (rows, cols, nodes, side))
+        keys, first_index = np.unique((rows + 1) * _BIG + (cols + 1), return_index=True)
+        return cls(rows, cols, nodes, side, keys, nodes[first_index])
+
+    def node_at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """The part (node) holding the edge hole pixel at (rows, cols); -1 where none."""
+        key = (rows + 1) * _BIG + (cols + 1)
+        if not len(self.keys):
+            return np.full(len(key), -1, np.int64)
+        i = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
+        return np.where(self.keys[i] == key, self.key_nodes[i], -1)
+
+
+def _contact_graph(edges: _EdgePixels, connectivity: int, n_nodes: int) -> sparse.csr_matrix:
+    """Symmetric 0/1 adjacency of the parts whose edge pixels touch across a cell edge."""
+    a_list, b_list = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for s, side in enumerate(SIDES):
+        m = edges.side == s
+        dr, dc = _ACROSS[side]
+        steps = [(dr, dc)]
+        if connectivity == 8:
+            steps += [(dr, -1), (dr, 1)] if dr else [(-1, dc), (1, dc)]
+        for sr, sc in steps:
+            other = edges.node_at(edges.rows[m] + sr, edges.cols[m] + sc)
+            ok = other >= 0
+            a_list.append(edges.nodes[m][ok])
+            b_list.append(other[ok])
+    a, b = np.concatenate(a_list), np.concatenate(b_list)
+    keep = a != b
+    a, b = a[keep], b[keep]
+    graph = sparse.coo_matrix(
+        (np.ones(2 * len(a), np.int8), (np.concatenate([a, b]), np.concatenate([b, a]))),
+        shape=(n_nodes, n_nodes),
+    ).tocsr()
+    graph.sum_duplicates()
+    graph.data[:] = 1
+    return graph
+
+
+def _shared_ring_entries(
+    cells: Sequence[CellHoles], offsets: np.ndarray, comp: np.ndarray, edges: _EdgePixels
+) -> tuple[np.ndarray, np.ndarray]:
+    """Shared ring pixels with the hole (component) on their other side, each once per hole."""
+    ent_all, ent_comp = [np.zeros(0, SHARED_RING_DTYPE)], [np.zeros(0, np.int64)]
+    for k, c in enumerate(cells):
+        e = c.shared_ring
+        if not len(e):
+            continue
+        node = np.where(e["label"] > 0, offsets[k] + e["label"].astype(np.int64) - 1, -1)
+        foreign = e["label"] == 0
+        if foreign.any():
+            node[foreign] = edges.node_at(e["ref_row"][foreign], e["ref_col"][foreign])
+        ok = node >= 0  # a neighbour cell that was not given leaves its side unresolved
+        ent_all.append(e[ok])
+        ent_comp.append(comp[node[ok]])
+    entries, e_comp = np.concatenate(ent_all), np.concatenate(ent_comp)
+    if len(entries):
+        pixel = (entries["row"] + 1) * _BIG + (entries["col"] + 1)
+        _, uniq = np.unique(np.stack([pixel, e_comp], axis=1), axis=0, return_index=True)
+        entries, e_comp = entries[uniq], e_comp[uniq]
+    return entries, e_comp
+
+
+def _layers(cells: Sequence[CellHoles], graph: sparse.csr_matrix) -> np.ndarray:
+    """[OPEN] 3.2: 1 + the breadth-first distance from the parts that touch measured data (0: none reached)."""
+    touches = np.concatenate([c.parts["touches_data"] for c in cells])
+    layer = np.zeros(graph.shape[0], np.int64)
+    sources = np.flatnonzero(touches)
+    if len(sources):
+        dist = csgraph.dijkstra(graph, directed=False, indices=sources, unweighted=True, min_only=True)
+        finite = np.isfinite(dist)
+        layer[finite] = dist[finite].astype(np.int64) + 1
+    return layer
+
+
+def _parts_table(
+    cells: Sequence[CellHoles], offsets: np.ndarray, hole_id: np.ndarray, layer: np.ndarray
+) -> np.ndarray:
+    """One row per part of every cell (see :attr:`HoleCatalog.parts`)."""
+    id_len = max([len(c.cell.id) for c in cells] + [1])
+    parts = np.zeros(
+        len(hole_id),
+        [("hole_id", np.int64), ("cell", np.int64), ("cell_id", f"U{id_len}"), ("index_x", np.int64),
+         ("index_y", np.int64), ("label", np.int32), ("layer", np.int64), ("area_px", np.int64),
+         ("category", "U6"), ("shape", "U1")],
+    )
+    for k, c in enumerate(cells):
+        sl = slice(offsets[k], offsets[k + 1])
+        parts["cell"][sl] = k
+        parts["cell_id"][sl] = c.cell.id
+        parts["index_x"][sl] = c.cell.index_x
+        parts["index_y"][sl] = c.cell.index_y
+        parts["label"][sl] = c.parts["label"]
+        parts["area_px"][sl] = c.stats["area_px"]
+        parts["category"][sl] = c.parts["category"]
+        parts["shape"][sl] = c.parts["shape"]
+    parts["hole_id"] = hole_id
+    parts["layer"] = layer
+    return parts
+
+
+def _holes_table(parts: np.ndarray, stats: HoleStats, *, n_cells: int, min_area_px: int) -> np.ndarray:
+    """One row per hole (see :attr:`HoleCatalog.holes`)."""
+    n_comp = len(stats)
+    holes = np.zeros(
+        n_comp,
+        [("hole_id", np.int64), ("area_px", np.int64), ("n_parts", np.int64), ("n_cells", np.int64),
+         ("max_layer", np.int64), ("touches_aoi_boundary", np.bool_), ("is_small", np.bool_)],
+    )
+    hid = parts["hole_id"] - 1
+    holes["hole_id"] = np.arange(1, n_comp + 1)
+    holes["area_px"] = stats["area_px"]
+    holes["n_parts"] = np.bincount(hid, minlength=n_comp)
+    hole_cells = np.unique(hid * (n_cells + 1) + parts["cell"])
+    holes["n_cells"] = np.bincount(hole_cells // (n_cells + 1), minlength=n_comp)
+    max_layer = np.zeros(n_comp, np.int64)
+    np.maximum.at(max_layer, hid, parts["layer"])
+    holes["max_layer"] = max_layer
+    holes["touches_aoi_boundary"] = stats["aoi_edge_px"] > 0
+    holes["is_small"] = holes["area_px"] < min_area_px
+    return holes

@@ -1,0 +1,92 @@
+"""Tests of pipeline.holes.causes: the cause rules are configuration data ([causes])."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from pipeline.config import SECTIONS, Config, load_config
+from pipeline.errors import ConfigError
+from pipeline.holes import CauseRules, classify_causes
+from pipeline.holes.causes import CONFIG_KEYS, RULES
+
+from .test_holes import run
+
+
+def big_hole_cause(catalog, rules: CauseRules):
+    causes = classify_causes(catalog.stats, rules)
+    return causes[np.argmax(catalog.holes["area_px"])]
+
+
+def rules_for(config: Config) -> CauseRules:
+    return CauseRules.from_config(config, pixel_size_m=1.0, vertical_unit_m=1.0)
+
+
+def test_every_cause_rule_field_maps_to_a_config_key():
+    fields = [f.name for f in dataclasses.fields(CauseRules)]
+    assert list(CONFIG_KEYS) == fields
+    for field, key in CONFIG_KEYS.items():
+        section, name = key.split(".")
+        assert name in {f.name for f in dataclasses.fields(SECTIONS[section])}, f"{field}: no config key {key}"
+    # and every [causes] key is a threshold of the rules
+    used = {key for key in CONFIG_KEYS.values() if key.startswith("causes.")}
+    assert used == {f"causes.{f.name}" for f in dataclasses.fields(SECTIONS["causes"])}
+
+
+def test_cause_rules_from_config_are_in_survey_units():
+    config = load_config(overrides=["holes.jump_threshold_m=3.0", "causes.max_shadow_ratio=0.6"])
+    rules = CauseRules.from_config(config, pixel_size_m=2.0, vertical_unit_m=0.3048)
+    assert rules.jump_threshold == 3.0 / 0.3048
+    assert rules.pixel_size == 2.0 / 0.3048
+    assert rules.max_shadow_ratio == 0.6
+    for field, key in CONFIG_KEYS.items():
+        if key.startswith("causes."):
+            assert getattr(rules, field) == getattr(config.causes, field)
+    # the defaults are those of the configuration
+    assert CauseRules.with_defaults(pixel_size=2.0 / 0.3048, jump_threshold=3.0 / 0.3048, max_shadow_ratio=0.6) == rules
+
+
+def test_a_changed_config_key_changes_a_cause():
+    rng = np.random.default_rng(1)
+    z = 100 + rng.normal(0, 0.03, (96, 96))
+    count = np.ones((96, 96), np.uint32)
+    z[20:60, 20:45] += 12.0  # a 12 m building
+    count[20:60, 45:51] = 0  # its scan shadow: 6 px wide band along the east wall
+    _, _, catalog = run(count, z, cell_px=64, min_area_px=10)
+    assert big_hole_cause(catalog, rules_for(load_config()))["cause"] == "occlusion"
+    # a 6 px band beside a 12 m wall is no shadow if shadows must be under 0.1 x the wall's height
+    narrow = rules_for(load_config(overrides=["causes.max_shadow_ratio=0.1"]))
+    assert big_hole_cause(catalog, narrow)["cause"] != "occlusion"
+
+
+def test_a_changed_strip_key_changes_missed_coverage():
+    rng = np.random.default_rng(5)
+    n = 200
+    z = 50 + rng.normal(0, 0.05, (n, n))
+    count = np.ones((n, n), np.uint32)
+    count[90:102, :] = 0
+    _, _, catalog = run(count, z, cell_px=64, min_area_px=10)
+    assert big_hole_cause(catalog, rules_for(load_config()))["cause"] == "missed_coverage"
+    longer = rules_for(load_config(overrides=["causes.strip_min_length_px=500"]))
+    assert big_hole_cause(catalog, longer)["cause"] != "missed_coverage"
+
+
+def test_rule_order_is_one_table():
+    assert [rule for rule, _ in RULES] == ["water_mask", "water_points", "jumps", "shadow", "strip", "flat_low_rim"]
+
+
+@pytest.mark.parametrize(
+    "override, words",
+    [
+        ("causes.low_quantile=1.5", ["causes.low_quantile", "<= 1"]),
+        ("causes.strip_min_fill=-1", ["causes.strip_min_fill", ">= 0"]),
+        ("causes.low_quantile=0.99", ["causes.low_quantile", "below", "causes.high_quantile"]),
+    ],
+)
+def test_bad_cause_thresholds_are_refused(override, words):
+    with pytest.raises(ConfigError) as info:
+        load_config(overrides=[override])
+    for word in words:
+        assert word in str(info.value)
