@@ -69,7 +69,7 @@ def read_holes(path: str | os.PathLike, *, layer: str = "holes") -> tuple[list[H
     except Exception as e:
         raise InputDataError(path, f"cannot read layer '{layer}': {e}") from None
     missing = [c for c in ("hole_id", "area_m2", "cause") if c not in frame.columns]
-    if missing:
+    if missing and len(frame):  # an empty layer may carry no fields at all
         raise InputDataError(path, f"layer '{layer}' lacks the field(s) {', '.join(missing)}")
     if frame.crs is None:
         raise CRSError(path, f"layer '{layer}' has no CRS")
