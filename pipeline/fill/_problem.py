@@ -143,18 +143,21 @@ def padded_box(sl: tuple[slice, slice], pad: int, shape: tuple[int, int]) -> tup
             slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, shape[1])))
 
 
-def support_points(problem: Problem, label: int, rim_flat: np.ndarray, k: int) -> np.ndarray:
+def support_points(problem: Problem, label: int, rim_flat: np.ndarray, k: int, min_reach: int = 0) -> np.ndarray:
     """Flat indices of the support points of one component: its rim plus the ``k``
     nearest measured neighbours of every rim pixel ([MLS] 2.1 step 3).
 
     Neighbours are searched in a band grown from the rim through support pixels only
     (a geodesic dilation), so they never reach across a barrier or a non-support pixel.
+    With ``min_reach`` wider than the k-neighbour band, the band of that width (thinned
+    to a lattice beyond the k-neighbour band) is the support (large holes need a thick rim to fix a quadratic, see ``mls.py``).
     """
     if len(rim_flat) == 0 or k <= 0:
         return rim_flat
     h, w = problem.labels.shape
     rr, cc = np.divmod(rim_flat, w)
-    reach = int(np.ceil(np.sqrt(k))) + 1
+    base = int(np.ceil(np.sqrt(k))) + 1
+    reach = max(base, min_reach)
     box = (slice(max(rr.min() - reach, 0), min(rr.max() + reach + 1, h)),
            slice(max(cc.min() - reach, 0), min(cc.max() + reach + 1, w)))
     sup = problem.support[box]
@@ -162,6 +165,13 @@ def support_points(problem: Problem, label: int, rim_flat: np.ndarray, k: int) -
     seed[rr - box[0].start, cc - box[1].start] = True
     band = ndi.binary_dilation(seed, structure=np.ones((3, 3), bool), iterations=reach, mask=sup)
     br, bc = np.nonzero(band)
+    if reach > base:
+        # the outer band on a sparser lattice (stride ~ reach / 5): it fixes the broad
+        # trend; the k-neighbour band near the rim stays dense
+        stride = max(1, reach // 5)
+        near = ndi.binary_dilation(seed, structure=np.ones((3, 3), bool), iterations=base, mask=sup)
+        keep = near[br, bc] | (((br + box[0].start) % stride == 0) & ((bc + box[1].start) % stride == 0))
+        return np.union1d((br[keep] + box[0].start) * w + (bc[keep] + box[1].start), rim_flat)
     if len(br) <= len(rr):
         return rim_flat
     tree = cKDTree(np.column_stack([br, bc]))

@@ -179,5 +179,7 @@ def _reduction(problem: Problem, rows, cols, large: list[int]) -> sparse.csr_mat
     r_idx = np.concatenate([np.nonzero(~interior)[0], np.repeat(ii, 4)])
     c_idx = np.concatenate([free_col[~interior], n_free + node_cols[ii].ravel()])
     v = np.concatenate([np.ones(n_free), node_w[ii].ravel()])
+    nonzero = v != 0.0
+    r_idx, c_idx, v = r_idx[nonzero], c_idx[nonzero], v[nonzero]
     used, c_idx = np.unique(c_idx, return_inverse=True)
     return sparse.csr_matrix((v, (r_idx, c_idx)), shape=(n, len(used)))

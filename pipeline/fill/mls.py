@@ -59,7 +59,8 @@ def fill_mls(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[Comp
     recs = []
     for k in labels:
         k = int(k)
-        pts = support_points(problem, k, rims[k], st.mls_k)
+        reach = int(np.ceil(st.mls_band_fraction * np.sqrt(sizes[k])))
+        pts = support_points(problem, k, rims[k], st.mls_k, min_reach=reach)
         if len(pts) == 0:
             recs.append(ComponentFill(label=k, n_pixels=int(sizes[k]), method="none", filled=False))
             continue
@@ -142,7 +143,7 @@ def mls_surface(sx, sy, sz, ex, ey, dist, settings, *, dense_band=0.0, step=4, p
     cell = _cell_size(su, sv, h_min)
     order_idx, starts, g0, nu, nv = _buckets(su, sv, cell)
     args = (su[order_idx], sv[order_idx], ss[order_idx], starts, g0[0], g0[1], cell, nu, nv,
-            origin, axes, st.mls_order, st.weight_code, st.mls_min_points)
+            origin, axes, st.mls_order, st.weight_code, st.mls_min_points, st.mls_drop_tolerance)
     lattice = dense_band > 0 and rows is not None and np.any(dist > dense_band)
     n = len(ex)
     z, order, flags = np.empty(n), np.empty(n, np.int64), np.zeros(n, np.int64)
@@ -218,7 +219,7 @@ def _weight(r, kind):
 
 @numba.njit(cache=True, nogil=True)
 def _mls_eval(ex, ey, h0, su, sv, ss, starts, u_min, v_min, cell, nu, nv, origin, axes, max_order, wkind,
-              min_points):
+              min_points, drop_tol):
     n = len(ex)
     z = np.empty(n)
     order_out = np.empty(n, np.int64)
@@ -287,7 +288,7 @@ def _mls_eval(ex, ey, h0, su, sv, ss, starts, u_min, v_min, cell, nu, nv, origin
             for a in range(nterm):
                 for b in range(nterm):
                     nrm += coef[j, a] * gram[a, b] * coef[j, b]
-            if not nrm > 1e-10 * gram[j, j] or gram[j, j] <= 0.0:
+            if not nrm > drop_tol * gram[j, j] or gram[j, j] <= 0.0:
                 continue
             kept[j] = True
             norms[j] = nrm

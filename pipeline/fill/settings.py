@@ -75,6 +75,15 @@ class FillSettings:
     mls_min_points : int
         Fewer support points than this inside ``h`` widens ``h`` (x1.5 steps) and the
         component is marked degraded. Default 10.
+    mls_band_fraction : float
+        Large holes: the support is the whole band of measured pixels within
+        ``mls_band_fraction * sqrt(hole pixels)`` of the rim when that is wider than the
+        k-neighbour band. A thin rim around a big round hole nearly satisfies
+        ``u^2 + v^2 = R^2``, which leaves the quadratic undetermined in the middle; a
+        thick one fixes it. Default 0.1.
+    mls_drop_tolerance : float
+        Gram-Schmidt drops a basis function whose weighted orthogonal remainder is below
+        this fraction of its own weighted norm. Default 1e-6.
     mls_frame : {"horizontal", "tilted"}
         Local frame ([MLS] 2.3.2 steps 1-2). "tilted": the PCA plane of the support
         points is the UV plane and the height is where the vertical line through the
@@ -129,6 +138,8 @@ class FillSettings:
     mls_radius_factor: float = 2.5
     mls_min_radius_px: float = 4.5
     mls_min_points: int = 10
+    mls_band_fraction: float = 0.1
+    mls_drop_tolerance: float = 1e-6
     mls_frame: str = "horizontal"
     mls_dense_band_px: float = 8.0
     mls_lattice_step_px: int = 4
@@ -156,7 +167,7 @@ class FillSettings:
         _choice(self, "tin_order", (1, 2))
         _choice(self, "mls_weight", _WEIGHTS)
         _choice(self, "mls_frame", _FRAMES)
-        for name in ("mls_radius_factor", "mls_min_radius_px", "idw_power"):
+        for name in ("mls_radius_factor", "mls_min_radius_px", "idw_power", "mls_band_fraction", "mls_drop_tolerance"):
             if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
                 raise ValueError(f"FillSettings.{name} must be a finite number > 0, got {getattr(self, name)!r}")
         for name in ("mls_dense_band_px", "seam_width_px", "tin_band_px", "tin_direct_max_px", "auto_small_px"):
