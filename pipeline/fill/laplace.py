@@ -164,8 +164,14 @@ def _reduction(problem: Problem, rows, cols, large: list[int]) -> sparse.csr_mat
         sel, lr, lc = sel[inner], lr[inner], lc[inner]
         gi, gj = lr / f, lc / f
         i0, j0 = np.floor(gi).astype(np.int64), np.floor(gj).astype(np.int64)
-        fi, fj = gi - i0, gj - j0
         ncol = int(j0.max(initial=0)) + 2
+        # only whole lattice cells go on the lattice: the bilinear functions of whole
+        # cells are linearly independent (a lone pixel in a cell would make two
+        # lattice nodes indistinguishable and the system singular)
+        cell = i0 * ncol + j0
+        whole = np.bincount(cell)[cell] == f * f
+        sel, i0, j0, gi, gj = sel[whole], i0[whole], j0[whole], gi[whole], gj[whole]
+        fi, fj = gi - i0, gj - j0
         for m, (di, dj, wgt) in enumerate(((0, 0, (1 - fi) * (1 - fj)), (1, 0, fi * (1 - fj)),
                                            (0, 1, (1 - fi) * fj), (1, 1, fi * fj))):
             node_cols[sel, m] = next_col + (i0 + di) * ncol + (j0 + dj)

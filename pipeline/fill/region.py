@@ -86,11 +86,11 @@ def fill_region(
     present = np.nonzero(problem.sizes()[1:])[0] + 1
     chosen = choose_methods(problem.labels, present, settings) if method == "auto" else {int(k): method for k in present}
     out = problem.heights.copy()
-    code = np.zeros(out.shape, np.uint8)
     records = _run(problem, chosen, out)
+    lut = np.zeros(problem.n_labels + 1, np.uint8)
     for rec in records.values():
-        if rec.filled:
-            code[problem.labels == rec.label] = METHOD_CODES[rec.method]
+        lut[rec.label] = METHOD_CODES[rec.method] if rec.filled else NOT_FILLED
+    code = lut[problem.labels]
     if settings.estimate_error and records:
         errors = _holdout_errors(problem, chosen, records)
         records = {k: replace(r, error_estimate=errors.get(k, math.nan)) for k, r in records.items()}
@@ -118,24 +118,26 @@ def _run(problem: Problem, chosen: dict[int, str], out: np.ndarray) -> dict[int,
 def choose_methods(labels: np.ndarray, present: np.ndarray, settings: FillSettings) -> dict[int, str]:
     """The ``auto`` rule: a method per component label.
 
-    * components of at most ``auto_small_px`` pixels: ``tin`` (the fairing is exact
-      for planes and, at second order, quadratics, and cheapest per pixel);
-    * larger components that are compact (pixel count / bounding-box area at least
-      ``auto_mls_min_fill``): ``mls``, whose quadratic fit carries the trend of the
-      terrain into the middle of a big hole where fairing flattens out;
-    * larger elongated components (flight-line gaps, strips along walls): ``tin``.
+    ``tin`` (biharmonic fairing: exact for planes and quadratics, and the most accurate
+    method on the benchmark for every hole size), except components of at least
+    ``auto_mls_min_px`` pixels that are round (``auto_mls_min_roundness``), which use
+    ``mls`` when that option is switched on (``auto_mls_min_px > 0``). Elongated holes
+    (flight-line gaps, strips along walls) always use ``tin``: a moving quadratic fit
+    across a strip is driven by one side at a time.
     """
+    chosen = {int(k): "tin" for k in present}
+    if settings.auto_mls_min_px <= 0:
+        return chosen
     sizes = np.bincount(labels.ravel(), minlength=int(present.max(initial=0)) + 1)
     boxes = ndi.find_objects(labels)
-    chosen = {}
     for k in present:
         k = int(k)
-        if sizes[k] <= settings.auto_small_px:
-            chosen[k] = "tin"
+        if sizes[k] < settings.auto_mls_min_px:
             continue
         sl = boxes[k - 1]
-        fill_ratio = sizes[k] / ((sl[0].stop - sl[0].start) * (sl[1].stop - sl[1].start))
-        chosen[k] = "mls" if fill_ratio >= settings.auto_mls_min_fill else "tin"
+        longest = max(sl[0].stop - sl[0].start, sl[1].stop - sl[1].start)
+        if sizes[k] / (np.pi / 4 * longest**2) >= settings.auto_mls_min_roundness:
+            chosen[k] = "mls"
     return chosen
 
 

@@ -106,7 +106,7 @@ class FillSettings:
         lattice of spacing ``tin_lattice_px`` inside (a Galerkin-reduced system).
         Default 6000.
     tin_band_px, tin_lattice_px : int
-        See ``tin_direct_max_px``. Defaults 8 and 8.
+        See ``tin_direct_max_px``. Defaults 4 and 6.
     idw_k : int
         Neighbours of inverse distance weighting. Default 12.
     idw_power : float
@@ -116,11 +116,14 @@ class FillSettings:
         include vegetation and walls, never anything below the water). Default 10.
     flat_level : float or None
         A fixed level for ``flat`` instead of the rim percentile. Default None.
-    auto_small_px : int
-        ``auto``: components up to this size use ``tin``. Default 2000.
-    auto_mls_min_fill : float
-        ``auto``: larger components use ``mls`` when compact (pixels / bounding-box
-        area at least this), else ``tin``. Default 0.35.
+    auto_mls_min_px : int
+        ``auto``: components of at least this many pixels that are round use ``mls``;
+        everything else uses ``tin``. ``0`` (default) never picks ``mls``: on the
+        synthetic benchmark (docs/filling.md) the biharmonic ``tin`` is more accurate
+        than ``mls`` for small and for large holes alike.
+    auto_mls_min_roundness : float
+        Roundness = pixels / area of the circle whose diameter is the longer side of
+        the bounding box (disc 1, square 1.27, strip 3x90 0.04). Default 0.5.
     seam_gamma, seam_iterations, seam_width_px
         Defaults of :func:`smooth_seams` ([OPEN] 3.4 eq. 5): 0.5, 10, 3.
     estimate_error : bool
@@ -145,14 +148,14 @@ class FillSettings:
     mls_lattice_step_px: int = 4
     tin_order: int = 2
     tin_direct_max_px: int = 6000
-    tin_band_px: int = 8
-    tin_lattice_px: int = 8
+    tin_band_px: int = 4
+    tin_lattice_px: int = 6
     idw_k: int = 12
     idw_power: float = 2.0
     flat_percentile: float = 10.0
     flat_level: float | None = None
-    auto_small_px: int = 2000
-    auto_mls_min_fill: float = 0.35
+    auto_mls_min_px: int = 0
+    auto_mls_min_roundness: float = 0.5
     seam_gamma: float = 0.5
     seam_iterations: int = 10
     seam_width_px: float = 3.0
@@ -170,15 +173,15 @@ class FillSettings:
         for name in ("mls_radius_factor", "mls_min_radius_px", "idw_power", "mls_band_fraction", "mls_drop_tolerance"):
             if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
                 raise ValueError(f"FillSettings.{name} must be a finite number > 0, got {getattr(self, name)!r}")
-        for name in ("mls_dense_band_px", "seam_width_px", "tin_band_px", "tin_direct_max_px", "auto_small_px"):
+        for name in ("mls_dense_band_px", "seam_width_px", "tin_band_px", "tin_direct_max_px", "auto_mls_min_px"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"FillSettings.{name} must be >= 0, got {getattr(self, name)!r}")
         if not 0 < self.seam_gamma < 1:
             raise ValueError(f"FillSettings.seam_gamma must be in (0, 1) ([OPEN] eq. 5), got {self.seam_gamma!r}")
         if not 0 <= self.flat_percentile <= 100:
             raise ValueError(f"FillSettings.flat_percentile must be in [0, 100], got {self.flat_percentile!r}")
-        if not 0 <= self.auto_mls_min_fill <= 1:
-            raise ValueError(f"FillSettings.auto_mls_min_fill must be in [0, 1], got {self.auto_mls_min_fill!r}")
+        if not self.auto_mls_min_roundness >= 0:
+            raise ValueError(f"FillSettings.auto_mls_min_roundness must be >= 0, got {self.auto_mls_min_roundness!r}")
 
     @property
     def weight_code(self) -> int:
@@ -213,8 +216,9 @@ class ComponentFill:
     filled : bool
         False when the component had no support at all (left NaN, code 255).
     degraded : bool
-        The method had to fall back: MLS with a lower order or a widened support,
-        ``tin`` of a large component on the reduced (band + lattice) system.
+        The method had to fall back: MLS with a lower order or a widened support.
+        (A large ``tin`` component on the reduced system is not degraded; ``detail``
+        says so.)
     n_support : int
         Measured pixels used as support (rim pixels, plus their neighbours for
         ``mls``/``idw``).
