@@ -1,0 +1,130 @@
+"""Helpers that turn a hole's cause into fill inputs (pure array functions).
+
+* occlusion next to a building: :func:`lower_side_support`, so the hole is filled from
+  the ground and not ramped up to the roof;
+* water: :func:`rim_level`, the level for a ``flat`` (hydro-flattened) fill.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.ndimage as ndi
+
+from ._problem import CROSS
+
+__all__ = ["lower_side_support", "rim_level"]
+
+
+def _components(region: np.ndarray, labels: np.ndarray | None) -> tuple[np.ndarray, int]:
+    region = np.asarray(region, bool)
+    if labels is None:
+        lab, n = ndi.label(region, structure=CROSS)
+        return lab, int(n)
+    lab = np.where(region, np.asarray(labels), 0)
+    return lab, int(lab.max(initial=0))
+
+
+def _rim_pairs(heights: np.ndarray, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted unique (label, flat index) of finite non-region pixels 4-adjacent to a component."""
+    h, w = heights.shape
+    rows, cols = np.nonzero(lab)
+    pairs_l, pairs_i = [], []
+    finite_out = np.isfinite(heights) & (lab == 0)
+    for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        r, c = rows + dr, cols + dc
+        ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        r, c, ll = r[ok], c[ok], lab[rows[ok], cols[ok]]
+        good = finite_out[r, c]
+        pairs_l.append(ll[good])
+        pairs_i.append(r[good] * w + c[good])
+    key = np.unique(np.concatenate(pairs_l).astype(np.int64) * (h * w) + np.concatenate(pairs_i))
+    return key // (h * w), key % (h * w)
+
+
+def lower_side_support(
+    heights: np.ndarray,
+    region: np.ndarray,
+    *,
+    jump_threshold: float,
+    quantile: float = 0.1,
+    labels: np.ndarray | None = None,
+) -> np.ndarray:
+    """Rim pixels on the low side of a height step: the support for an occlusion hole.
+
+    For each component of ``region`` the low rim level is the ``quantile`` of its rim
+    heights (rim = finite pixels 4-adjacent to it; a low quantile rather than the
+    minimum, so that one stray low point does not exclude the ground); rim pixels
+    higher than that level plus ``jump_threshold`` (roof, wall top) are dropped.
+
+    Parameters
+    ----------
+    heights : ndarray of shape (M, N)
+        Heights, NaN = unknown.
+    region : ndarray of bool, shape (M, N)
+        Pixels to fill.
+    jump_threshold : float
+        Height step (z units) separating ground from roof; use the one that found the
+        walls (``holes.height_jumps``).
+    quantile : float
+        Quantile of the rim heights taken as the low level. Default 0.1.
+    labels : ndarray of int, optional
+        Component labels (default: 4-connected components of ``region``).
+
+    Returns
+    -------
+    ndarray of bool, shape (M, N)
+        True on the low-side rim pixels; pass it as ``support`` to :func:`fill_region`.
+    """
+    heights = np.asarray(heights, np.float64)
+    if not jump_threshold > 0:
+        raise ValueError(f"`jump_threshold` must be > 0, got {jump_threshold!r}")
+    if not 0 <= quantile <= 1:
+        raise ValueError(f"`quantile` must be in [0, 1], got {quantile!r}")
+    lab, n = _components(region, labels)
+    out = np.zeros(heights.shape, bool)
+    if n == 0:
+        return out
+    pl, pi = _rim_pairs(heights, lab)
+    z = heights.ravel()[pi]
+    low = np.full(n + 1, np.nan)
+    bounds = np.searchsorted(pl, np.arange(n + 2))
+    for k in np.unique(pl):
+        low[k] = np.quantile(z[bounds[k]:bounds[k + 1]], quantile)
+    keep = z <= low[pl] + jump_threshold
+    out.ravel()[pi[keep]] = True
+    # a pixel judged high for any neighbouring hole is not support
+    out.ravel()[pi[~keep]] = False
+    return out
+
+
+def rim_level(
+    heights: np.ndarray,
+    region: np.ndarray,
+    *,
+    percentile: float = 10.0,
+    labels: np.ndarray | None = None,
+) -> np.ndarray:
+    """Water level of each component: a low percentile of its rim heights.
+
+    Shore pixels carry vegetation, walls and bridges but nothing below the water, so a
+    low percentile (default the 10th) is the level of the water's edge, robust to a few
+    stray low returns.
+
+    Returns
+    -------
+    ndarray of float64, shape (n_components + 1,)
+        Level per label (index 0 and rimless components: NaN).
+    """
+    heights = np.asarray(heights, np.float64)
+    if not 0 <= percentile <= 100:
+        raise ValueError(f"`percentile` must be in [0, 100], got {percentile!r}")
+    lab, n = _components(region, labels)
+    levels = np.full(n + 1, np.nan)
+    if n == 0:
+        return levels
+    pl, pi = _rim_pairs(heights, lab)
+    z = heights.ravel()[pi]
+    bounds = np.searchsorted(pl, np.arange(n + 2))
+    for k in np.unique(pl):
+        levels[k] = np.percentile(z[bounds[k]:bounds[k + 1]], percentile)
+    return levels

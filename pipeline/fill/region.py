@@ -1,0 +1,193 @@
+"""One entry point, :func:`fill_region`, and the registry of fill methods."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+import scipy.ndimage as ndi
+
+from ._problem import Problem, build_problem, rim_pairs
+from .baselines import fill_flat, fill_idw, fill_nearest
+from .laplace import fill_tin
+from .mls import fill_mls
+from .settings import METHOD_CODES, NOT_FILLED, ComponentFill, FillOutcome, FillSettings
+
+__all__ = ["FILL_METHODS", "choose_methods", "fill_region"]
+
+Kernel = Callable[[Problem, np.ndarray, np.ndarray], list[ComponentFill]]
+
+FILL_METHODS: dict[str, Kernel] = {
+    "nearest": fill_nearest,
+    "idw": fill_idw,
+    "mls": fill_mls,
+    "tin": fill_tin,
+    "flat": fill_flat,
+}
+"""Every kernel has the signature ``kernel(problem, labels, out) -> list[ComponentFill]``:
+it fills the components ``labels`` of ``problem`` into the float64 raster ``out``."""
+
+
+def fill_region(
+    heights: np.ndarray,
+    region: np.ndarray,
+    *,
+    method: str = "auto",
+    pixel_size: float = 1.0,
+    settings: FillSettings | None = None,
+    support: np.ndarray | None = None,
+    barriers: np.ndarray | None = None,
+    labels: np.ndarray | None = None,
+) -> FillOutcome:
+    """Fill every connected component of ``region`` from the measured pixels around it.
+
+    Parameters
+    ----------
+    heights : ndarray of shape (M, N)
+        Heights (any real dtype); NaN = unknown. Row 0 is north. Not modified.
+    region : ndarray of bool, shape (M, N)
+        Pixels to fill (True). Their input heights are ignored, even finite ones.
+    method : {"auto", "tin", "mls", "idw", "nearest", "flat"}
+        Fill method; ``auto`` chooses per component (:func:`choose_methods`).
+    pixel_size : float
+        Pixel size in survey units (the MLS fit uses metric coordinates).
+    settings : FillSettings, optional
+        Method parameters; ``FillSettings()`` by default.
+    support : ndarray of bool, optional
+        Measured pixels allowed to serve as rim / support points (default: every
+        finite pixel outside the region). Pass :func:`lower_side_support` to fill an
+        occlusion hole from the ground only.
+    barriers : ndarray of bool, optional
+        Break lines (walls): never support, and the neighbourhood graph is cut there
+        (components are split by them; ``tin`` has no edge across them; MLS/IDW
+        neighbours are searched through support pixels only). Region pixels on a
+        barrier are filled last with the highest adjacent height (code ``barrier``).
+    labels : ndarray of int, optional
+        Caller's component labels (> 0 on every region pixel). Default: 4-connected
+        components of ``region`` minus ``barriers``.
+
+    Returns
+    -------
+    FillOutcome
+        Filled heights, per-pixel method codes, labels and one record per component.
+
+    Raises
+    ------
+    ValueError
+        Unknown method, arrays of different shapes, bad labels or pixel size.
+    """
+    settings = FillSettings() if settings is None else settings
+    if method != "auto" and method not in FILL_METHODS:
+        raise ValueError(f"unknown fill method {method!r}, must be one of {['auto', *FILL_METHODS]}")
+    problem = build_problem(heights, region, pixel_size=pixel_size, settings=settings, support=support,
+                            barriers=barriers, labels=labels)
+    present = np.nonzero(problem.sizes()[1:])[0] + 1
+    chosen = choose_methods(problem.labels, present, settings) if method == "auto" else {int(k): method for k in present}
+    out = problem.heights.copy()
+    records = _run(problem, chosen, out)
+    lut = np.zeros(problem.n_labels + 1, np.uint8)
+    for rec in records.values():
+        lut[rec.label] = METHOD_CODES[rec.method] if rec.filled else NOT_FILLED
+    code = lut[problem.labels]
+    if settings.estimate_error and records:
+        errors = _holdout_errors(problem, chosen, records)
+        records = {k: replace(r, error_estimate=errors.get(k, math.nan)) for k, r in records.items()}
+    region_b = np.asarray(region, bool)
+    if barriers is not None:
+        _fill_barrier_pixels(out, code, region_b & np.asarray(barriers, bool))
+    bad = region_b & ~np.isfinite(out)
+    out[bad] = np.nan
+    code[bad] = NOT_FILLED
+    dtype = heights.dtype if np.issubdtype(np.asarray(heights).dtype, np.floating) else np.float64
+    return FillOutcome(heights=out.astype(dtype, copy=False), method_code=code, labels=problem.labels,
+                       components=tuple(records[k] for k in sorted(records)))
+
+
+def _run(problem: Problem, chosen: dict[int, str], out: np.ndarray) -> dict[int, ComponentFill]:
+    records: dict[int, ComponentFill] = {}
+    for name, kernel in FILL_METHODS.items():
+        labs = np.array(sorted(k for k, m in chosen.items() if m == name), np.int64)
+        if len(labs):
+            for rec in kernel(problem, labs, out):
+                records[rec.label] = rec
+    return records
+
+
+def choose_methods(labels: np.ndarray, present: np.ndarray, settings: FillSettings) -> dict[int, str]:
+    """The ``auto`` rule: a method per component label.
+
+    ``tin`` (biharmonic fairing: exact for planes and quadratics, and the most accurate
+    method on the benchmark for every hole size), except components of at least
+    ``auto_mls_min_px`` pixels that are round (``auto_mls_min_roundness``), which use
+    ``mls`` when that option is switched on (``auto_mls_min_px > 0``). Elongated holes
+    (flight-line gaps, strips along walls) always use ``tin``: a moving quadratic fit
+    across a strip is driven by one side at a time.
+    """
+    chosen = {int(k): "tin" for k in present}
+    if settings.auto_mls_min_px <= 0:
+        return chosen
+    sizes = np.bincount(labels.ravel(), minlength=int(present.max(initial=0)) + 1)
+    boxes = ndi.find_objects(labels)
+    for k in present:
+        k = int(k)
+        if sizes[k] < settings.auto_mls_min_px:
+            continue
+        sl = boxes[k - 1]
+        longest = max(sl[0].stop - sl[0].start, sl[1].stop - sl[1].start)
+        if sizes[k] / (np.pi / 4 * longest**2) >= settings.auto_mls_min_roundness:
+            chosen[k] = "mls"
+    return chosen
+
+
+def _fill_barrier_pixels(out: np.ndarray, code: np.ndarray, todo: np.ndarray) -> None:
+    """Region pixels on a barrier take the highest adjacent finite height, repeatedly
+    (a wall pixel of a DSM holds the top of the wall)."""
+    todo = todo.copy()
+    fp = np.ones((3, 3), bool)
+    while todo.any():
+        filled = np.where(np.isfinite(out), out, -np.inf)
+        grown = ndi.maximum_filter(filled, footprint=fp, mode="constant", cval=-np.inf)
+        take = todo & np.isfinite(grown)
+        if not take.any():
+            break
+        out[take] = grown[take]
+        code[take] = METHOD_CODES["barrier"]
+        todo &= ~take
+
+
+def _holdout_errors(problem: Problem, chosen: dict[int, str], records: dict[int, ComponentFill]) -> dict[int, float]:
+    """Leave-boundary-out RMSE per component: withhold every ``holdout_every``-th of
+    ``holdout_sectors`` angular sectors of the rim, refill with the same method and
+    compare the refilled rim heights with the measured ones."""
+    st = problem.settings
+    rim_l, rim_i = rim_pairs(problem)
+    h, w = problem.labels.shape
+    # a rim pixel shared by two components is never withheld
+    uniq, counts = np.unique(rim_i, return_counts=True)
+    shared = np.isin(rim_i, uniq[counts > 1])
+    rr, rc = np.divmod(rim_i, w)
+    cen = ndi.center_of_mass(np.ones(problem.labels.shape), problem.labels, np.arange(1, problem.n_labels + 1))
+    cen = np.asarray(cen, float).reshape(-1, 2)
+    ang = np.arctan2(rr - cen[rim_l - 1, 0], rc - cen[rim_l - 1, 1])
+    sector = np.floor((ang + np.pi) / (2 * np.pi) * st.holdout_sectors).astype(np.int64) % st.holdout_sectors
+    held = (sector % st.holdout_every == 0) & ~shared
+    labels2 = problem.labels.copy()
+    labels2.ravel()[rim_i[held]] = rim_l[held]
+    support2 = problem.support.copy()
+    support2.ravel()[rim_i[held]] = False
+    heights2 = problem.heights.copy()
+    heights2.ravel()[rim_i[held]] = np.nan
+    p2 = replace(problem, heights=heights2, labels=labels2, support=support2)
+    out2 = heights2.copy()
+    _run(p2, {k: m for k, m in chosen.items() if records[k].filled}, out2)
+    errs = {}
+    truth = problem.heights.ravel()[rim_i[held]]
+    got = out2.ravel()[rim_i[held]]
+    for k in np.unique(rim_l[held]):
+        sel = rim_l[held] == k
+        d = got[sel] - truth[sel]
+        if np.all(np.isfinite(d)):
+            errs[int(k)] = float(np.sqrt(np.mean(d * d)))
+    return errs
