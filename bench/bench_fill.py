@@ -65,12 +65,20 @@ def run(method: str, z: np.ndarray, region: np.ndarray, settings: FillSettings) 
     small = region & ~large
     err = out.heights - z
     filled = np.count_nonzero(region & np.isfinite(out.heights))
-    used = {m: int(np.count_nonzero(out.method_code == c)) for m, c in METHOD_CODES.items()
-            if np.any(out.method_code == c)}
-    return dict(method=method, seconds=dt, rate=filled / dt, rmse=float(np.sqrt(np.nanmean(err[region] ** 2))),
-                rmse_small=float(np.sqrt(np.nanmean(err[small] ** 2))),
-                rmse_large=float(np.sqrt(np.nanmean(err[large] ** 2))), n_comp=len(out.components), used=used,
-                degraded=sum(c.degraded for c in out.components))
+    used = {
+        m: int(np.count_nonzero(out.method_code == c)) for m, c in METHOD_CODES.items() if np.any(out.method_code == c)
+    }
+    return dict(
+        method=method,
+        seconds=dt,
+        rate=filled / dt,
+        rmse=float(np.sqrt(np.nanmean(err[region] ** 2))),
+        rmse_small=float(np.sqrt(np.nanmean(err[small] ** 2))),
+        rmse_large=float(np.sqrt(np.nanmean(err[large] ** 2))),
+        n_comp=len(out.components),
+        used=used,
+        degraded=sum(c.degraded for c in out.components),
+    )
 
 
 def main() -> None:
@@ -84,9 +92,11 @@ def main() -> None:
     region = hole_mix(args.size, rng)
     lab, n = ndi.label(region)
     sizes = np.bincount(lab.ravel())[1:]
-    print(f"raster {args.size}x{args.size}, {n} holes, {region.sum()} px to fill "
-          f"({np.count_nonzero(sizes < 10_000)} holes < 10k px holding {sizes[sizes < 10_000].sum()} px; "
-          f"largest {sizes.max()} px); cores visible {os.cpu_count()}, run single-process")
+    print(
+        f"raster {args.size}x{args.size}, {n} holes, {region.sum()} px to fill "
+        f"({np.count_nonzero(sizes < 10_000)} holes < 10k px holding {sizes[sizes < 10_000].sum()} px; "
+        f"largest {sizes.max()} px); cores visible {os.cpu_count()}, run single-process"
+    )
     # compile the numba kernels outside the timing
     small = np.zeros((30, 30), bool)
     small[10:20, 10:20] = True
@@ -97,8 +107,10 @@ def main() -> None:
         if name == "tin1":
             method, settings = "tin", FillSettings(tin_order=1)
         r = run(method, z, region, settings)
-        print(f"{name:8s} {r['seconds']:8.2f} {r['rate'] / 1e6:7.2f} {r['rmse']:7.3f} {r['rmse_small']:7.3f} "
-              f"{r['rmse_large']:7.3f}  {r['used']} degraded={r['degraded']}")
+        print(
+            f"{name:8s} {r['seconds']:8.2f} {r['rate'] / 1e6:7.2f} {r['rmse']:7.3f} {r['rmse_small']:7.3f} "
+            f"{r['rmse_large']:7.3f}  {r['used']} degraded={r['degraded']}"
+        )
 
 
 if __name__ == "__main__":

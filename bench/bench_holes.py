@@ -59,8 +59,14 @@ def main() -> None:
     # compile the numba kernels outside the timings
     count, zmax, zmin = scene("mixed", 64, halo)
     small = PixelWindow(halo, halo, 64, 64)
-    detect_cell_holes(count, zmax, zmin, cell=Cell("warm", 0, 0, small, small.expand(halo)),
-                      grid_window=small.expand(halo), jump_threshold=2.0)
+    detect_cell_holes(
+        count,
+        zmax,
+        zmin,
+        cell=Cell("warm", 0, 0, small, small.expand(halo)),
+        grid_window=small.expand(halo),
+        jump_threshold=2.0,
+    )
     for kind, min_area in (("mixed", 0), ("speckle", 0), ("speckle", 4), ("empty", 0)):
         count, zmax, zmin = scene(kind, size, halo)
         aoi = np.ones(count.shape, bool)
@@ -68,7 +74,13 @@ def main() -> None:
         for _ in range(args.repeat):
             t0 = time.perf_counter()
             res = detect_cell_holes(
-                count, zmax, zmin, aoi, cell=cell, grid_window=grid_window, jump_threshold=2.0,
+                count,
+                zmax,
+                zmin,
+                aoi,
+                cell=cell,
+                grid_window=grid_window,
+                jump_threshold=2.0,
                 min_area_px=min_area,
             )
             classify_causes(res.stats, CauseRules.with_defaults(pixel_size=1.0, jump_threshold=2.0))

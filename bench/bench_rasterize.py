@@ -121,7 +121,9 @@ def main() -> None:
         t0 = time.perf_counter()
         synthetic = generate_survey(survey_dir, spec, keep_truth=False)
         marker.write_text(json.dumps({"points": synthetic.n_points, "tiles": len(synthetic.tiles)}))
-        print(f"generated {synthetic.n_points:,} points in {len(synthetic.tiles)} tiles in {time.perf_counter() - t0:.1f} s")
+        print(
+            f"generated {synthetic.n_points:,} points in {len(synthetic.tiles)} tiles in {time.perf_counter() - t0:.1f} s"
+        )
     info = json.loads(marker.read_text())
     tiles = sorted(str(p) for p in survey_dir.glob("*.laz"))
     size_mb = sum(Path(t).stat().st_size for t in tiles) / 1e6
@@ -150,9 +152,7 @@ def main() -> None:
         stages.append(stage_seconds)
         print(
             f"run {i + 1}: decode {rows['decode'][-1]:.2f} s, decode+xyz {rows['decode_xyz'][-1]:.2f} s, "
-            f"holefill {seconds:.2f} s (stages: "
-            + ", ".join(f"{k} {v:.2f}" for k, v in stage_seconds.items())
-            + ")"
+            f"holefill {seconds:.2f} s (stages: " + ", ".join(f"{k} {v:.2f}" for k, v in stage_seconds.items()) + ")"
         )
     best = {k: min(v) for k, v in rows.items()}
     figures = {

@@ -59,9 +59,10 @@ def snapshot(out_root: Path, only: list[str]) -> None:
             continue
         overrides = [f'survey.crs="{MISSING_CRS[path.name]}"'] if path.name in MISSING_CRS else []
         jobs.append((path.name, [str(path)], overrides, {}))
-    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0", silence_logs=50) as cluster, Client(
-        cluster
-    ) as client:
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0", silence_logs=50) as cluster,
+        Client(cluster) as client,
+    ):
         for name, inputs, overrides, kwargs in jobs:
             started = time.perf_counter()
             config = load_config(overrides=overrides)
@@ -125,7 +126,9 @@ def compare_layers(before: Path, after: Path) -> list[str]:
             continue
         for column in fa.columns:
             if column == "geometry":
-                same = fa.geometry.geom_equals_exact(fb.geometry, tolerance=0) | (fa.geometry.isna() & fb.geometry.isna())
+                same = fa.geometry.geom_equals_exact(fb.geometry, tolerance=0) | (
+                    fa.geometry.isna() & fb.geometry.isna()
+                )
                 if not same.all():
                     problems.append(f"holes.gpkg/{layer}: {int((~same).sum())} geometries differ")
                 continue

@@ -140,7 +140,9 @@ def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
         progress=sys.stderr.isatty() if progress is None else progress,
     )
     _report(summary)
-    score = score_holes(out / "holes.gpkg", truth["hole_cause"], min_area_px=_min_area_px(config, synthetic.spec.resolution))
+    score = score_holes(
+        out / "holes.gpkg", truth["hole_cause"], min_area_px=_min_area_px(config, synthetic.spec.resolution)
+    )
     click.echo(
         f"against the truth: hole IoU {score.iou:.3f}, causes right for {score.cause_correct} of "
         f"{score.holes} holes ({score.cause_accuracy:.1%})",
@@ -150,8 +152,13 @@ def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
 
 @main.command()
 @click.argument("out_dir", type=click.Path(exists=True, file_okay=False))
-@click.option("--truth", "truth_path", required=True, type=click.Path(exists=True, dir_okay=False),
-              help="Raster of true hole causes (0 none, 1 occlusion, 2 water, 3 missed coverage) on the run's grid.")
+@click.option(
+    "--truth",
+    "truth_path",
+    required=True,
+    type=click.Path(exists=True, dir_okay=False),
+    help="Raster of true hole causes (0 none, 1 occlusion, 2 water, 3 missed coverage) on the run's grid.",
+)
 @config_option
 @set_option
 def evaluate(out_dir, truth_path, config_path, overrides):

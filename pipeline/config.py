@@ -41,9 +41,7 @@ class GridConfig:
     """The global raster grid and the cells it is cut into."""
 
     resolution_m: float = _opt(1.0, "DSM pixel size in metres (converted to the CRS unit).", gt=0)
-    cell_size_m: float = _opt(
-        250.0, "Side of a square processing cell in metres; a multiple of resolution_m.", gt=0
-    )
+    cell_size_m: float = _opt(250.0, "Side of a square processing cell in metres; a multiple of resolution_m.", gt=0)
     halo_px: int = _opt(8, "Pixels of neighbouring cells read around each cell.", ge=0)
 
 
@@ -54,9 +52,7 @@ class FilterConfig:
     drop_classes: list[int] = _opt(
         [7, 18], "ASPRS classes never used (7 low noise, 18 high noise).", item_range=(0, 255)
     )
-    keep_classes: list[int] = _opt(
-        [], "If not empty, only these classes are used (a DTM: [2]).", item_range=(0, 255)
-    )
+    keep_classes: list[int] = _opt([], "If not empty, only these classes are used (a DTM: [2]).", item_range=(0, 255))
     drop_withheld: bool = _opt(True, "Drop points flagged withheld.")
 
 
@@ -64,12 +60,8 @@ class FilterConfig:
 class RasterizeConfig:
     """Stage 1: binning points into per-pixel statistics."""
 
-    chunk_points: int = _opt(
-        1_000_000, "Points decoded per chunk; bounds the memory of a tile task.", ge=10_000
-    )
-    voxel_height_m: float = _opt(
-        0.5, "Voxel height in metres for the occupied-voxel count (vertical holes).", gt=0
-    )
+    chunk_points: int = _opt(1_000_000, "Points decoded per chunk; bounds the memory of a tile task.", ge=10_000)
+    voxel_height_m: float = _opt(0.5, "Voxel height in metres for the occupied-voxel count (vertical holes).", gt=0)
 
 
 @dataclass(frozen=True)
@@ -77,15 +69,14 @@ class HolesConfig:
     """Hole detection, classification and outlines (docs/holes.md)."""
 
     enabled: bool = _opt(True, "Find, classify and outline holes (false: the DSM only).")
-    min_area_m2: float = _opt(
-        4.0, "Holes smaller than this are small voids: counted in the report, not listed.", ge=0
-    )
+    min_area_m2: float = _opt(4.0, "Holes smaller than this are small voids: counted in the report, not listed.", ge=0)
     connectivity: int = _opt(4, "Pixel connectivity of hole pixels.", choices=(4, 8))
     jump_threshold_m: float = _opt(
         2.5, "Height jump (UAS eq. 1): max z - min z in a pixel, or between 4-neighbours.", gt=0
     )
     outline: str = _opt(
-        "pixel", "Hole polygons: exact pixel edges, simplified, or straight (man-made).",
+        "pixel",
+        "Hole polygons: exact pixel edges, simplified, or straight (man-made).",
         choices=("pixel", "simplified", "straight"),
     )
     footprint_block_m: float = _opt(
@@ -95,9 +86,7 @@ class HolesConfig:
         40.0, "Gaps between data narrower than about twice this stay inside the footprint.", ge=0
     )
     water: str = _opt("", "Polygon file of known water (--water); holes inside it are water.")
-    vertical_min_area_m2: float = _opt(
-        2.0, "Groups of vertical-hole pixels smaller than this are not listed.", ge=0
-    )
+    vertical_min_area_m2: float = _opt(2.0, "Groups of vertical-hole pixels smaller than this are not listed.", ge=0)
     wall_min_length_m: float = _opt(4.0, "Wall segments shorter than this are not fitted.", gt=0)
 
 
@@ -115,18 +104,22 @@ class CausesConfig:
         0.5, "jumps rule (occlusion): share of the ring pixels that are height jumps.", ge=0, le=1
     )
     shadow_min_high_fraction: float = _opt(
-        0.15, "shadow rule (occlusion): share of the ring more than jump_threshold_m above its low level.",
-        ge=0, le=1,
+        0.15,
+        "shadow rule (occlusion): share of the ring more than jump_threshold_m above its low level.",
+        ge=0,
+        le=1,
     )
     shadow_min_residual_ratio: float = _opt(
-        0.35, "shadow rule: ring scatter about its plane, as a multiple of jump_threshold_m, that rules out a slope.",
+        0.35,
+        "shadow rule: ring scatter about its plane, as a multiple of jump_threshold_m, that rules out a slope.",
         ge=0,
     )
     max_terrain_slope: float = _opt(
         1.0, "shadow rule: a plane through the ring steeper than this (rise over run) is no terrain slope.", gt=0
     )
     max_shadow_ratio: float = _opt(
-        0.8, "Occlusion rules: the hole's thickness must not exceed this times the height of the step beside it.",
+        0.8,
+        "Occlusion rules: the hole's thickness must not exceed this times the height of the step beside it.",
         gt=0,
     )
     strip_min_fill: float = _opt(
@@ -146,18 +139,15 @@ class CausesConfig:
         0.8, "strip rule: share of the ring held by its two most common flight lines.", ge=0, le=1
     )
     water_flat_tolerance: float = _opt(
-        0.5, "flat_low_rim rule: ring heights within this of the low level are flat (survey z units, not converted).",
+        0.5,
+        "flat_low_rim rule: ring heights within this of the low level are flat (survey z units, not converted).",
         ge=0,
     )
-    water_min_flat_fraction: float = _opt(
-        0.7, "flat_low_rim rule: share of the ring that is flat.", ge=0, le=1
-    )
+    water_min_flat_fraction: float = _opt(0.7, "flat_low_rim rule: share of the ring that is flat.", ge=0, le=1)
     water_min_low_fraction: float = _opt(
         0.5, "flat_low_rim rule: share of the ring at the local minimum height.", ge=0, le=1
     )
-    low_quantile: float = _opt(
-        0.05, "Quantile of the ring heights taken as the ring's low level.", ge=0, le=1
-    )
+    low_quantile: float = _opt(0.05, "Quantile of the ring heights taken as the ring's low level.", ge=0, le=1)
     high_quantile: float = _opt(
         0.95, "Quantile of the ring heights taken as its high level (step = high - low level).", ge=0, le=1
     )
@@ -168,28 +158,20 @@ class DaskConfig:
     """The Dask cluster a run uses when no --scheduler is given."""
 
     workers: int = _opt(0, "Worker processes; 0 means one per CPU core.", ge=0)
-    memory_limit: str = _opt(
-        "auto", "Memory limit per worker, e.g. '2GB', or 'auto' to share the machine's memory."
-    )
+    memory_limit: str = _opt("auto", "Memory limit per worker, e.g. '2GB', or 'auto' to share the machine's memory.")
 
 
 @dataclass(frozen=True)
 class OutputConfig:
     """How rasters are written."""
 
-    compress: str = _opt(
-        "deflate", "COG compression.", choices=("deflate", "zstd", "lzw", "none")
-    )
-    compress_level: int = _opt(
-        1, "Deflate/zstd level: 1 writes fastest, higher values make smaller files.", ge=1
-    )
+    compress: str = _opt("deflate", "COG compression.", choices=("deflate", "zstd", "lzw", "none"))
+    compress_level: int = _opt(1, "Deflate/zstd level: 1 writes fastest, higher values make smaller files.", ge=1)
     blocksize: int = _opt(256, "COG internal tile size in pixels.", choices=(128, 256, 512, 1024))
     overview_resampling: str = _opt(
         "average", "Resampling of COG overviews.", choices=("average", "nearest", "bilinear")
     )
-    keep_intermediate: bool = _opt(
-        False, "Keep the per-tile and per-cell statistic rasters under OUT/work/."
-    )
+    keep_intermediate: bool = _opt(False, "Keep the per-tile and per-cell statistic rasters under OUT/work/.")
 
 
 @dataclass(frozen=True)
@@ -197,9 +179,7 @@ class SurveyConfig:
     """How inputs are interpreted."""
 
     crs: str = _opt("", "CRS for tiles that have none (e.g. 'EPSG:28992'); empty: none assumed.")
-    target_crs: str = _opt(
-        "", "Reproject every tile to this CRS while streaming; needed for mixed-CRS surveys."
-    )
+    target_crs: str = _opt("", "Reproject every tile to this CRS while streaming; needed for mixed-CRS surveys.")
     on_error: str = _opt(
         "fail", "What a bad tile does: stop the run, or be skipped and listed.", choices=("fail", "skip")
     )
@@ -211,7 +191,8 @@ class FlightPlanConfig:
 
     enabled: bool = _opt(True, "Write re-flight plans after a run (needs holes.enabled).")
     causes: list[str] = _opt(
-        ["missed_coverage"], "Hole causes that are re-flown; the others are listed, not flown.",
+        ["missed_coverage"],
+        "Hole causes that are re-flown; the others are listed, not flown.",
         item_choices=("occlusion", "water", "missed_coverage", "unknown"),
     )
     min_area_m2: float = _opt(25.0, "Holes smaller than this (m2) are not re-flown.", ge=0)
@@ -228,26 +209,21 @@ class FlightPlanConfig:
     max_flight_time_s: float = _opt(
         1200.0, "Longest sortie in seconds (transit included); longer routes are split.", gt=0
     )
-    setup_time_s: float = _opt(
-        90.0, "Seconds added to every sortie for take-off, climb, descent and landing.", ge=0
-    )
+    setup_time_s: float = _opt(90.0, "Seconds added to every sortie for take-off, climb, descent and landing.", ge=0)
     terrain_step_m: float = _opt(
         5.0, "A lane gets extra waypoints where the surface under it changes by more than this (m).", gt=0
     )
-    home: list[float] = _opt(
-        [], "Take-off and landing point [x, y] in the survey CRS; empty: centre of the holes."
-    )
+    home: list[float] = _opt([], "Take-off and landing point [x, y] in the survey CRS; empty: centre of the holes.")
     altitude_reference: str = _opt(
-        "takeoff", "Heights in drone files: relative to take-off, AMSL (the DSM's datum) or ellipsoidal.",
+        "takeoff",
+        "Heights in drone files: relative to take-off, AMSL (the DSM's datum) or ellipsoidal.",
         choices=("takeoff", "amsl", "ellipsoid"),
     )
     vertical_crs: str = _opt(
         "", "Vertical CRS of DSM heights (e.g. 'EPSG:5720'); empty: from the DSM's CRS if compound."
     )
     dji_drone_enum: int = _opt(89, "DJI WPML droneEnumValue: 89 Matrice 350 RTK, 60 Matrice 300 RTK.", ge=0)
-    dji_payload_enum: int = _opt(
-        84, "DJI WPML payloadEnumValue of the lidar (84 Zenmuse L2, 90742 Zenmuse L1).", ge=0
-    )
+    dji_payload_enum: int = _opt(84, "DJI WPML payloadEnumValue of the lidar (84 Zenmuse L2, 90742 Zenmuse L1).", ge=0)
 
 
 @dataclass(frozen=True)
@@ -294,9 +270,7 @@ class Config:
         return "\n".join(lines)
 
 
-SECTIONS: dict[str, type] = {
-    f.name: get_type_hints(Config)[f.name] for f in dataclasses.fields(Config)
-}
+SECTIONS: dict[str, type] = {f.name: get_type_hints(Config)[f.name] for f in dataclasses.fields(Config)}
 
 
 def to_dict(config: Config) -> dict[str, dict[str, Any]]:
@@ -333,9 +307,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             raise ConfigError(f"{path}: not valid TOML: {e}") from None
         for section, table in data.items():
             if section not in SECTIONS:
-                raise ConfigError(
-                    f"{path}: unknown section [{section}]; allowed sections: {', '.join(SECTIONS)}"
-                )
+                raise ConfigError(f"{path}: unknown section [{section}]; allowed sections: {', '.join(SECTIONS)}")
             if not isinstance(table, dict):
                 raise ConfigError(f"{path}: '{section}' must be a table ([{section}])")
             for key, value in table.items():
@@ -355,9 +327,7 @@ def _parse_override(item: str) -> tuple[str, str, Any]:
     dotted, raw = item.split("=", 1)
     section, key = dotted.strip().split(".", 1)
     if section not in SECTIONS:
-        raise ConfigError(
-            f"--set {item}: unknown section '{section}'; allowed sections: {', '.join(SECTIONS)}"
-        )
+        raise ConfigError(f"--set {item}: unknown section '{section}'; allowed sections: {', '.join(SECTIONS)}")
     _check_key(section, key, f"--set {item}")
     try:
         value = tomllib.loads(f"v = {raw.strip()}")["v"]
@@ -369,9 +339,7 @@ def _parse_override(item: str) -> tuple[str, str, Any]:
 def _check_key(section: str, key: str, source: str) -> None:
     allowed = [f.name for f in dataclasses.fields(SECTIONS[section])]
     if key not in allowed:
-        raise ConfigError(
-            f"{source}: unknown key '{section}.{key}'; allowed keys in [{section}]: {', '.join(allowed)}"
-        )
+        raise ConfigError(f"{source}: unknown key '{section}.{key}'; allowed keys in [{section}]: {', '.join(allowed)}")
 
 
 def _build(merged: dict[str, dict[str, Any]], sources: dict[str, str]) -> Config:

@@ -51,9 +51,7 @@ class HoleScore:
         }
 
 
-def score_holes(
-    holes_gpkg: str | os.PathLike, truth_causes: str | os.PathLike, *, min_area_px: int = 1
-) -> HoleScore:
+def score_holes(holes_gpkg: str | os.PathLike, truth_causes: str | os.PathLike, *, min_area_px: int = 1) -> HoleScore:
     """Compare the ``holes`` layer of a run with a truth raster of cause codes.
 
     Parameters

@@ -22,9 +22,9 @@ from pyproj import CRS
 from . import __version__
 from .config import Config, to_dict
 from .holes import CAUSES
+from .holes.outlines import hole_outline, merge_outlines, to_world
 from .io.raster import write_vrt
 from .io.vector import write_layer
-from .holes.outlines import hole_outline, merge_outlines, to_world
 from .plan import SurveyPlan
 from .stages.bin_tiles import TileResult
 from .stages.detect_holes import DetectResult
@@ -37,7 +37,13 @@ from .survey import tile_index_records
 PRODUCTS = ("dsm", "dsm.vrt", "holes.gpkg", "manifest.json", "report.html")
 
 #: Flight-plan products: their number depends on the sorties, so older ones are matched by name.
-FLIGHTPLAN_PRODUCTS = ("flightplan.gpkg", "flightplan*.plan", "flightplan*.waypoints", "flightplan*.kmz", "flightplan*.kml")
+FLIGHTPLAN_PRODUCTS = (
+    "flightplan.gpkg",
+    "flightplan*.plan",
+    "flightplan*.waypoints",
+    "flightplan*.kmz",
+    "flightplan*.kml",
+)
 
 #: ``holes.outline`` values -> modes of :func:`pipeline.outlines.hole_outline`.
 OUTLINE_MODES = {"pixel": "exact", "simplified": "simplified", "straight": "straight"}
@@ -154,7 +160,9 @@ def write_hole_layers(
     part_records, part_geometries, counts_by_type = _part_records(plan, holes, part_outlines, listed)
     write_layer(gpkg, "hole_parts", part_records, part_geometries, crs_wkt=crs, geometry_type="MultiPolygon")
     vertical_records, vertical_geometries = _vertical_records(plan, detected)
-    write_layer(gpkg, "vertical_holes", vertical_records, vertical_geometries, crs_wkt=crs, geometry_type="MultiPolygon")
+    write_layer(
+        gpkg, "vertical_holes", vertical_records, vertical_geometries, crs_wkt=crs, geometry_type="MultiPolygon"
+    )
     wall_records, wall_geometries = _wall_records(plan, detected)
     write_layer(gpkg, "walls", wall_records, wall_geometries, crs_wkt=crs, geometry_type="LineString")
     catalog = holes.catalog

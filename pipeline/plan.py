@@ -101,7 +101,9 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
     meets_area = shapely.intersects(boxes, survey_area) if candidates else []
     cells = [cell for cell, inside in zip(candidates, meets_area) if inside]
     tiles_of_cell = {
-        cell.id: tuple(i for i in tiles_of_halo[(cell.index_x, cell.index_y)] if _meets(tile_windows[i], cell.halo_window))
+        cell.id: tuple(
+            i for i in tiles_of_halo[(cell.index_x, cell.index_y)] if _meets(tile_windows[i], cell.halo_window)
+        )
         for cell in cells
     }
     block_px = block_size_px(grid, config.holes.footprint_block_m, survey.horizontal_unit_m)

@@ -43,7 +43,10 @@ def write_report(path: str | Path, manifest: dict[str, Any], largest_holes: list
         ),
     ]
     if manifest.get("skipped"):
-        parts += ["<h2>Skipped tiles</h2>", _table(["file", "reason"], [[s["path"], s["reason"]] for s in manifest["skipped"]])]
+        parts += [
+            "<h2>Skipped tiles</h2>",
+            _table(["file", "reason"], [[s["path"], s["reason"]] for s in manifest["skipped"]]),
+        ]
     if holes:
         parts += [
             "<h2>Holes</h2>",
@@ -60,8 +63,15 @@ def write_report(path: str | Path, manifest: dict[str, Any], largest_holes: list
             _table(
                 ["hole", "area m²", "cause", "rule", "cells", "layers", "boundary jumps"],
                 [
-                    [h["hole_id"], f"{h['area_m2']:,.0f}", h["cause"], h["cause_rule"], h["n_cells"], h["max_layer"],
-                     f"{h['boundary_jump_px']}/{h['boundary_px']}"]
+                    [
+                        h["hole_id"],
+                        f"{h['area_m2']:,.0f}",
+                        h["cause"],
+                        h["cause_rule"],
+                        h["n_cells"],
+                        h["max_layer"],
+                        f"{h['boundary_jump_px']}/{h['boundary_px']}",
+                    ]
                     for h in largest_holes
                 ],
             ),  # fmt: skip

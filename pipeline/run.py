@@ -25,8 +25,8 @@ from typing import Any
 
 from .config import Config
 from .errors import HolefillError, InputDataError, TaskError
-from .io.vector import read_survey_area
 from .io.flightplan_files import plan_flights
+from .io.vector import read_survey_area
 from .outputs import (
     FLIGHTPLAN_PRODUCTS,
     PRODUCTS,
@@ -137,7 +137,9 @@ def _run_rasters(runner: _Runner, plan: SurveyPlan, config: Config, staging: Sta
     tile_tasks = bin_tiles.tile_tasks(plan, config, staging)
     tile_function = bin_tiles.rasterize_tile_or_skip if skip else bin_tiles.rasterize_tile
     tile_futures = {
-        task.tile_index: runner.submit(tile_function, task, label=f"tile {task.path}", key=f"rasterize-{task.tile_index}")
+        task.tile_index: runner.submit(
+            tile_function, task, label=f"tile {task.path}", key=f"rasterize-{task.tile_index}"
+        )
         for task in tile_tasks
     }
     merge_recipes = merge_cells.merge_tasks(plan, tile_tasks, staging)
@@ -188,7 +190,9 @@ def _run_rasters(runner: _Runner, plan: SurveyPlan, config: Config, staging: Sta
         else:
             results.written.append(result)
             runner.bar.advance(write_bar)
-        if isinstance(result, (TileResult, TileFailure)) and len(results.tiles) + len(results.failed) == len(tile_futures):
+        if isinstance(result, (TileResult, TileFailure)) and len(results.tiles) + len(results.failed) == len(
+            tile_futures
+        ):
             timer.lap("rasterize")
 
     runner.gather([*tile_futures.values(), *merge_futures.values(), *write_futures], collect)
@@ -208,7 +212,9 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
     blocks = merge_cells.footprint_blocks(cells, plan, config)
     tasks = detect_holes.detect_tasks(plan, params, cells, blocks, water, staging)
     futures = [
-        runner.submit(detect_holes.detect_cell, task, label=f"cell {task.cell.id} (find holes)", key=f"detect-{task.cell.id}")
+        runner.submit(
+            detect_holes.detect_cell, task, label=f"cell {task.cell.id} (find holes)", key=f"detect-{task.cell.id}"
+        )
         for task in tasks
     ]
     handle = runner.bar.add("find holes", total=len(futures))
@@ -226,7 +232,9 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
     return detected, holes
 
 
-def _write_products(staging: Staging, plan: SurveyPlan, config: Config, rasters: _Rasters, detected, holes, started, timer) -> RunSummary:
+def _write_products(
+    staging: Staging, plan: SurveyPlan, config: Config, rasters: _Rasters, detected, holes, started, timer
+) -> RunSummary:
     """The mosaic, the layers, the manifest and the report, from the stages' kept results."""
     t0 = time.perf_counter()
     skipped = plan.survey.skipped + rasters.failed
@@ -327,14 +335,17 @@ def _dask_client(client, scheduler: str | None, config: Config) -> Iterator[Any]
         return
     workers = config.dask.workers or os.cpu_count() or 1
     verbose = logging.getLogger("distributed").isEnabledFor(logging.INFO)
-    with LocalCluster(
-        n_workers=workers,
-        threads_per_worker=1,
-        processes=True,
-        memory_limit=config.dask.memory_limit,
-        dashboard_address=":0",  # any free port: never collide with another cluster
-        silence_logs=logging.INFO if verbose else logging.CRITICAL,  # task errors reach the client anyway
-    ) as cluster, Client(cluster) as local:
+    with (
+        LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            memory_limit=config.dask.memory_limit,
+            dashboard_address=":0",  # any free port: never collide with another cluster
+            silence_logs=logging.INFO if verbose else logging.CRITICAL,  # task errors reach the client anyway
+        ) as cluster,
+        Client(cluster) as local,
+    ):
         yield local
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import glob
 import logging
-
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -76,9 +75,7 @@ def find_inputs(inputs: list[str] | tuple[str, ...]) -> list[Path]:
     for item in inputs:
         path = Path(item)
         if path.is_dir():
-            matches = sorted(
-                p for p in path.rglob("*") if p.is_file() and p.suffix.lower() in POINT_CLOUD_SUFFIXES
-            )
+            matches = sorted(p for p in path.rglob("*") if p.is_file() and p.suffix.lower() in POINT_CLOUD_SUFFIXES)
             if not matches:
                 raise InputDataError(path, "folder holds no .las or .laz file")
             found.extend(matches)
@@ -249,4 +246,3 @@ def source_crs_for_task(tile: Tile, survey: Survey) -> str | None:
 
 
 __all__ = ["Survey", "Tile", "find_inputs", "scan_survey", "source_crs_for_task", "tile_index_records"]
-

@@ -418,7 +418,9 @@ class River:
     bank_width: float = RIVER_BANK_WIDTH_M
 
     def centerline_v(self, u: np.ndarray) -> np.ndarray:
-        return self.center_v + self.meander_amplitude * np.sin(2.0 * np.pi * np.asarray(u) / self.meander_wavelength + self.phase)
+        return self.center_v + self.meander_amplitude * np.sin(
+            2.0 * np.pi * np.asarray(u) / self.meander_wavelength + self.phase
+        )
 
     def offset(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Signed N-S distance from the centre line."""
@@ -634,12 +636,16 @@ class Scene:
             radius = buildings.bounding_radius
             near = _objects_near(buildings.center_u, buildings.center_v, radius, (u_lo, u_hi, v_lo, v_hi))
             for index in near:
-                columns, rows = _cell_span(u, v, buildings.center_u[index], buildings.center_v[index], radius[index], column0, row0, cell)
+                columns, rows = _cell_span(
+                    u, v, buildings.center_u[index], buildings.center_v[index], radius[index], column0, row0, cell
+                )
                 if columns is None:
                     continue
                 uu, vv = u[columns][None, :], v[rows][:, None]
                 along, across = buildings.local_axes(index, uu, vv)
-                inside = (np.abs(along) <= buildings.half_length[index]) & (np.abs(across) <= buildings.half_width[index])
+                inside = (np.abs(along) <= buildings.half_length[index]) & (
+                    np.abs(across) <= buildings.half_width[index]
+                )
                 roof = buildings.roof_height(index, uu, vv)
                 window = surface[rows, columns]
                 take = inside & (roof > window)
@@ -653,7 +659,9 @@ class Scene:
             radius = trees.crown_radius
             near = _objects_near(trees.center_u, trees.center_v, radius, (u_lo, u_hi, v_lo, v_hi))
             for index in near:
-                columns, rows = _cell_span(u, v, trees.center_u[index], trees.center_v[index], radius[index], column0, row0, cell)
+                columns, rows = _cell_span(
+                    u, v, trees.center_u[index], trees.center_v[index], radius[index], column0, row0, cell
+                )
                 if columns is None:
                     continue
                 uu, vv = u[columns][None, :], v[rows][:, None]
@@ -681,7 +689,10 @@ def _objects_near(
     """Indices of the round objects (centre, radius) that reach into a (u_lo, u_hi, v_lo, v_hi) window."""
     u_lo, u_hi, v_lo, v_hi = bounds
     return np.flatnonzero(
-        (center_u + radius >= u_lo) & (center_u - radius <= u_hi) & (center_v + radius >= v_lo) & (center_v - radius <= v_hi)
+        (center_u + radius >= u_lo)
+        & (center_u - radius <= u_hi)
+        & (center_v + radius >= v_lo)
+        & (center_v - radius <= v_hi)
     )
 
 
@@ -1009,7 +1020,14 @@ def _approximately_normal(keys: np.ndarray, stream: int) -> np.ndarray:
     return (total.astype(np.float64) * (1.0 / 65536.0) - 2.0) * math.sqrt(3.0)
 
 
-_STREAM_JITTER_U, _STREAM_JITTER_V, _STREAM_PENETRATION, _STREAM_NOISE_FIRST, _STREAM_NOISE_SECOND, _STREAM_INTENSITY = range(6)
+(
+    _STREAM_JITTER_U,
+    _STREAM_JITTER_V,
+    _STREAM_PENETRATION,
+    _STREAM_NOISE_FIRST,
+    _STREAM_NOISE_SECOND,
+    _STREAM_INTENSITY,
+) = range(6)
 
 
 # ---------------------------------------------------------------------------
@@ -1084,9 +1102,7 @@ def _quantize_off_edges(metres: np.ndarray, resolution_cm: int) -> np.ndarray:
     return quantized
 
 
-def _visibility(
-    surface: np.ndarray, cell_u: np.ndarray, sensor_u: float, sensor_z: float, reach: float
-) -> np.ndarray:
+def _visibility(surface: np.ndarray, cell_u: np.ndarray, sensor_u: float, sensor_z: float, reach: float) -> np.ndarray:
     """Which cells a sensor at ``(sensor_u, sensor_z)`` sees, scanning along each row.
 
     A cell is visible iff the slope ``(h - sensor_z) / |u - sensor_u|`` of the
@@ -1130,12 +1146,16 @@ def _simulate_tile(
     res_cm = layout.resolution_cm
     n_core_cols = (tile.col1 - tile.col0) * k
     column0 = tile.col0 * k - layout.pad_cells
-    raster = scene.rasterize(column0, tile.row0 * k, n_core_cols + 2 * layout.pad_cells, (tile.row1 - tile.row0) * k, cell)
+    raster = scene.rasterize(
+        column0, tile.row0 * k, n_core_cols + 2 * layout.pad_cells, (tile.row1 - tile.row0) * k, cell
+    )
     cell_u = (np.arange(column0, column0 + raster.surface.shape[1]) + 0.5) * cell
     u0, u1 = tile.col0 * spec.resolution, tile.col1 * spec.resolution
     bounds_cm = (tile.col0 * res_cm, tile.col1 * res_cm, tile.row0 * res_cm, tile.row1 * res_cm)
 
-    flown = [line for line in lines if line.flown and line.u + line.half_swath_m >= u0 and line.u - line.half_swath_m < u1]
+    flown = [
+        line for line in lines if line.flown and line.u + line.half_swath_m >= u0 and line.u - line.half_swath_m < u1
+    ]
     core = slice(layout.pad_cells, layout.pad_cells + n_core_cols)
     visible_any = np.zeros((raster.surface.shape[0], n_core_cols), dtype=bool) if keep_truth else None
     has_trees = bool(np.any(raster.kind == SurfaceKind.TREE))
@@ -1288,7 +1308,9 @@ def _line_pulses(
         z[n_first:] += spec.noise_m * _approximately_normal(keys[ground_idx], _STREAM_NOISE_SECOND)
 
     classification = np.select(
-        [point_kind == SurfaceKind.BUILDING, point_kind == SurfaceKind.TREE], [CLASS_BUILDING, CLASS_HIGH_VEGETATION], CLASS_GROUND
+        [point_kind == SurfaceKind.BUILDING, point_kind == SurfaceKind.TREE],
+        [CLASS_BUILDING, CLASS_HIGH_VEGETATION],
+        CLASS_GROUND,
     ).astype(np.uint8)
     is_second = np.zeros(len(pulse), dtype=bool)
     is_second[n_first:] = under_crown[ground_idx]
@@ -1581,7 +1603,13 @@ def generate_survey(
             if pending is not None:
                 pending.result()
             pending = writer.submit(
-                write_tile, path, points, origin=(x0, y0), crs=spec.crs, las_version=spec.las_version, compress=spec.compress
+                write_tile,
+                path,
+                points,
+                origin=(x0, y0),
+                crs=spec.crs,
+                las_version=spec.las_version,
+                compress=spec.compress,
             )
             written.append(path)
             n_points += n
@@ -1639,12 +1667,19 @@ def write_truth(survey: SyntheticSurvey, folder: str | os.PathLike) -> dict[str,
     paths = {
         "dsm": write_cog(folder / "truth_dsm.tif", survey.truth_dsm, transform=survey.transform, crs_wkt=crs),
         "hole_cause": write_cog(
-            folder / "truth_hole_cause.tif", survey.hole_cause.astype(np.uint8), transform=survey.transform,
-            crs_wkt=crs, nodata=None, description="0 none, 1 occlusion, 2 water, 3 missed coverage",
+            folder / "truth_hole_cause.tif",
+            survey.hole_cause.astype(np.uint8),
+            transform=survey.transform,
+            crs_wkt=crs,
+            nodata=None,
+            description="0 none, 1 occlusion, 2 water, 3 missed coverage",
         ),  # fmt: skip
         "survey_area": write_layer(
-            folder / "survey_area.gpkg", "survey_area", [{"name": "planned survey area"}],
-            [shapely.box(spec.x_min, spec.y_min, spec.x_max, spec.y_max)], crs_wkt=crs,
+            folder / "survey_area.gpkg",
+            "survey_area",
+            [{"name": "planned survey area"}],
+            [shapely.box(spec.x_min, spec.y_min, spec.x_max, spec.y_max)],
+            crs_wkt=crs,
         ),  # fmt: skip
     }
     water = survey.water_polygon()

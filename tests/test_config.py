@@ -31,7 +31,7 @@ def test_every_key_is_documented_in_default_toml():
 
 
 def test_overrides_are_typed_and_validated():
-    config = load_config(overrides=["grid.resolution_m=0.5", "filter.keep_classes=[2]", 'survey.crs=EPSG:28992'])
+    config = load_config(overrides=["grid.resolution_m=0.5", "filter.keep_classes=[2]", "survey.crs=EPSG:28992"])
     assert config.grid.resolution_m == 0.5
     assert config.filter.keep_classes == [2]
     assert config.survey.crs == "EPSG:28992"
@@ -70,7 +70,7 @@ def test_bad_file_names_the_file_and_key(tmp_path):
     path.write_text("[grid\n")
     with pytest.raises(ConfigError, match=r"my\.toml: not valid TOML"):
         load_config(path)
-    path.write_text('[output]\nblocksize = 300\n')
+    path.write_text("[output]\nblocksize = 300\n")
     with pytest.raises(ConfigError, match=r"my\.toml: output\.blocksize = 300 is invalid; expected one of 128, 256"):
         load_config(path)
     with pytest.raises(ConfigError, match="not found"):

@@ -312,12 +312,15 @@ def test_settings_and_outcome_pickle():
     out = fill_region(np.where(_holes(), np.nan, PLANE), _holes(), method="tin")
     back = pickle.loads(pickle.dumps(out))
     assert [(c.label, c.method, c.n_support) for c in back.components] == [
-        (c.label, c.method, c.n_support) for c in out.components]
+        (c.label, c.method, c.n_support) for c in out.components
+    ]
     np.testing.assert_array_equal(back.heights, out.heights)
 
 
 def test_fill_package_imports_no_io_or_dask():
-    code = ("import sys, pipeline.fill; bad = [m for m in ('laspy', 'rasterio', 'pyogrio', 'geopandas', "
-            "'dask', 'distributed') if m in sys.modules]; print(','.join(bad))")
+    code = (
+        "import sys, pipeline.fill; bad = [m for m in ('laspy', 'rasterio', 'pyogrio', 'geopandas', "
+        "'dask', 'distributed') if m in sys.modules]; print(','.join(bad))"
+    )
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == ""

@@ -30,13 +30,15 @@ from pipeline.flightplan import (
 from pipeline.flightplan.altitude import ellipsoid_transformer, vertical_crs_for
 from pipeline.flightplan.route import sortie_duration
 
-PARAMS = CoverageParams(altitude_agl_m=50.0, fov_deg=60.0, side_overlap=0.3, run_in_m=15.0, turnaround_m=8.0, margin_m=4.0)
+PARAMS = CoverageParams(
+    altitude_agl_m=50.0, fov_deg=60.0, side_overlap=0.3, run_in_m=15.0, turnaround_m=8.0, margin_m=4.0
+)
 CRS_2154 = "EPSG:2154"
 
 
 def _random_holes(rng, n, extent=3000.0):
     holes = []
-    for i in range(n):
+    for _ in range(n):
         x, y = rng.uniform(0, extent, 2)
         box = shapely.box(x, y, x + rng.uniform(10, 250), y + rng.uniform(4, 60))
         holes.append(shapely.affinity.rotate(box, rng.uniform(0, 180)))
@@ -137,8 +139,9 @@ def test_sorties_stay_under_the_time_limit_and_keep_every_pattern():
     home = (1500.0, 1500.0)
     route = improve_route(greedy_route(ends, home), ends, home)
     limit = 900.0
-    sorties = split_sorties(route, ends, home, lane_speed_m_s=5, transit_speed_m_s=12, setup_time_s=60,
-                            max_flight_time_s=limit)
+    sorties = split_sorties(
+        route, ends, home, lane_speed_m_s=5, transit_speed_m_s=12, setup_time_s=60, max_flight_time_s=limit
+    )
     assert len(sorties) > 1
     assert sorted(v.pattern for s in sorties for v in s) == list(range(len(patterns)))
     for visits in sorties:
@@ -169,8 +172,14 @@ def test_a_pattern_too_long_for_one_sortie_is_cut_into_parts():
     hole = shapely.box(0, 0, 1500, 600)
     dsm, transform = _flat_dsm()
     params = FlightParams(coverage=PARAMS, max_flight_time_s=600.0, min_area_m2=0.0)
-    plan = plan_mission([HoleInput(1, hole, "missed_coverage", hole.area)], dsm, transform,
-                        crs_wkt=CRS_2154, params=params, home=(750.0, -100.0))
+    plan = plan_mission(
+        [HoleInput(1, hole, "missed_coverage", hole.area)],
+        dsm,
+        transform,
+        crs_wkt=CRS_2154,
+        params=params,
+        home=(750.0, -100.0),
+    )
     assert len(plan.sorties) > 1 and all(s.duration_s <= 600.0 for s in plan.sorties)
     lanes = [fl.lane for s in plan.sorties for fl in s.lanes]
     covered = _covered(lanes, PARAMS.spacing_m)
@@ -195,8 +204,14 @@ def test_waypoint_heights_clear_the_surface_by_the_agl():
     dsm[:, 1500:1550] = 45.0  # a ridge from x = 1000 to 1050, across the hole
     hole = shapely.box(800, 1000, 1300, 1040)
     params = FlightParams(coverage=PARAMS, min_area_m2=0.0)
-    plan = plan_mission([HoleInput(1, hole, "missed_coverage", hole.area)], dsm, transform,
-                        crs_wkt=CRS_2154, params=params, home=(700.0, 900.0))
+    plan = plan_mission(
+        [HoleInput(1, hole, "missed_coverage", hole.area)],
+        dsm,
+        transform,
+        crs_wkt=CRS_2154,
+        params=params,
+        home=(700.0, 900.0),
+    )
     waypoints = plan.sorties[0].waypoints
     assert plan.home_ground_m == pytest.approx(20.0)
     for w in waypoints:
@@ -211,8 +226,14 @@ def test_known_point_lambert93_origin_is_3e_46_5n():
     # Lambert-93 (EPSG:2154) is defined with its origin (700000, 6600000) at 3 deg E, 46.5 deg N
     dsm, transform = _flat_dsm(100.0, size=800, origin=(699600.0, 6600400.0))
     hole = shapely.box(700000, 6600000, 700100, 6600020)
-    plan = plan_mission([HoleInput(1, hole, "missed_coverage", hole.area)], dsm, transform, crs_wkt=CRS_2154,
-                        params=FlightParams(coverage=PARAMS, min_area_m2=0.0), home=(700000.0, 6600000.0))
+    plan = plan_mission(
+        [HoleInput(1, hole, "missed_coverage", hole.area)],
+        dsm,
+        transform,
+        crs_wkt=CRS_2154,
+        params=FlightParams(coverage=PARAMS, min_area_m2=0.0),
+        home=(700000.0, 6600000.0),
+    )
     assert plan.home_lonlat == pytest.approx((3.0, 46.5), abs=1e-9)
     assert plan.sorties[0].waypoints[0].lon == pytest.approx(3.0, abs=1e-9)
     assert plan.sorties[0].waypoints[0].lat == pytest.approx(46.5, abs=1e-9)

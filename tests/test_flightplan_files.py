@@ -45,9 +45,12 @@ def survey(tmp_path_factory):
     ]
     causes = ["missed_coverage", "missed_coverage", "missed_coverage", "occlusion"]
     write_layer(
-        folder / "holes.gpkg", "holes",
+        folder / "holes.gpkg",
+        "holes",
         [{"hole_id": i + 1, "area_m2": h.area, "cause": c} for i, (h, c) in enumerate(zip(holes, causes))],
-        [shapely.MultiPolygon([h]) for h in holes], crs_wkt=crs, geometry_type="MultiPolygon",
+        [shapely.MultiPolygon([h]) for h in holes],
+        crs_wkt=crs,
+        geometry_type="MultiPolygon",
     )
     write_cog(folder / "dsm.tif", dsm, transform=transform, crs_wkt=crs)
     return folder, holes
@@ -107,7 +110,9 @@ def test_waypoints_files_load_in_pymavlink(planned):
             fields = line.split("\t")
             wp = loader.wp(i)
             assert wp.seq == i and wp.command == int(fields[3])
-            assert wp.x == pytest.approx(float(fields[8]), abs=1e-6) and wp.y == pytest.approx(float(fields[9]), abs=1e-6)
+            assert wp.x == pytest.approx(float(fields[8]), abs=1e-6) and wp.y == pytest.approx(
+                float(fields[9]), abs=1e-6
+            )
             if wp.command == 16:
                 assert 46.4 < wp.x < 46.6 and 2.9 < wp.y < 3.1
 
@@ -128,11 +133,15 @@ def test_plan_validates_against_the_qgc_schema_and_round_trips(planned):
         assert all(len(item["params"]) == 7 for item in items)
         commands = [item["command"] for item in items]
         assert commands[0] == 22 and commands[-1] == 20 and 178 in commands
-        assert commands.count(206) == 2 * len(read_layer(out / "flightplan.gpkg", "flight_lines").query(f"sortie == {k}"))
+        assert commands.count(206) == 2 * len(
+            read_layer(out / "flightplan.gpkg", "flight_lines").query(f"sortie == {k}")
+        )
         home = plan["mission"]["plannedHomePosition"]
         assert home[2] == pytest.approx(summary["home_ground_m"], abs=0.01) and home[2] > 50
         ours = gpkg[gpkg["sortie"] == k].sort_values("sequence")
-        positions = [(item["params"][4], item["params"][5], item["params"][6]) for item in items if item["command"] in (16, 22)]
+        positions = [
+            (item["params"][4], item["params"][5], item["params"][6]) for item in items if item["command"] in (16, 22)
+        ]
         assert len(positions) == len(ours)
         for (lat, lon, alt), row in zip(positions, ours.itertuples()):
             assert lat == pytest.approx(row.lat, abs=1e-8) and lon == pytest.approx(row.lon, abs=1e-8)
@@ -171,8 +180,12 @@ def test_every_planned_hole_is_covered_by_the_written_lanes(planned):
     out, summary, holes = planned
     lines = read_layer(out / "flightplan.gpkg", "flight_lines")
     config = load_config()
-    spacing = 2 * config.flightplan.altitude_agl_m * math.tan(math.radians(config.flightplan.fov_deg / 2)) * (
-        1 - config.flightplan.side_overlap)
+    spacing = (
+        2
+        * config.flightplan.altitude_agl_m
+        * math.tan(math.radians(config.flightplan.fov_deg / 2))
+        * (1 - config.flightplan.side_overlap)
+    )
     covered = shapely.union_all([g.buffer(spacing / 2 + 1e-3) for g in lines.geometry])
     for hole in holes[:3]:
         assert covered.contains(hole)
@@ -181,9 +194,13 @@ def test_every_planned_hole_is_covered_by_the_written_lanes(planned):
 def test_bad_flightplan_settings_name_the_key(survey, tmp_path):
     folder, _ = survey
     with pytest.raises(ConfigError, match="flightplan.side_overlap"):
-        plan_flights(folder / "holes.gpkg", folder / "dsm.tif", load_config(overrides=["flightplan.side_overlap=0.95"]), tmp_path)
+        plan_flights(
+            folder / "holes.gpkg", folder / "dsm.tif", load_config(overrides=["flightplan.side_overlap=0.95"]), tmp_path
+        )
     with pytest.raises(ConfigError, match=r"flightplan\.home"):
-        plan_flights(folder / "holes.gpkg", folder / "dsm.tif", load_config(overrides=["flightplan.home=[1.0]"]), tmp_path)
+        plan_flights(
+            folder / "holes.gpkg", folder / "dsm.tif", load_config(overrides=["flightplan.home=[1.0]"]), tmp_path
+        )
     with pytest.raises(ConfigError, match="items among"):
         load_config(overrides=['flightplan.causes=["shadow"]'])
 

@@ -33,7 +33,11 @@ def synthetic_run(tmp_path, client, name, *overrides, **spec):
 
 def test_synthetic_holes_and_causes_match_the_truth(tmp_path, dask_client):
     scores = []
-    for name, spec in [("strip", dict(water=False, seed=3)), ("both", dict(seed=4)), ("buildings", dict(water=False, missed_line=None, building_density=5.0, seed=5))]:
+    for name, spec in [
+        ("strip", dict(water=False, seed=3)),
+        ("both", dict(seed=4)),
+        ("buildings", dict(water=False, missed_line=None, building_density=5.0, seed=5)),
+    ]:
         _, truth, out, summary = synthetic_run(tmp_path, dask_client, name, **spec)
         assert LAYERS <= set(list_layers(out / "holes.gpkg"))
         score = score_holes(out / "holes.gpkg", truth["hole_cause"], min_area_px=4)
@@ -52,7 +56,9 @@ def test_holes_do_not_depend_on_cell_size(tmp_path, dask_client):
     results = {}
     for cell_m in (64.0, 1000.0):
         out = tmp_path / f"out{cell_m:g}"
-        run_survey([str(tmp_path / "tiles")], out, load_config(overrides=[f"grid.cell_size_m={cell_m}"]), client=dask_client)
+        run_survey(
+            [str(tmp_path / "tiles")], out, load_config(overrides=[f"grid.cell_size_m={cell_m}"]), client=dask_client
+        )
         holes = read_layer(out / "holes.gpkg", "holes")
         shape = survey.hole_cause.shape
         masks = sorted(

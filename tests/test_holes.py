@@ -48,8 +48,14 @@ def detect_all(grid, count, zmax, zmin, aoi=None, **kw):
         extra = {k: (v[sl] if isinstance(v, np.ndarray) else v) for k, v in kw.items()}
         out.append(
             H.detect_cell_holes(
-                count[sl], zmax[sl], zmin[sl], None if aoi is None else aoi[sl],
-                cell=cell, grid_window=grid.window, jump_threshold=JUMP, **extra,
+                count[sl],
+                zmax[sl],
+                zmin[sl],
+                None if aoi is None else aoi[sl],
+                cell=cell,
+                grid_window=grid.window,
+                jump_threshold=JUMP,
+                **extra,
             )
         )
     return out
@@ -252,11 +258,11 @@ def test_validation_errors():
     with pytest.raises(ValueError, match="halo"):
         H.detect_cell_holes(count, z, z, cell=cell, grid_window=grid.window, jump_threshold=1.0)
     with pytest.raises(ValueError, match="shape"):
-        H.detect_cell_holes(count[1:], z, z, cell=cell, grid_window=grid.window, jump_threshold=1.0,
-                            local_radius_px=2)
+        H.detect_cell_holes(count[1:], z, z, cell=cell, grid_window=grid.window, jump_threshold=1.0, local_radius_px=2)
     with pytest.raises(ValueError, match="connectivity"):
-        H.detect_cell_holes(count, z, z, cell=cell, grid_window=grid.window, jump_threshold=1.0,
-                            local_radius_px=2, connectivity=6)
+        H.detect_cell_holes(
+            count, z, z, cell=cell, grid_window=grid.window, jump_threshold=1.0, local_radius_px=2, connectivity=6
+        )
 
 
 def test_results_pickle():
@@ -307,8 +313,9 @@ def test_same_holes_whatever_the_cell_size(connectivity):
     for cell_px, col_min, row_top in ((64, 0, None), (1000, 0, None), (48, 37, 1000)):
         grid = make_grid(*count.shape, cell_px, col_min=col_min, row_top=row_top)
         zmax, zmin = surface(count, z)
-        cells = detect_all(grid, count, zmax, zmin, aoi, connectivity=connectivity,
-                           water_points=water, flight_line=line)
+        cells = detect_all(
+            grid, count, zmax, zmin, aoi, connectivity=connectivity, water_points=water, flight_line=line
+        )
         cat = H.link_holes([c.without_labels() for c in cells], min_area_px=4)
         causes = H.classify_causes(cat.stats, H.CauseRules.with_defaults(pixel_size=1.0, jump_threshold=JUMP))
         results[cell_px] = (hole_raster(grid, cells, cat), cat, causes, len(cells))

@@ -12,8 +12,8 @@ from shapely import affinity
 from shapely.geometry import MultiPolygon, Polygon
 
 from pipeline import holes as H
-from pipeline.holes import outlines as O
 from pipeline.grid import Grid
+from pipeline.holes import outlines as O
 
 
 def corner_angles(poly: Polygon) -> np.ndarray:

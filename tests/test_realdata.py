@@ -77,7 +77,14 @@ def test_crs_overrides_on_real_files(shared_data, tmp_path, dask_client):
     check_cog(next((tmp_path / "ahn" / "dsm").glob("*.tif")), 28992)
     with pytest.raises(CRSError, match="pdal_warsaw_small.las: its CRS record cannot be parsed"):
         scan_survey([str(shared_data / "pdal_warsaw_small.las")])
-    run(shared_data, ["pdal_warsaw_small.las"], tmp_path / "warsaw", dask_client, 'survey.crs="EPSG:2180"', "grid.cell_size_m=50")
+    run(
+        shared_data,
+        ["pdal_warsaw_small.las"],
+        tmp_path / "warsaw",
+        dask_client,
+        'survey.crs="EPSG:2180"',
+        "grid.cell_size_m=50",
+    )
     with pytest.raises(CRSError, match="differs"):
         scan_survey([str(shared_data / n) for n in ("ign_tile_77050_627755.laz", "lidr_megaplot.laz")])
 

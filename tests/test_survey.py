@@ -103,7 +103,9 @@ def test_header_point_count_that_lies(tmp_path, points, suffix):
     data = bytearray(path.read_bytes())
     struct.pack_into("<I", data, 107, len(points[0]) + 100)  # legacy point count
     path.write_bytes(bytes(data))
-    with pytest.raises(InputDataError, match=rf"lie\{suffix}: .*header point count is|lie\{suffix}: point data cannot be decoded"):
+    with pytest.raises(
+        InputDataError, match=rf"lie\{suffix}: .*header point count is|lie\{suffix}: point data cannot be decoded"
+    ):
         read_header(path)
         decode_only(path, 1000)
 

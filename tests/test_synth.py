@@ -71,8 +71,10 @@ def bin_points(spec, x, y):
 
 def sorted_points(survey):
     points = read_points(survey)
-    table = np.column_stack([np.round(points[k] * 100).astype(np.int64) for k in ("x", "y", "z")]
-                            + [np.round((points["gps_time"] - 3e8) * 1e6).astype(np.int64), points["classification"]])
+    table = np.column_stack(
+        [np.round(points[k] * 100).astype(np.int64) for k in ("x", "y", "z")]
+        + [np.round((points["gps_time"] - 3e8) * 1e6).astype(np.int64), points["classification"]]
+    )
     return table[np.lexsort(table.T[::-1])]
 
 

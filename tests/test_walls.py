@@ -100,9 +100,7 @@ def test_l_shaped_building_gives_two_perpendicular_walls_in_world_coordinates():
     transform = Affine(0.5, 0, 1000.0, 0, -0.5, 2000.0)  # 0.5 m pixels
     walls = find_walls(z, z, jump_threshold=2.0, transform=transform, min_length_px=8)
     assert len(walls) == 4
-    directions = sorted(
-        round(math.degrees(math.atan2(w.y1 - w.y0, w.x1 - w.x0))) % 180 for w in walls
-    )
+    directions = sorted(round(math.degrees(math.atan2(w.y1 - w.y0, w.x1 - w.x0))) % 180 for w in walls)
     assert directions == [0, 0, 90, 90]
     north = max(walls, key=lambda w: (w.y0 + w.y1) / 2)
     # the north wall is the edge between rows 9 and 10: y = 2000 - 10 * 0.5, within half a pixel

@@ -100,8 +100,9 @@ def build_problem(heights, region, *, pixel_size, settings, support=None, barrie
         usable &= support
     if barriers is not None:
         usable &= ~barriers
-    return Problem(heights=z, labels=lab, support=usable, n_labels=int(n), pixel_size=float(pixel_size),
-                   settings=settings)
+    return Problem(
+        heights=z, labels=lab, support=usable, n_labels=int(n), pixel_size=float(pixel_size), settings=settings
+    )
 
 
 def rim_pairs(problem: Problem, wanted: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -134,13 +135,15 @@ def rims_by_label(problem: Problem, labels: np.ndarray) -> dict[int, np.ndarray]
     wanted[labels] = True
     rim_l, rim_i = rim_pairs(problem, wanted)
     bounds = np.searchsorted(rim_l, np.arange(problem.n_labels + 2))
-    return {int(k): rim_i[bounds[k]:bounds[k + 1]] for k in labels}
+    return {int(k): rim_i[bounds[k] : bounds[k + 1]] for k in labels}
 
 
 def padded_box(sl: tuple[slice, slice], pad: int, shape: tuple[int, int]) -> tuple[slice, slice]:
     """The bounding box ``sl`` grown by ``pad`` pixels, clipped to ``shape``."""
-    return (slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, shape[0])),
-            slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, shape[1])))
+    return (
+        slice(max(sl[0].start - pad, 0), min(sl[0].stop + pad, shape[0])),
+        slice(max(sl[1].start - pad, 0), min(sl[1].stop + pad, shape[1])),
+    )
 
 
 def support_points(problem: Problem, label: int, rim_flat: np.ndarray, k: int, min_reach: int = 0) -> np.ndarray:
@@ -158,8 +161,10 @@ def support_points(problem: Problem, label: int, rim_flat: np.ndarray, k: int, m
     rr, cc = np.divmod(rim_flat, w)
     base = int(np.ceil(np.sqrt(k))) + 1
     reach = max(base, min_reach)
-    box = (slice(max(rr.min() - reach, 0), min(rr.max() + reach + 1, h)),
-           slice(max(cc.min() - reach, 0), min(cc.max() + reach + 1, w)))
+    box = (
+        slice(max(rr.min() - reach, 0), min(rr.max() + reach + 1, h)),
+        slice(max(cc.min() - reach, 0), min(cc.max() + reach + 1, w)),
+    )
     sup = problem.support[box]
     seed = np.zeros_like(sup)
     seed[rr - box[0].start, cc - box[1].start] = True

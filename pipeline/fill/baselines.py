@@ -10,7 +10,8 @@ import numpy as np
 import scipy.ndimage as ndi
 from scipy.spatial import cKDTree
 
-from ._problem import Problem, padded_box, rims_by_label as _rims, support_points
+from ._problem import Problem, padded_box, support_points
+from ._problem import rims_by_label as _rims
 from .settings import ComponentFill
 
 __all__ = ["fill_flat", "fill_idw", "fill_nearest"]
@@ -89,6 +90,7 @@ def fill_flat(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[Com
         sl = slices[k - 1]
         sub = out[sl]
         sub[problem.labels[sl] == k] = level
-        recs.append(ComponentFill(label=k, n_pixels=int(sizes[k]), method="flat", filled=True,
-                                  n_support=len(rim), level=level))
+        recs.append(
+            ComponentFill(label=k, n_pixels=int(sizes[k]), method="flat", filled=True, n_support=len(rim), level=level)
+        )
     return recs

@@ -89,7 +89,7 @@ def lower_side_support(
     low = np.full(n + 1, np.nan)
     bounds = np.searchsorted(pl, np.arange(n + 2))
     for k in np.unique(pl):
-        low[k] = np.quantile(z[bounds[k]:bounds[k + 1]], quantile)
+        low[k] = np.quantile(z[bounds[k] : bounds[k + 1]], quantile)
     keep = z <= low[pl] + jump_threshold
     out.ravel()[pi[keep]] = True
     # a pixel judged high for any neighbouring hole is not support
@@ -126,5 +126,5 @@ def rim_level(
     z = heights.ravel()[pi]
     bounds = np.searchsorted(pl, np.arange(n + 2))
     for k in np.unique(pl):
-        levels[k] = np.percentile(z[bounds[k]:bounds[k + 1]], percentile)
+        levels[k] = np.percentile(z[bounds[k] : bounds[k + 1]], percentile)
     return levels

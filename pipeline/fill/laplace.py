@@ -68,9 +68,17 @@ def fill_tin(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[Comp
         detail = ""
         if k in large:
             detail = f"reduced system: full resolution within {st.tin_band_px} px of the rim, {st.tin_lattice_px} px lattice inside"
-        records.append(ComponentFill(label=k, n_pixels=int(sizes[k]), method="tin" if solvable[k] else "none",
-                                     filled=bool(solvable[k]), n_support=int(n_rim[k]),
-                                     order=st.tin_order if solvable[k] else 0, detail=detail))
+        records.append(
+            ComponentFill(
+                label=k,
+                n_pixels=int(sizes[k]),
+                method="tin" if solvable[k] else "none",
+                filled=bool(solvable[k]),
+                n_support=int(n_rim[k]),
+                order=st.tin_order if solvable[k] else 0,
+                detail=detail,
+            )
+        )
     return records
 
 
@@ -136,8 +144,9 @@ def _umbrella_rows(rows, cols, row_label, lab, sup, z, index, diag_col):
         rhs = known  # deg*u - sum(unknown nb) = sum(known nb)
     else:
         rhs = deg * z[rows, cols] - known  # known part of the rim pixel's Laplacian
-    mat = sparse.csr_matrix((np.concatenate(vi), (np.concatenate(ri), np.concatenate(ci))),
-                            shape=(n, int(index.max()) + 1))
+    mat = sparse.csr_matrix(
+        (np.concatenate(vi), (np.concatenate(ri), np.concatenate(ci))), shape=(n, int(index.max()) + 1)
+    )
     return mat, rhs
 
 
@@ -172,8 +181,9 @@ def _reduction(problem: Problem, rows, cols, large: list[int]) -> sparse.csr_mat
         whole = np.bincount(cell)[cell] == f * f
         sel, i0, j0, gi, gj = sel[whole], i0[whole], j0[whole], gi[whole], gj[whole]
         fi, fj = gi - i0, gj - j0
-        for m, (di, dj, wgt) in enumerate(((0, 0, (1 - fi) * (1 - fj)), (1, 0, fi * (1 - fj)),
-                                           (0, 1, (1 - fi) * fj), (1, 1, fi * fj))):
+        for m, (di, dj, wgt) in enumerate(
+            ((0, 0, (1 - fi) * (1 - fj)), (1, 0, fi * (1 - fj)), (0, 1, (1 - fi) * fj), (1, 1, fi * fj))
+        ):
             node_cols[sel, m] = next_col + (i0 + di) * ncol + (j0 + dj)
             node_w[sel, m] = wgt
         interior[sel] = True

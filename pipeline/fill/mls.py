@@ -69,21 +69,41 @@ def fill_mls(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[Comp
         pr, pc = np.nonzero(problem.labels[sl] == k)
         pr, pc = pr + sl[0].start, pc + sl[1].start
         dist = _distance_to_support(pr, pc, sr, sc) * ps
-        z, order, flags = mls_surface(sc * ps, -sr * ps, problem.heights[sr, sc], pc * ps, -pr * ps,
-                                      dist, st, dense_band=st.mls_dense_band_px * ps, step=st.mls_lattice_step_px,
-                                      pixel_size=ps, rows=pr, cols=pc)
+        z, order, flags = mls_surface(
+            sc * ps,
+            -sr * ps,
+            problem.heights[sr, sc],
+            pc * ps,
+            -pr * ps,
+            dist,
+            st,
+            dense_band=st.mls_dense_band_px * ps,
+            step=st.mls_lattice_step_px,
+            pixel_size=ps,
+            rows=pr,
+            cols=pc,
+        )
         out[pr, pc] = z
-        recs.append(ComponentFill(label=k, n_pixels=int(sizes[k]), method="mls", filled=True,
-                                  degraded=bool(flags.any()), n_support=len(pts), order=int(order.min()),
-                                  detail=_describe(flags, order, st.mls_order)))
+        recs.append(
+            ComponentFill(
+                label=k,
+                n_pixels=int(sizes[k]),
+                method="mls",
+                filled=True,
+                degraded=bool(flags.any()),
+                n_support=len(pts),
+                order=int(order.min()),
+                detail=_describe(flags, order, st.mls_order),
+            )
+        )
     return recs
 
 
 def _describe(flags: np.ndarray, order: np.ndarray, wanted: int) -> str:
     parts = []
-    if (n := int(np.count_nonzero(flags & WIDENED))):
+    if n := int(np.count_nonzero(flags & WIDENED)):
         parts.append(f"support widened for {n} px")
-    if (n := int(np.count_nonzero(order < wanted))):
+    if n := int(np.count_nonzero(order < wanted)):
         parts.append(f"order lowered to {int(order.min())} for {n} px")
     return "; ".join(parts)
 
@@ -126,8 +146,9 @@ def local_frame(x: np.ndarray, y: np.ndarray, z: np.ndarray, *, tilted: bool) ->
     return origin, np.vstack([u_axis, v_axis, normal])
 
 
-def mls_surface(sx, sy, sz, ex, ey, dist, settings, *, dense_band=0.0, step=4, pixel_size=1.0,
-                rows=None, cols=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def mls_surface(
+    sx, sy, sz, ex, ey, dist, settings, *, dense_band=0.0, step=4, pixel_size=1.0, rows=None, cols=None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Evaluate the improved-MLS surface of support points (sx, sy, sz) at (ex, ey).
 
     ``dist`` is each evaluation point's distance to the nearest support point (survey
@@ -142,8 +163,23 @@ def mls_surface(sx, sy, sz, ex, ey, dist, settings, *, dense_band=0.0, step=4, p
     h_min = st.mls_min_radius_px * pixel_size
     cell = _cell_size(su, sv, h_min)
     order_idx, starts, g0, nu, nv = _buckets(su, sv, cell)
-    args = (su[order_idx], sv[order_idx], ss[order_idx], starts, g0[0], g0[1], cell, nu, nv,
-            origin, axes, st.mls_order, st.weight_code, st.mls_min_points, st.mls_drop_tolerance)
+    args = (
+        su[order_idx],
+        sv[order_idx],
+        ss[order_idx],
+        starts,
+        g0[0],
+        g0[1],
+        cell,
+        nu,
+        nv,
+        origin,
+        axes,
+        st.mls_order,
+        st.weight_code,
+        st.mls_min_points,
+        st.mls_drop_tolerance,
+    )
     lattice = dense_band > 0 and rows is not None and np.any(dist > dense_band)
     n = len(ex)
     z, order, flags = np.empty(n), np.empty(n, np.int64), np.zeros(n, np.int64)
@@ -183,8 +219,12 @@ def _lattice_eval(rows, cols, step, ps, sx, sy, st, h_min, args):
 
 def _lagrange4(t: np.ndarray) -> tuple[np.ndarray, ...]:
     """Cubic Lagrange weights of the nodes -1, 0, 1, 2 at offset t in [0, 1)."""
-    return (-t * (t - 1) * (t - 2) / 6, (t + 1) * (t - 1) * (t - 2) / 2,
-            -(t + 1) * t * (t - 2) / 2, (t + 1) * t * (t - 1) / 6)
+    return (
+        -t * (t - 1) * (t - 2) / 6,
+        (t + 1) * (t - 1) * (t - 2) / 2,
+        -(t + 1) * t * (t - 2) / 2,
+        (t + 1) * t * (t - 1) / 6,
+    )
 
 
 def _cell_size(su, sv, h_min) -> float:
@@ -214,12 +254,13 @@ def _weight(r, kind):
             return 2.0 / 3.0 - 4.0 * r * r + 4.0 * r * r * r
         return 4.0 / 3.0 * (1.0 - r) ** 3
     e = math.exp(-6.25)  # Gaussian, sigma 0.4 h, shifted to 0 at r = 1
-    return (math.exp(-(r / 0.4) ** 2) - e) / (1.0 - e)
+    return (math.exp(-((r / 0.4) ** 2)) - e) / (1.0 - e)
 
 
 @numba.njit(cache=True, nogil=True)
-def _mls_eval(ex, ey, h0, su, sv, ss, starts, u_min, v_min, cell, nu, nv, origin, axes, max_order, wkind,
-              min_points, drop_tol):
+def _mls_eval(
+    ex, ey, h0, su, sv, ss, starts, u_min, v_min, cell, nu, nv, origin, axes, max_order, wkind, min_points, drop_tol
+):
     n = len(ex)
     z = np.empty(n)
     order_out = np.empty(n, np.int64)

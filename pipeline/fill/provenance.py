@@ -61,8 +61,16 @@ def leave_boundary_out_error(
         RMSE per label (NaN for index 0 and for components that could not be tested).
     """
     settings = replace(FillSettings() if settings is None else settings, estimate_error=True)
-    outcome = fill_region(heights, region, method=method, pixel_size=pixel_size, settings=settings,
-                          support=support, barriers=barriers, labels=labels)
+    outcome = fill_region(
+        heights,
+        region,
+        method=method,
+        pixel_size=pixel_size,
+        settings=settings,
+        support=support,
+        barriers=barriers,
+        labels=labels,
+    )
     errors = np.full(int(outcome.labels.max(initial=0)) + 1, np.nan)
     for rec in outcome.components:
         errors[rec.label] = rec.error_estimate

@@ -81,10 +81,13 @@ def fill_region(
     settings = FillSettings() if settings is None else settings
     if method != "auto" and method not in FILL_METHODS:
         raise ValueError(f"unknown fill method {method!r}, must be one of {['auto', *FILL_METHODS]}")
-    problem = build_problem(heights, region, pixel_size=pixel_size, settings=settings, support=support,
-                            barriers=barriers, labels=labels)
+    problem = build_problem(
+        heights, region, pixel_size=pixel_size, settings=settings, support=support, barriers=barriers, labels=labels
+    )
     present = np.nonzero(problem.sizes()[1:])[0] + 1
-    chosen = choose_methods(problem.labels, present, settings) if method == "auto" else {int(k): method for k in present}
+    chosen = (
+        choose_methods(problem.labels, present, settings) if method == "auto" else {int(k): method for k in present}
+    )
     out = problem.heights.copy()
     records = _run(problem, chosen, out)
     lut = np.zeros(problem.n_labels + 1, np.uint8)
@@ -101,8 +104,12 @@ def fill_region(
     out[bad] = np.nan
     code[bad] = NOT_FILLED
     dtype = heights.dtype if np.issubdtype(np.asarray(heights).dtype, np.floating) else np.float64
-    return FillOutcome(heights=out.astype(dtype, copy=False), method_code=code, labels=problem.labels,
-                       components=tuple(records[k] for k in sorted(records)))
+    return FillOutcome(
+        heights=out.astype(dtype, copy=False),
+        method_code=code,
+        labels=problem.labels,
+        components=tuple(records[k] for k in sorted(records)),
+    )
 
 
 def _run(problem: Problem, chosen: dict[int, str], out: np.ndarray) -> dict[int, ComponentFill]:

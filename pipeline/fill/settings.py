@@ -164,8 +164,17 @@ class FillSettings:
     holdout_every: int = 4
 
     def __post_init__(self) -> None:
-        _positive_int(self, "mls_k", "mls_min_points", "mls_lattice_step_px", "tin_lattice_px", "idw_k",
-                      "seam_iterations", "holdout_sectors", "holdout_every")
+        _positive_int(
+            self,
+            "mls_k",
+            "mls_min_points",
+            "mls_lattice_step_px",
+            "tin_lattice_px",
+            "idw_k",
+            "seam_iterations",
+            "holdout_sectors",
+            "holdout_every",
+        )
         _choice(self, "mls_order", (0, 1, 2))
         _choice(self, "tin_order", (1, 2))
         _choice(self, "mls_weight", _WEIGHTS)

@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 import pyproj
@@ -166,9 +167,7 @@ def lane_sections(
     step = step_m or max(pixel, terrain_step_m)
     edges, maxima = corridor_profile(dsm, transform, start, end, half_width_m=half_width_m, step_m=step)
     if not np.isfinite(maxima).any():
-        raise ValueError(
-            f"no DSM height within {half_width_m:.0f} m of the segment {start} -> {end}"
-        )
+        raise ValueError(f"no DSM height within {half_width_m:.0f} m of the segment {start} -> {end}")
     maxima = np.where(np.isfinite(maxima), maxima, np.nanmax(maxima))
     length = edges[-1]
     direction = ((end[0] - start[0]) / (length or 1.0), (end[1] - start[1]) / (length or 1.0))
@@ -218,7 +217,9 @@ def ellipsoid_transformer(
     with warnings.catch_warnings():  # the missing grid is reported below, as an error
         warnings.simplefilter("ignore", UserWarning)
         group = pyproj.transformer.TransformerGroup(vertical_crs, "EPSG:4979", always_xy=True)
-    missing = sorted({g.short_name or g.full_name for op in group.unavailable_operations for g in op.grids if not g.available})
+    missing = sorted(
+        {g.short_name or g.full_name for op in group.unavailable_operations for g in op.grids if not g.available}
+    )
     if not group.transformers:
         raise CRSError(vertical_crs.name, "PROJ has no transformation to WGS84 ellipsoidal heights")
     with warnings.catch_warnings():
@@ -261,9 +262,12 @@ def vertical_crs_for(dsm_crs_wkt: str, vertical_crs: str) -> pyproj.CRS:
     if horizontal.is_compound:
         horizontal = horizontal.sub_crs_list[0]
     return pyproj.CRS.from_dict(
-        {"$schema": "https://proj.org/schemas/v0.7/projjson.schema.json", "type": "CompoundCRS",
-         "name": f"{horizontal.name} + {vertical.name}",
-         "components": [horizontal.to_json_dict(), vertical.to_json_dict()]}
+        {
+            "$schema": "https://proj.org/schemas/v0.7/projjson.schema.json",
+            "type": "CompoundCRS",
+            "name": f"{horizontal.name} + {vertical.name}",
+            "components": [horizontal.to_json_dict(), vertical.to_json_dict()],
+        }
     )
 
 
@@ -275,7 +279,9 @@ def _inverse(t: AffineLike) -> tuple[float, float, float, float, float, float]:
     return ia, ib, -(ia * t.c + ib * t.f), id_, ie, -(id_ * t.c + ie * t.f)
 
 
-def _window(shape: tuple[int, ...], t: AffineLike, start: Point2, end: Point2, reach: float) -> tuple[np.ndarray, np.ndarray]:
+def _window(
+    shape: tuple[int, ...], t: AffineLike, start: Point2, end: Point2, reach: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Row and column indices of every pixel in the box around a segment grown by ``reach``."""
     inverse = _inverse(t)
     xs = [min(start[0], end[0]) - reach, max(start[0], end[0]) + reach]

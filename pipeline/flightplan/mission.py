@@ -16,8 +16,8 @@ Pure: numpy arrays, shapely geometries and pyproj in; dataclasses out.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import pyproj
@@ -182,8 +182,13 @@ def plan_mission(
     greedy = greedy_route(unit_ends, home)
     improved = improve_route(greedy, unit_ends, home)
     sortie_visits = split_sorties(
-        improved, unit_ends, home, lane_speed_m_s=params.speed_m_s, transit_speed_m_s=params.transit_speed_m_s,
-        setup_time_s=params.setup_time_s, max_flight_time_s=params.max_flight_time_s,
+        improved,
+        unit_ends,
+        home,
+        lane_speed_m_s=params.speed_m_s,
+        transit_speed_m_s=params.transit_speed_m_s,
+        setup_time_s=params.setup_time_s,
+        max_flight_time_s=params.max_flight_time_s,
     )
     sortie_visits = [improve_route(v, unit_ends, home) for v in sortie_visits]
     home_ground = height_at(dsm, transform, home)
@@ -196,7 +201,8 @@ def plan_mission(
         waypoints = _finish_waypoints(number, raw, to_lonlat, home_ground, params.altitude_reference, to_ellipsoid)
         lanes = tuple(
             FlownLane(number, units[v.pattern].pattern_id, units[v.pattern].hole_ids, lane)
-            for v in visits for lane in pattern_variants(units[v.pattern])[v.variant]
+            for v in visits
+            for lane in pattern_variants(units[v.pattern])[v.variant]
         )
         length = route_length(visits, unit_ends, home)
         duration = sortie_duration(
@@ -245,8 +251,13 @@ def _patterns(selected: list[HoleInput], coverage: CoverageParams) -> list[Cover
         azimuth = max(oriented, key=lambda h: h.area_m2).azimuth_deg if oriented else None
         area = shapely.union_all([h.geometry for h in members])
         patterns.append(
-            plan_pattern(area, params=coverage, pattern_id=pattern_id,
-                         hole_ids=tuple(h.hole_id for h in members), azimuth_deg=azimuth)
+            plan_pattern(
+                area,
+                params=coverage,
+                pattern_id=pattern_id,
+                hole_ids=tuple(h.hole_id for h in members),
+                azimuth_deg=azimuth,
+            )
         )
     return patterns
 
@@ -319,8 +330,12 @@ class _Point:
 
 
 def _sortie_points(
-    visits: list[Visit], units: list[CoveragePattern], home: Point2, dsm: np.ndarray,
-    transform: AffineLike, params: FlightParams,
+    visits: list[Visit],
+    units: list[CoveragePattern],
+    home: Point2,
+    dsm: np.ndarray,
+    transform: AffineLike,
+    params: FlightParams,
 ) -> list[_Point]:
     """The points of one sortie with safe heights in the DSM's datum."""
     agl = params.coverage.altitude_agl_m
@@ -366,8 +381,11 @@ def _lane_points(
     actions = [["turn"], ["lane_start"]] + [["terrain"]] * (len(along) - 4) + [["lane_end"], ["turn"]]
     points = []
     for u, action in zip(along, actions):
-        touching = [s.surface_max_m for s in sections
-                    if math.dist(before, s.start) - 1e-6 <= u <= math.dist(before, s.end) + 1e-6]
+        touching = [
+            s.surface_max_m
+            for s in sections
+            if math.dist(before, s.start) - 1e-6 <= u <= math.dist(before, s.end) + 1e-6
+        ]
         xy = (before[0] + d[0] * u, before[1] + d[1] * u)
         points.append(_Point(xy, max(touching) + agl, action, pattern.pattern_id, lane.index))
     return points
@@ -389,7 +407,11 @@ def _merge_coincident(points: list[_Point]) -> list[_Point]:
 
 
 def _finish_waypoints(
-    sortie: int, points: list[_Point], to_lonlat: pyproj.Transformer, home_ground: float, reference: str,
+    sortie: int,
+    points: list[_Point],
+    to_lonlat: pyproj.Transformer,
+    home_ground: float,
+    reference: str,
     to_ellipsoid: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None,
 ) -> tuple[Waypoint, ...]:
     x = np.array([p.xy[0] for p in points])
@@ -403,7 +425,18 @@ def _finish_waypoints(
     else:
         altitude = to_ellipsoid(x, y, heights)
     return tuple(
-        Waypoint(sortie, i, float(x[i]), float(y[i]), float(lon[i]), float(lat[i]), float(heights[i]),
-                 float(altitude[i]), tuple(p.actions), p.pattern_id, p.lane_index)
+        Waypoint(
+            sortie,
+            i,
+            float(x[i]),
+            float(y[i]),
+            float(lon[i]),
+            float(lat[i]),
+            float(heights[i]),
+            float(altitude[i]),
+            tuple(p.actions),
+            p.pattern_id,
+            p.lane_index,
+        )
         for i, p in enumerate(points)
     )

@@ -236,7 +236,8 @@ def _or_opt(route: list[Visit], ends: list[PatternEnds], home: Point2) -> bool:
             before = _exit(route[i - 1], ends) if i > 0 else home
             after = _entry(route[i + size], ends) if i + size < len(route) else home
             removal_gain = (
-                math.dist(before, _entry(run[0], ends)) + math.dist(_exit(run[-1], ends), after)
+                math.dist(before, _entry(run[0], ends))
+                + math.dist(_exit(run[-1], ends), after)
                 - math.dist(before, after)
             )
             flipped = [_flip(v, ends) for v in reversed(run)]
@@ -266,11 +267,9 @@ def _best_variants_locally(route: list[Visit], ends: list[PatternEnds], home: Po
         after = _entry(route[i + 1], ends) if i + 1 < len(route) else home
         e = ends[visit.pattern]
 
-        def cost(v: int) -> float:
-            return math.dist(before, e.entries[v]) + math.dist(e.exits[v], after)
-
-        best = min(range(len(e.entries)), key=cost)
-        if cost(best) < cost(visit.variant) - 1e-9:
+        costs = [math.dist(before, e.entries[v]) + math.dist(e.exits[v], after) for v in range(len(e.entries))]
+        best = min(range(len(costs)), key=costs.__getitem__)
+        if costs[best] < costs[visit.variant] - 1e-9:
             route[i] = Visit(visit.pattern, best)
             improved = True
     return improved

@@ -69,8 +69,9 @@ def hole_pixel_sums(
 
 
 @numba.njit(cache=True, nogil=True)
-def _hole_pixel_kernel(labels, n, hole_w, aoi_w, data_w, water_w, mask_w, R, eight, has_water,
-                       has_mask):  # pragma: no cover - compiled
+def _hole_pixel_kernel(
+    labels, n, hole_w, aoi_w, data_w, water_w, mask_w, R, eight, has_water, has_mask
+):  # pragma: no cover - compiled
     """One raster-order pass over the hole pixels of the core (work arrays: core grown by R).
 
     Per label: area, coordinate sums, bounding box and first column; pixel edges to
@@ -137,8 +138,7 @@ def _hole_pixel_kernel(labels, n, hole_w, aoi_w, data_w, water_w, mask_w, R, eig
                 wet[lab] += 1
             if has_mask and mask_w[y, x]:
                 masked[lab] += 1
-    return (area, sr, sc, srr, scc, src, rmin, rmax, cmin, cmax, fcol, edge_len, aoi_edge, near_data, wet,
-            masked)
+    return (area, sr, sc, srr, scc, src, rmin, rmax, cmin, cmax, fcol, edge_len, aoi_edge, near_data, wet, masked)
 
 
 class RingSums(NamedTuple):
@@ -196,8 +196,24 @@ def ring_sums(
 
 
 @numba.njit(cache=True, nogil=True)
-def _ring_kernel(labels, hole_w, data_w, zmax_w, zmin_w, row_min, water_w, line_w, settled, R, lr,
-                 jump_threshold, low_tolerance, n, has_water, has_line):  # pragma: no cover - compiled
+def _ring_kernel(
+    labels,
+    hole_w,
+    data_w,
+    zmax_w,
+    zmin_w,
+    row_min,
+    water_w,
+    line_w,
+    settled,
+    R,
+    lr,
+    jump_threshold,
+    low_tolerance,
+    n,
+    has_water,
+    has_line,
+):  # pragma: no cover - compiled
     """Ring pixels of the core: sums per part where the part is known here, rows for the rest.
 
     Work-window arrays are the core grown by ``R`` pixels. A ring pixel's hole keys are
@@ -355,8 +371,26 @@ def _ring_kernel(labels, hole_w, data_w, zmax_w, zmin_w, row_min, water_w, line_
                     sh_flags[i_shared] = jump + 2 * low + 4 * water
                     sh_line[i_shared] = line
                     i_shared += 1
-    return (ring_px, ring_jump, ring_low, ring_water, sums, span_sum, z_lo, z_hi,
-            s_part, s_z, s_line, sh_r, sh_c, sh_key, sh_z, sh_span, sh_flags, sh_line)
+    return (
+        ring_px,
+        ring_jump,
+        ring_low,
+        ring_water,
+        sums,
+        span_sum,
+        z_lo,
+        z_hi,
+        s_part,
+        s_z,
+        s_line,
+        sh_r,
+        sh_c,
+        sh_key,
+        sh_z,
+        sh_span,
+        sh_flags,
+        sh_line,
+    )
 
 
 def _coo_counts(rows: np.ndarray, keys: np.ndarray, dtype: np.dtype) -> np.ndarray:

@@ -111,17 +111,16 @@ class CauseRules:
     @classmethod
     def with_defaults(cls, *, pixel_size: float, jump_threshold: float, **thresholds: float) -> CauseRules:
         """The ``[causes]`` defaults, some of them replaced by ``thresholds`` (z units, pixels)."""
-        return cls(pixel_size=pixel_size, jump_threshold=jump_threshold,
-                   **{**_thresholds(CausesConfig()), **thresholds})
+        return cls(
+            pixel_size=pixel_size, jump_threshold=jump_threshold, **{**_thresholds(CausesConfig()), **thresholds}
+        )
 
 
 #: The fields :meth:`CauseRules.from_config` derives from other sections, in survey units.
 _DERIVED: dict[str, str] = {"pixel_size": "grid.resolution_m", "jump_threshold": "holes.jump_threshold_m"}
 
 #: The configuration key behind each field of :class:`CauseRules`: the others are ``[causes]`` keys of the same name.
-CONFIG_KEYS: dict[str, str] = {
-    f.name: _DERIVED.get(f.name, f"causes.{f.name}") for f in dataclasses.fields(CauseRules)
-}
+CONFIG_KEYS: dict[str, str] = {f.name: _DERIVED.get(f.name, f"causes.{f.name}") for f in dataclasses.fields(CauseRules)}
 
 
 def _thresholds(causes: CausesConfig) -> dict[str, float]:

@@ -183,10 +183,18 @@ def detect_cell_holes(
     ValueError
         On arrays of the wrong shape, a bad parameter, or a halo narrower than needed.
     """
-    arrays = {"count": count, "zmax": zmax, "zmin": zmin, "aoi": aoi, "water_points": water_points,
-              "water_mask": water_mask, "flight_line": flight_line}
-    R = _check_inputs(arrays, cell, grid_window, connectivity=connectivity, local_radius_px=local_radius_px,
-                      height_bin=height_bin)
+    arrays = {
+        "count": count,
+        "zmax": zmax,
+        "zmin": zmin,
+        "aoi": aoi,
+        "water_points": water_points,
+        "water_mask": water_mask,
+        "flight_line": flight_line,
+    }
+    R = _check_inputs(
+        arrays, cell, grid_window, connectivity=connectivity, local_radius_px=local_radius_px, height_bin=height_bin
+    )
     core = cell.window
     work = _work_arrays(arrays, cell, R)
     structure = ndi.generate_binary_structure(2, 1 if connectivity == 4 else 2)
@@ -196,9 +204,18 @@ def detect_cell_holes(
     core_has_data = bool(data_core.any())
     edges = _edge_strips(labels, core)
     if n == 0:
-        return CellHoles(cell, connectivity, labels, np.zeros(0, PART_DTYPE),
-                         HoleStats.empty(0, height_bin=height_bin), edges,
-                         np.zeros(0, SHARED_RING_DTYPE), core_has_data, 0, 0)
+        return CellHoles(
+            cell,
+            connectivity,
+            labels,
+            np.zeros(0, PART_DTYPE),
+            HoleStats.empty(0, height_bin=height_bin),
+            edges,
+            np.zeros(0, SHARED_RING_DTYPE),
+            core_has_data,
+            0,
+            0,
+        )
 
     cols = _empty_columns(n)
     _pixel_statistics(cols, labels, n, core, work, connectivity)
@@ -210,8 +227,15 @@ def detect_cell_holes(
         n = len(closed)
         edges = _edge_strips(labels, core)
     height_hist, line_hist, shared = _ring_statistics(
-        cols, labels, closed, work, core, local_radius_px=local_radius_px, jump_threshold=jump_threshold,
-        low_tolerance=low_tolerance, height_bin=height_bin,
+        cols,
+        labels,
+        closed,
+        work,
+        core,
+        local_radius_px=local_radius_px,
+        jump_threshold=jump_threshold,
+        low_tolerance=low_tolerance,
+        height_bin=height_bin,
     )
     parts = _part_topology(labels, n, work.hole, data_core, R, cols, core_has_data, connectivity)
     return CellHoles(
@@ -241,9 +265,7 @@ def _check_inputs(
     core, halo = cell.window, cell.halo_window
     for name, arr in arrays.items():
         if arr is not None and np.shape(arr) != halo.shape:
-            raise ValueError(
-                f"{name} has shape {np.shape(arr)}; expected the cell's halo window shape {halo.shape}"
-            )
+            raise ValueError(f"{name} has shape {np.shape(arr)}; expected the cell's halo window shape {halo.shape}")
     if connectivity not in (4, 8):
         raise ValueError(f"connectivity must be 4 or 8, got {connectivity!r}")
     if local_radius_px < 0:
@@ -357,8 +379,18 @@ def _ring_statistics(
     else:
         row_min = np.zeros((1, 1), np.float32)
     ring = ring_sums(
-        labels, work.hole, work.data, work.zmax, work.zmin, row_min, work.water, work.line,
-        np.concatenate([[False], closed]), work.R, local_radius_px=lr, jump_threshold=jump_threshold,
+        labels,
+        work.hole,
+        work.data,
+        work.zmax,
+        work.zmin,
+        row_min,
+        work.water,
+        work.line,
+        np.concatenate([[False], closed]),
+        work.R,
+        local_radius_px=lr,
+        jump_threshold=jump_threshold,
         low_tolerance=low_tolerance,
     )
     cols["ring_px"] = ring.ring_px[1:]
@@ -370,8 +402,9 @@ def _ring_statistics(
     cols["ring_z_min"] = ring.z_min[1:]
     cols["ring_z_max"] = ring.z_max[1:]
     finite = np.isfinite(ring.hist_z)
-    height_hist = _coo_counts(ring.hist_part[finite] - 1,
-                              np.floor(ring.hist_z[finite] / height_bin).astype(np.int64), HEIGHT_HIST_DTYPE)
+    height_hist = _coo_counts(
+        ring.hist_part[finite] - 1, np.floor(ring.hist_z[finite] / height_bin).astype(np.int64), HEIGHT_HIST_DTYPE
+    )
     known = ring.hist_line >= 0
     line_hist = _coo_counts(ring.hist_part[known] - 1, ring.hist_line[known], LINE_HIST_DTYPE)
     return height_hist, line_hist, _shared_rows(ring, core, work.R, work.hole.shape[1])
@@ -440,8 +473,9 @@ def _pixel_statistics(
     cols: dict[str, np.ndarray], labels: np.ndarray, n: int, core: PixelWindow, work: _Work, connectivity: int
 ) -> None:
     """Area, box, first pixel, moments, edge length, AOI contact, data contact, evidence."""
-    sums = hole_pixel_sums(labels, n, work.hole, work.aoi, work.data, work.water, work.mask, work.R,
-                           eight=connectivity == 8)
+    sums = hole_pixel_sums(
+        labels, n, work.hole, work.aoi, work.data, work.water, work.mask, work.R, eight=connectivity == 8
+    )
     area, sr, sc = sums.area[1:], sums.row_sum[1:], sums.col_sum[1:]
     mr, mc = sr / area, sc / area
     cols["area_px"] = area
@@ -470,8 +504,14 @@ def _ring_moments(cols: dict[str, np.ndarray], count: np.ndarray, sums: np.ndarr
     cols["ring_mean_row"] = np.where(count > 0, means[0] + core.row_off, 0.0)
     cols["ring_mean_col"] = np.where(count > 0, means[1] + core.col_off, 0.0)
     cols["ring_mean_z"] = np.where(count > 0, means[2], 0.0)
-    for name, (i, j), raw in (("ring_m2_rr", (0, 0), 3), ("ring_m2_cc", (1, 1), 4), ("ring_m2_rc", (0, 1), 5),
-                              ("ring_m2_rz", (0, 2), 6), ("ring_m2_cz", (1, 2), 7), ("ring_m2_zz", (2, 2), 8)):
+    for name, (i, j), raw in (
+        ("ring_m2_rr", (0, 0), 3),
+        ("ring_m2_cc", (1, 1), 4),
+        ("ring_m2_rc", (0, 1), 5),
+        ("ring_m2_rz", (0, 2), 6),
+        ("ring_m2_cz", (1, 2), 7),
+        ("ring_m2_zz", (2, 2), 8),
+    ):
         cols[name] = np.where(count > 0, sums[raw] - sums[i] * means[j], 0.0)
 
 

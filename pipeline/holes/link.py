@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from scipy import sparse
@@ -278,16 +278,23 @@ def _layers(cells: Sequence[CellHoles], graph: sparse.csr_matrix) -> np.ndarray:
     return layer
 
 
-def _parts_table(
-    cells: Sequence[CellHoles], offsets: np.ndarray, hole_id: np.ndarray, layer: np.ndarray
-) -> np.ndarray:
+def _parts_table(cells: Sequence[CellHoles], offsets: np.ndarray, hole_id: np.ndarray, layer: np.ndarray) -> np.ndarray:
     """One row per part of every cell (see :attr:`HoleCatalog.parts`)."""
     id_len = max([len(c.cell.id) for c in cells] + [1])
     parts = np.zeros(
         len(hole_id),
-        [("hole_id", np.int64), ("cell", np.int64), ("cell_id", f"U{id_len}"), ("index_x", np.int64),
-         ("index_y", np.int64), ("label", np.int32), ("layer", np.int64), ("area_px", np.int64),
-         ("category", "U6"), ("shape", "U1")],
+        [
+            ("hole_id", np.int64),
+            ("cell", np.int64),
+            ("cell_id", f"U{id_len}"),
+            ("index_x", np.int64),
+            ("index_y", np.int64),
+            ("label", np.int32),
+            ("layer", np.int64),
+            ("area_px", np.int64),
+            ("category", "U6"),
+            ("shape", "U1"),
+        ],
     )
     for k, c in enumerate(cells):
         sl = slice(offsets[k], offsets[k + 1])
@@ -309,8 +316,15 @@ def _holes_table(parts: np.ndarray, stats: HoleStats, *, n_cells: int, min_area_
     n_comp = len(stats)
     holes = np.zeros(
         n_comp,
-        [("hole_id", np.int64), ("area_px", np.int64), ("n_parts", np.int64), ("n_cells", np.int64),
-         ("max_layer", np.int64), ("touches_aoi_boundary", np.bool_), ("is_small", np.bool_)],
+        [
+            ("hole_id", np.int64),
+            ("area_px", np.int64),
+            ("n_parts", np.int64),
+            ("n_cells", np.int64),
+            ("max_layer", np.int64),
+            ("touches_aoi_boundary", np.bool_),
+            ("is_small", np.bool_),
+        ],
     )
     hid = parts["hole_id"] - 1
     holes["hole_id"] = np.arange(1, n_comp + 1)

@@ -102,6 +102,5 @@ def _check_same_shape(**arrays: np.ndarray) -> None:
     first = next(iter(shapes.values()))
     if any(s != first for s in shapes.values()) or len(first) != 2:
         raise ValueError(
-            "arrays must be 2-dimensional and of the same shape: "
-            + ", ".join(f"{k} {v}" for k, v in shapes.items())
+            "arrays must be 2-dimensional and of the same shape: " + ", ".join(f"{k} {v}" for k, v in shapes.items())
         )

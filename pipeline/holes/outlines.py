@@ -30,7 +30,7 @@ Pure functions: arrays and shapely geometries in, shapely geometries out.
 from __future__ import annotations
 
 import math
-from typing import Iterable
+from collections.abc import Iterable
 
 import numpy as np
 import shapely
@@ -106,8 +106,9 @@ def mask_outline(
     connectivity: int = 4,
 ) -> Polygonal:
     """Exact pixel-edge (multi)polygon of the True pixels of ``mask`` (global pixel coordinates)."""
-    outlines = label_outlines(np.asarray(mask, dtype=bool).astype(np.int32), row_off=row_off, col_off=col_off,
-                              connectivity=connectivity)
+    outlines = label_outlines(
+        np.asarray(mask, dtype=bool).astype(np.int32), row_off=row_off, col_off=col_off, connectivity=connectivity
+    )
     return outlines.get(1, Polygon())
 
 
@@ -194,8 +195,9 @@ def straight_outline(
     for poly in polys:
         shift = 5.0 * tolerance + pixel_size
         shell = _straighten_ring(np.asarray(poly.exterior.coords)[:-1], directions, max_deviation_deg, shift)
-        holes = [_straighten_ring(np.asarray(r.coords)[:-1], directions, max_deviation_deg, shift)
-                 for r in poly.interiors]
+        holes = [
+            _straighten_ring(np.asarray(r.coords)[:-1], directions, max_deviation_deg, shift) for r in poly.interiors
+        ]
         candidate = Polygon(shell, [h for h in holes if len(h) >= 3]) if len(shell) >= 3 else Polygon()
         if not candidate.is_valid:
             candidate = _clean([shapely.make_valid(candidate)])

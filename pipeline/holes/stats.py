@@ -10,8 +10,8 @@ detection fills, so it comes before ``detect`` in the package's data flow.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -80,8 +80,14 @@ _MOMENT_GROUPS = (
     (
         "ring_px",
         ("ring_mean_row", "ring_mean_col", "ring_mean_z"),
-        {"ring_m2_rr": (0, 0), "ring_m2_cc": (1, 1), "ring_m2_rc": (0, 1), "ring_m2_rz": (0, 2),
-         "ring_m2_cz": (1, 2), "ring_m2_zz": (2, 2)},
+        {
+            "ring_m2_rr": (0, 0),
+            "ring_m2_cc": (1, 1),
+            "ring_m2_rc": (0, 1),
+            "ring_m2_rz": (0, 2),
+            "ring_m2_cz": (1, 2),
+            "ring_m2_zz": (2, 2),
+        },
     ),
 )
 
@@ -148,8 +154,9 @@ class HoleStats:
     @classmethod
     def empty(cls, rows: int = 0, *, height_bin: float) -> HoleStats:
         """Rows of neutral statistics (merging them changes nothing)."""
-        return cls(_empty_columns(rows), np.zeros(0, HEIGHT_HIST_DTYPE), np.zeros(0, LINE_HIST_DTYPE),
-                   float(height_bin))
+        return cls(
+            _empty_columns(rows), np.zeros(0, HEIGHT_HIST_DTYPE), np.zeros(0, LINE_HIST_DTYPE), float(height_bin)
+        )
 
     def take(self, rows: np.ndarray) -> HoleStats:
         """The given rows, in that order (histogram rows renumbered)."""
@@ -166,8 +173,16 @@ class HoleStats:
 
 def _empty_columns(rows: int) -> dict[str, np.ndarray]:
     big = np.iinfo(np.int64).max
-    neutral = {"row_min": big, "col_min": big, "first_row": big, "first_col": big, "row_max": -1,
-               "col_max": -1, "ring_z_min": np.inf, "ring_z_max": -np.inf}
+    neutral = {
+        "row_min": big,
+        "col_min": big,
+        "first_row": big,
+        "first_col": big,
+        "row_max": -1,
+        "col_max": -1,
+        "ring_z_min": np.inf,
+        "ring_z_max": -np.inf,
+    }
     return {
         name: (np.full(rows, neutral[name], dtype) if name in neutral else np.zeros(rows, dtype))
         for name, (dtype, _, _) in STATS_COLUMNS.items()
@@ -231,10 +246,14 @@ def merge_hole_stats(stats: Sequence[HoleStats], groups: Sequence[np.ndarray], n
             out[m] = mu
         for name, (i, j) in co_moments.items():
             out[name] = np.bincount(g, t[name] + wt * devs[i] * devs[j], minlength=n_groups)
-    hh = [(np.asarray(gr, np.int64)[s.height_hist["row"]], s.height_hist["bin"], s.height_hist["count"])
-          for s, gr in zip(stats, groups)]
-    lh = [(np.asarray(gr, np.int64)[s.line_hist["row"]], s.line_hist["line"], s.line_hist["count"])
-          for s, gr in zip(stats, groups)]
+    hh = [
+        (np.asarray(gr, np.int64)[s.height_hist["row"]], s.height_hist["bin"], s.height_hist["count"])
+        for s, gr in zip(stats, groups)
+    ]
+    lh = [
+        (np.asarray(gr, np.int64)[s.line_hist["row"]], s.line_hist["line"], s.line_hist["count"])
+        for s, gr in zip(stats, groups)
+    ]
     return HoleStats(out, _sum_coo(hh, HEIGHT_HIST_DTYPE), _sum_coo(lh, LINE_HIST_DTYPE), height_bin)
 
 

@@ -170,8 +170,15 @@ def wall_segments(
         members = order[bounds[g] : bounds[g + 1]]
         if len(members) < min_pixels:
             continue
-        segment = _straight_segment(rows[members], cols[members], gxs[members], gys[members], tol,
-                                    min_length_px=min_length_px, max_thickness_px=max_thickness_px)
+        segment = _straight_segment(
+            rows[members],
+            cols[members],
+            gxs[members],
+            gys[members],
+            tol,
+            min_length_px=min_length_px,
+            max_thickness_px=max_thickness_px,
+        )
         if segment is not None:
             segments.append(segment)
     segments.sort(key=lambda s: -s.n_pixels)
@@ -206,7 +213,13 @@ def _group_jump_pixels(
 
 
 def _straight_segment(
-    r: np.ndarray, c: np.ndarray, gx: np.ndarray, gy: np.ndarray, tol: float, *, min_length_px: float,
+    r: np.ndarray,
+    c: np.ndarray,
+    gx: np.ndarray,
+    gy: np.ndarray,
+    tol: float,
+    *,
+    min_length_px: float,
     max_thickness_px: float,
 ) -> WallSegment | None:
     """The group as a wall segment, or None: too thick, too short, or its uphill directions disagree."""
@@ -290,11 +303,19 @@ def fit_wall(
     if pixel_values not in ("extremes", "centre"):
         raise ValueError(f"pixel_values must be 'extremes' or 'centre', got {pixel_values!r}")
     n0 = np.asarray(segment.normal, dtype=np.float64)
-    along0 = np.array([n0[1], -n0[0]])
     pts = np.stack([segment.cols + 0.5, segment.rows + 0.5], axis=1)
     rho0 = float((pts @ n0).mean())
-    sp = _support(zmax, zmin, count, segment, n0, rho0, support_px=support_px, pixel_values=pixel_values,
-                  points_per_pixel=points_per_pixel)
+    sp = _support(
+        zmax,
+        zmin,
+        count,
+        segment,
+        n0,
+        rho0,
+        support_px=support_px,
+        pixel_values=pixel_values,
+        points_per_pixel=points_per_pixel,
+    )
     measured = np.isfinite(sp.zx)
     d0 = sp.d0
     if measured.sum() < 6 or (d0[measured] < 0).sum() < 3 or (d0[measured] > 0).sum() < 3:
@@ -401,8 +422,14 @@ def _fit_step(observations: tuple, x0: np.ndarray, lower: list, upper: list, ste
         if np.max(np.abs(fit.fun), initial=0.0) > 3.0 * f_scale:
             start = np.clip(fit.x, np.nextafter(lower, upper), np.nextafter(upper, lower))
             robust = least_squares(
-                residuals, start, bounds=(lower, upper), x_scale=scale, max_nfev=100,
-                loss="soft_l1", f_scale=f_scale, **options,
+                residuals,
+                start,
+                bounds=(lower, upper),
+                x_scale=scale,
+                max_nfev=100,
+                loss="soft_l1",
+                f_scale=f_scale,
+                **options,
             )
     except ValueError:
         return None
@@ -413,8 +440,9 @@ def _fit_step(observations: tuple, x0: np.ndarray, lower: list, upper: list, ste
     return fit
 
 
-def _wall(fit, segment: WallSegment, pts: np.ndarray, *, n_measured: int, n_support: int,
-          transform: Affine | None) -> Wall:
+def _wall(
+    fit, segment: WallSegment, pts: np.ndarray, *, n_measured: int, n_support: int, transform: Affine | None
+) -> Wall:
     """The fitted line as a :class:`Wall`, its ends at the segment's extent."""
     phi, rho, low, high, log_w = fit.x
     normal = np.array([math.cos(phi), math.sin(phi)])
@@ -426,11 +454,19 @@ def _wall(fit, segment: WallSegment, pts: np.ndarray, *, n_measured: int, n_supp
     transform = Affine.identity() if transform is None else transform
     (x0w, y0w), (x1w, y1w) = (transform @ (float(e[0]), float(e[1])) for e in ends)
     return Wall(
-        x0=x0w, y0=y0w, x1=x1w, y1=y1w,
-        bottom=float(low), top=float(high), rms=rms, width_px=float(math.exp(log_w)),
-        n_support=int(n_support), n_jump_px=segment.n_pixels,
+        x0=x0w,
+        y0=y0w,
+        x1=x1w,
+        y1=y1w,
+        bottom=float(low),
+        top=float(high),
+        rms=rms,
+        width_px=float(math.exp(log_w)),
+        n_support=int(n_support),
+        n_jump_px=segment.n_pixels,
         line_px=(float(ends[0][0]), float(ends[0][1]), float(ends[1][0]), float(ends[1][1])),
-        normal_px=(float(normal[0]), float(normal[1])), offset_px=float(rho),
+        normal_px=(float(normal[0]), float(normal[1])),
+        offset_px=float(rho),
     )
 
 
@@ -487,8 +523,16 @@ def find_walls(
             rows, cols = region
             if not (rows.start <= row < rows.stop and cols.start <= col < cols.stop):
                 continue
-        wall = fit_wall(zmax, zmin, seg, count=count, transform=transform, support_px=support_px,
-                        min_height=jump_threshold, pixel_values=pixel_values)
+        wall = fit_wall(
+            zmax,
+            zmin,
+            seg,
+            count=count,
+            transform=transform,
+            support_px=support_px,
+            min_height=jump_threshold,
+            pixel_values=pixel_values,
+        )
         if wall is not None:
             walls.append(wall)
     return walls
@@ -545,7 +589,9 @@ def _step_jacobian(
         shifted = params.copy()
         shifted[j] += h
         h = shifted[j] - params[j]  # the step actually taken, after rounding
-        moved = _step_residuals(shifted, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes)
+        moved = _step_residuals(
+            shifted, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
+        )
         for i in range(len(base)):
             jacobian[i, j] = (moved[i] - base[i]) / h
     return jacobian

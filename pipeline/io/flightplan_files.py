@@ -45,14 +45,23 @@ def flight_params(config: FlightPlanConfig) -> FlightParams:
     if len(config.home) not in (0, 2):
         raise ConfigError(f"flightplan.home = {config.home!r} is invalid; expected [] or [x, y] in the survey CRS")
     coverage = CoverageParams(
-        altitude_agl_m=config.altitude_agl_m, fov_deg=config.fov_deg, side_overlap=config.side_overlap,
-        run_in_m=config.run_in_m, turnaround_m=config.turnaround_m, margin_m=config.margin_m,
+        altitude_agl_m=config.altitude_agl_m,
+        fov_deg=config.fov_deg,
+        side_overlap=config.side_overlap,
+        run_in_m=config.run_in_m,
+        turnaround_m=config.turnaround_m,
+        margin_m=config.margin_m,
     )
     return FlightParams(
-        coverage=coverage, causes=tuple(config.causes), min_area_m2=config.min_area_m2,
-        speed_m_s=config.speed_m_s, transit_speed_m_s=config.transit_speed_m_s,
-        max_flight_time_s=config.max_flight_time_s, setup_time_s=config.setup_time_s,
-        terrain_step_m=config.terrain_step_m, altitude_reference=config.altitude_reference,
+        coverage=coverage,
+        causes=tuple(config.causes),
+        min_area_m2=config.min_area_m2,
+        speed_m_s=config.speed_m_s,
+        transit_speed_m_s=config.transit_speed_m_s,
+        max_flight_time_s=config.max_flight_time_s,
+        setup_time_s=config.setup_time_s,
+        terrain_step_m=config.terrain_step_m,
+        altitude_reference=config.altitude_reference,
     )
 
 
@@ -77,8 +86,13 @@ def read_holes(path: str | os.PathLike, *, layer: str = "holes") -> tuple[list[H
         raise CRSError(path, f"layer '{layer}' is in {frame.crs.name}, not a projected CRS in metres")
     azimuths = frame["azimuth_deg"] if "azimuth_deg" in frame.columns else [None] * len(frame)
     holes = [
-        HoleInput(int(row.hole_id), row.geometry, str(row.cause), float(row.area_m2),
-                  None if az is None or (isinstance(az, float) and math.isnan(az)) else float(az))
+        HoleInput(
+            int(row.hole_id),
+            row.geometry,
+            str(row.cause),
+            float(row.area_m2),
+            None if az is None or (isinstance(az, float) and math.isnan(az)) else float(az),
+        )
         for row, az in zip(frame.itertuples(), azimuths)
     ]
     return holes, frame.crs.to_wkt()
@@ -108,8 +122,11 @@ def read_dsm(path: str | os.PathLike, bounds: tuple[float, float, float, float] 
                 window = rasterio.windows.Window(col0, row0, col1 - col0, row1 - row0)
             data = src.read(1, window=window, masked=True).astype(float).filled(np.nan)
             t = src.transform
-            transform = t if window is None else type(t)(
-                t.a, t.b, t.c + t.a * window.col_off, t.d, t.e, t.f + t.e * window.row_off)
+            transform = (
+                t
+                if window is None
+                else type(t)(t.a, t.b, t.c + t.a * window.col_off, t.d, t.e, t.f + t.e * window.row_off)
+            )
             crs = src.crs.to_wkt() if src.crs else ""
     except (rasterio.errors.RasterioError, rasterio.errors.WindowError) as e:
         raise InputDataError(path, f"cannot read the DSM: {e}") from None
@@ -160,12 +177,14 @@ def plan_flights(
         probe = home or _centre(holes)
         to_ellipsoid = ellipsoid_transformer(vertical_crs_for(dsm_crs, config.flightplan.vertical_crs), probe=probe)
     try:
-        plan = plan_mission(holes, dsm, transform, crs_wkt=holes_crs, params=params, home=home,
-                            to_ellipsoid=to_ellipsoid)
+        plan = plan_mission(
+            holes, dsm, transform, crs_wkt=holes_crs, params=params, home=home, to_ellipsoid=to_ellipsoid
+        )
     except ValueError as e:
         raise InputDataError(dsm_path, str(e)) from None
-    files = write_flightplan(plan, out_dir, drone_enum=config.flightplan.dji_drone_enum,
-                             payload_enum=config.flightplan.dji_payload_enum)
+    files = write_flightplan(
+        plan, out_dir, drone_enum=config.flightplan.dji_drone_enum, payload_enum=config.flightplan.dji_payload_enum
+    )
     return summarize(plan, files)
 
 
@@ -208,7 +227,9 @@ def sortie_file_names(n_sorties: int) -> list[str]:
     return ["flightplan"] if n_sorties == 1 else [f"flightplan_s{k}" for k in range(1, n_sorties + 1)]
 
 
-def write_flightplan(plan: FlightPlan, out_dir: str | os.PathLike, *, drone_enum: int = 89, payload_enum: int = 84) -> list[Path]:
+def write_flightplan(
+    plan: FlightPlan, out_dir: str | os.PathLike, *, drone_enum: int = 89, payload_enum: int = 84
+) -> list[Path]:
     """Write ``flightplan.gpkg`` and the drone files of every sortie into ``out_dir``."""
     out_dir = Path(out_dir)
     try:
@@ -229,37 +250,86 @@ def write_flightplan(plan: FlightPlan, out_dir: str | os.PathLike, *, drone_enum
 
 def _write_gpkg(path: Path, plan: FlightPlan) -> None:
     crs = plan.crs_wkt
-    reference = {"takeoff": "relative to take-off (DSM at home)", "amsl": "AMSL (DSM datum)",
-                 "ellipsoid": "WGS84 ellipsoid"}[plan.altitude_reference]
+    reference = {
+        "takeoff": "relative to take-off (DSM at home)",
+        "amsl": "AMSL (DSM datum)",
+        "ellipsoid": "WGS84 ellipsoid",
+    }[plan.altitude_reference]
     lines = [(s, lane) for s in plan.sorties for lane in s.lanes]
     write_layer(
-        path, "flight_lines",
-        [{"hole_ids": ",".join(map(str, fl.hole_ids)), "pattern_id": fl.pattern_id, "sortie": fl.sortie,
-          "lane_index": fl.lane.index, "length_m": round(fl.lane.length_m, 2),
-          "azimuth_deg": round(fl.lane.azimuth_deg, 2)} for _, fl in lines],
+        path,
+        "flight_lines",
+        [
+            {
+                "hole_ids": ",".join(map(str, fl.hole_ids)),
+                "pattern_id": fl.pattern_id,
+                "sortie": fl.sortie,
+                "lane_index": fl.lane.index,
+                "length_m": round(fl.lane.length_m, 2),
+                "azimuth_deg": round(fl.lane.azimuth_deg, 2),
+            }
+            for _, fl in lines
+        ],
         [LineString([fl.lane.start, fl.lane.end]) for _, fl in lines],
-        crs_wkt=crs, geometry_type="LineString",
+        crs_wkt=crs,
+        geometry_type="LineString",
     )
     points = [w for s in plan.sorties for w in s.waypoints]
     write_layer(
-        path, "waypoints",
-        [{"sortie": w.sortie, "sequence": w.sequence, "altitude_m": round(w.altitude_m, 2),
-          "altitude_ref": reference, "height_dsm_m": round(w.height_m, 2), "action": ",".join(w.actions),
-          "pattern_id": w.pattern_id, "lane_index": w.lane_index, "lon": w.lon, "lat": w.lat} for w in points],
-        [Point(w.x, w.y) for w in points], crs_wkt=crs, geometry_type="Point",
+        path,
+        "waypoints",
+        [
+            {
+                "sortie": w.sortie,
+                "sequence": w.sequence,
+                "altitude_m": round(w.altitude_m, 2),
+                "altitude_ref": reference,
+                "height_dsm_m": round(w.height_m, 2),
+                "action": ",".join(w.actions),
+                "pattern_id": w.pattern_id,
+                "lane_index": w.lane_index,
+                "lon": w.lon,
+                "lat": w.lat,
+            }
+            for w in points
+        ],
+        [Point(w.x, w.y) for w in points],
+        crs_wkt=crs,
+        geometry_type="Point",
     )
     write_layer(
-        path, "route",
-        [{"sortie": s.number, "length_m": round(s.length_m, 1), "duration_s": round(s.duration_s, 1),
-          "waypoints": len(s.waypoints)} for s in plan.sorties],
+        path,
+        "route",
+        [
+            {
+                "sortie": s.number,
+                "length_m": round(s.length_m, 1),
+                "duration_s": round(s.duration_s, 1),
+                "waypoints": len(s.waypoints),
+            }
+            for s in plan.sorties
+        ],
         [LineString([(w.x, w.y) for w in s.waypoints]) for s in plan.sorties],
-        crs_wkt=crs, geometry_type="LineString",
+        crs_wkt=crs,
+        geometry_type="LineString",
     )
     write_layer(
-        path, "holes_status",
-        [{"hole_id": d.hole_id, "cause": d.cause, "area_m2": round(d.area_m2, 2), "planned": d.planned,
-          "reason": d.reason, "pattern_id": d.pattern_id} for d in plan.decisions],
-        [d.geometry for d in plan.decisions], crs_wkt=crs, geometry_type="MultiPolygon",
+        path,
+        "holes_status",
+        [
+            {
+                "hole_id": d.hole_id,
+                "cause": d.cause,
+                "area_m2": round(d.area_m2, 2),
+                "planned": d.planned,
+                "reason": d.reason,
+                "pattern_id": d.pattern_id,
+            }
+            for d in plan.decisions
+        ],
+        [d.geometry for d in plan.decisions],
+        crs_wkt=crs,
+        geometry_type="MultiPolygon",
     )
 
 

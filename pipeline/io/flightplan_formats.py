@@ -91,8 +91,14 @@ def plan_json(plan: FlightPlan, sortie: Sortie) -> dict:
     mode = 1 if plan.altitude_reference == "takeoff" else 2  # QGC: 1 relative, 2 AMSL
     items = []
     for i, (command, frame, params) in enumerate(_mission_items(plan, sortie), start=1):
-        item = {"type": "SimpleItem", "command": command, "frame": frame, "autoContinue": True,
-                "doJumpId": i, "params": params}
+        item = {
+            "type": "SimpleItem",
+            "command": command,
+            "frame": frame,
+            "autoContinue": True,
+            "doJumpId": i,
+            "params": params,
+        }
         if frame != MAV_FRAME_MISSION:
             item.update({"Altitude": params[6], "AltitudeMode": mode, "AMSLAltAboveTerrain": None})
         items.append(item)
@@ -107,8 +113,11 @@ def plan_json(plan: FlightPlan, sortie: Sortie) -> dict:
             "cruiseSpeed": plan.params.transit_speed_m_s,
             "hoverSpeed": plan.params.speed_m_s,
             "globalPlanAltitudeMode": mode,
-            "plannedHomePosition": [round(plan.home_lonlat[1], 8), round(plan.home_lonlat[0], 8),
-                                    round(plan.home_ground_m, 2)],
+            "plannedHomePosition": [
+                round(plan.home_lonlat[1], 8),
+                round(plan.home_lonlat[0], 8),
+                round(plan.home_ground_m, 2),
+            ],
             "items": items,
         },
         "geoFence": {"version": 2, "circles": [], "polygons": []},
@@ -125,8 +134,10 @@ def write_plan(path: str | os.PathLike, plan: FlightPlan, sortie: Sortie) -> Pat
 def write_waypoints(path: str | os.PathLike, plan: FlightPlan, sortie: Sortie) -> Path:
     """Write a QGC WPL 110 file: tab-separated, line 0 the home point (AMSL)."""
     lat, lon = plan.home_lonlat[1], plan.home_lonlat[0]
-    lines = ["QGC WPL 110", _wpl_line(0, 1, MAV_FRAME_GLOBAL, MAV_CMD_NAV_WAYPOINT,
-                                      [0, 0, 0, 0, lat, lon, plan.home_ground_m])]
+    lines = [
+        "QGC WPL 110",
+        _wpl_line(0, 1, MAV_FRAME_GLOBAL, MAV_CMD_NAV_WAYPOINT, [0, 0, 0, 0, lat, lon, plan.home_ground_m]),
+    ]
     for i, (command, frame, params) in enumerate(_mission_items(plan, sortie), start=1):
         lines.append(_wpl_line(i, 0, frame, command, [0 if v is None else v for v in params]))
     return _write_text(path, "\n".join(lines) + "\n")
@@ -168,7 +179,8 @@ def write_kml(path: str | os.PathLike, plan: FlightPlan, sortie: Sortie) -> Path
         '<Style id="route"><LineStyle><color>ff00a5ff</color><width>2</width></LineStyle></Style>'
         '<Style id="lane"><LineStyle><color>ff0000ff</color><width>4</width></LineStyle></Style>'
         '<Style id="waypoint"><IconStyle><scale>0.5</scale></IconStyle></Style>'
-        + "".join(marks) + "</Document></kml>\n"
+        + "".join(marks)
+        + "</Document></kml>\n"
     )
     return _write_text(path, text)
 
@@ -252,21 +264,31 @@ def _wpml_actions(w: Waypoint, index: int, group: int) -> tuple[str, int]:
     """The action group of one waypoint (gimbal nadir at the first, record at lane ends)."""
     actions = []
     if index == 0:
-        actions.append(("gimbalRotate", "<wpml:gimbalRotateMode>absoluteAngle</wpml:gimbalRotateMode>"
-                        "<wpml:gimbalPitchRotateEnable>1</wpml:gimbalPitchRotateEnable>"
-                        "<wpml:gimbalPitchRotateAngle>-90</wpml:gimbalPitchRotateAngle>"
-                        "<wpml:gimbalRollRotateEnable>0</wpml:gimbalRollRotateEnable>"
-                        "<wpml:gimbalRollRotateAngle>0</wpml:gimbalRollRotateAngle>"
-                        "<wpml:gimbalYawRotateEnable>0</wpml:gimbalYawRotateEnable>"
-                        "<wpml:gimbalYawRotateAngle>0</wpml:gimbalYawRotateAngle>"
-                        "<wpml:gimbalRotateTimeEnable>0</wpml:gimbalRotateTimeEnable>"
-                        "<wpml:gimbalRotateTime>0</wpml:gimbalRotateTime>"
-                        "<wpml:payloadPositionIndex>0</wpml:payloadPositionIndex>"))
+        actions.append(
+            (
+                "gimbalRotate",
+                "<wpml:gimbalRotateMode>absoluteAngle</wpml:gimbalRotateMode>"
+                "<wpml:gimbalPitchRotateEnable>1</wpml:gimbalPitchRotateEnable>"
+                "<wpml:gimbalPitchRotateAngle>-90</wpml:gimbalPitchRotateAngle>"
+                "<wpml:gimbalRollRotateEnable>0</wpml:gimbalRollRotateEnable>"
+                "<wpml:gimbalRollRotateAngle>0</wpml:gimbalRollRotateAngle>"
+                "<wpml:gimbalYawRotateEnable>0</wpml:gimbalYawRotateEnable>"
+                "<wpml:gimbalYawRotateAngle>0</wpml:gimbalYawRotateAngle>"
+                "<wpml:gimbalRotateTimeEnable>0</wpml:gimbalRotateTimeEnable>"
+                "<wpml:gimbalRotateTime>0</wpml:gimbalRotateTime>"
+                "<wpml:payloadPositionIndex>0</wpml:payloadPositionIndex>",
+            )
+        )
     for action in w.actions:
         if action in ("lane_start", "lane_end"):
             operate = "startRecord" if action == "lane_start" else "stopRecord"
-            actions.append(("recordPointCloud", f"<wpml:recordPointCloudOperate>{operate}</wpml:recordPointCloudOperate>"
-                            "<wpml:payloadPositionIndex>0</wpml:payloadPositionIndex>"))
+            actions.append(
+                (
+                    "recordPointCloud",
+                    f"<wpml:recordPointCloudOperate>{operate}</wpml:recordPointCloudOperate>"
+                    "<wpml:payloadPositionIndex>0</wpml:payloadPositionIndex>",
+                )
+            )
     if not actions:
         return "", group
     body = "".join(
@@ -288,9 +310,15 @@ def _wpml_actions(w: Waypoint, index: int, group: int) -> tuple[str, int]:
 def _placemark(w: Waypoint, index: int, height: float, plan: FlightPlan, *, template: bool, actions: str) -> str:
     leaving_pattern = any(a in w.actions for a in ("pattern_exit", "home"))
     speed = plan.params.transit_speed_m_s if leaving_pattern else plan.params.speed_m_s
-    head = f"<Placemark><Point><coordinates>{w.lon:.8f},{w.lat:.8f}</coordinates></Point><wpml:index>{index}</wpml:index>"
+    head = (
+        f"<Placemark><Point><coordinates>{w.lon:.8f},{w.lat:.8f}</coordinates></Point><wpml:index>{index}</wpml:index>"
+    )
     if template:
-        ellipsoid = f"<wpml:ellipsoidHeight>{height:.2f}</wpml:ellipsoidHeight>" if plan.altitude_reference == "ellipsoid" else ""
+        ellipsoid = (
+            f"<wpml:ellipsoidHeight>{height:.2f}</wpml:ellipsoidHeight>"
+            if plan.altitude_reference == "ellipsoid"
+            else ""
+        )
         shown = w.height_m if plan.altitude_reference == "ellipsoid" else height
         return (
             f"{head}{ellipsoid}<wpml:height>{shown:.2f}</wpml:height><wpml:useGlobalHeight>0</wpml:useGlobalHeight>"

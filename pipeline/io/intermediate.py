@@ -44,7 +44,9 @@ def load_tile_statistics(folder: str | os.PathLike, tile_window: PixelWindow, wi
     rows, cols = window.slices_within(tile_window)
     arrays = {}
     for name in STATISTIC_NAMES:
-        mapped = np.memmap(Path(folder) / f"{name}.bin", dtype=STATISTIC_DTYPES[name], mode="r", shape=tile_window.shape)
+        mapped = np.memmap(
+            Path(folder) / f"{name}.bin", dtype=STATISTIC_DTYPES[name], mode="r", shape=tile_window.shape
+        )
         arrays[name] = np.array(mapped[rows, cols])
     return PixelStatistics(window=window, **arrays)
 
@@ -56,7 +58,9 @@ def load_tile_shared_keys(folder: str | os.PathLike) -> np.ndarray:
 
 def save_cell_statistics(path: str | os.PathLike, statistics: PixelStatistics) -> None:
     """Store a cell's merged statistics (core + halo) for the later stages."""
-    _save_npz(path, window=_window_array(statistics.window), **{name: getattr(statistics, name) for name in STATISTIC_NAMES})
+    _save_npz(
+        path, window=_window_array(statistics.window), **{name: getattr(statistics, name) for name in STATISTIC_NAMES}
+    )
 
 
 def load_cell_statistics(path: str | os.PathLike) -> PixelStatistics:

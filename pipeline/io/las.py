@@ -102,7 +102,9 @@ def read_header(path: str | os.PathLike) -> TileHeader:
     except Exception as e:  # laspy raises several unrelated types for corrupt headers
         raise InputDataError(path, f"header cannot be read: {e}") from None
 
-    compressed = header.are_points_compressed if hasattr(header, "are_points_compressed") else path.suffix.lower() == ".laz"
+    compressed = (
+        header.are_points_compressed if hasattr(header, "are_points_compressed") else path.suffix.lower() == ".laz"
+    )
     count = int(header.point_count)
     if not compressed:
         record_length = header.point_format.size
@@ -179,9 +181,7 @@ def iter_point_chunks(
         where = f"after {decoded:,} of {expected:,} points" if expected is not None else "while opening"
         raise InputDataError(path, f"point data cannot be decoded {where}: {e} (file corrupt or truncated)") from None
     if expected is not None and decoded < expected:
-        raise InputDataError(
-            path, f"header point count is {expected:,} but only {decoded:,} points could be decoded"
-        )
+        raise InputDataError(path, f"header point count is {expected:,} but only {decoded:,} points could be decoded")
 
 
 def _class_and_withheld(records: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

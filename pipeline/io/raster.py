@@ -133,7 +133,7 @@ def write_vrt(
     path = Path(path)
     lines = [
         f'<VRTDataset rasterXSize="{width}" rasterYSize="{height}">',
-        f"  <SRS dataAxisToSRSAxisMapping=\"1,2\">{escape(crs_wkt)}</SRS>",
+        f'  <SRS dataAxisToSRSAxisMapping="1,2">{escape(crs_wkt)}</SRS>',
         "  <GeoTransform>" + ", ".join(repr(v) for v in transform.to_gdal()) + "</GeoTransform>",
         f'  <VRTRasterBand dataType="{dtype}" band="1">',
     ]

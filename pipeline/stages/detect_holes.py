@@ -15,10 +15,10 @@ from ..config import HOLE_CONTEXT_PX
 from ..footprint import BlockMap, aoi_mask, window_union_mask
 from ..grid import Cell, Grid, PixelWindow
 from ..holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
-from ..io.intermediate import load_cell_statistics, save_labels
-from ..io.raster import geometry_mask, label_polygons
 from ..holes.outlines import label_outlines
 from ..holes.walls import Wall, find_walls
+from ..io.intermediate import load_cell_statistics, save_labels
+from ..io.raster import geometry_mask, label_polygons
 from ..plan import HoleParams, SurveyPlan
 from ..rasterize import PixelStatistics
 from ..staging import Staging
