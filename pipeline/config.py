@@ -171,6 +171,7 @@ class OutputConfig:
     overview_resampling: str = _opt(
         "average", "Resampling of COG overviews.", choices=("average", "nearest", "bilinear")
     )
+    keep_unfilled: bool = _opt(False, "Also write the DSM before filling (dsm_unfilled/ and dsm_unfilled.vrt).")
     keep_intermediate: bool = _opt(False, "Keep the per-tile and per-cell statistic rasters under OUT/work/.")
 
 
@@ -227,6 +228,34 @@ class FlightPlanConfig:
 
 
 @dataclass(frozen=True)
+class FillConfig:
+    """Filling the holes of the DSM (docs/filling.md)."""
+
+    enabled: bool = _opt(True, "Fill the holes of the DSM (needs holes.enabled); false keeps nodata in them.")
+    method: str = _opt(
+        "auto",
+        "Interpolation of holes that are not water: auto, tin (Laplacian fairing), mls, idw or nearest.",
+        choices=("auto", "tin", "mls", "idw", "nearest"),
+    )
+    by_cause: bool = _opt(
+        True, "Occlusion holes from their lower rim (the ground beside a building); water holes flat."
+    )
+    max_distance_m: float = _opt(
+        25.0, "Holes with a pixel farther than this (m) from measured data stay nodata (skipped: too large).", gt=0
+    )
+    max_area_m2: float = _opt(
+        10_000.0, "Holes larger than this (m2) stay nodata (skipped: too large) and go to the flight plan.", gt=0
+    )
+    margin_px: int = _opt(8, "Pixels of measured data read around each hole for its support.", ge=1)
+    water_percentile: float = _opt(
+        10.0, "Water is filled flat at this percentile of its rim heights (the water's edge).", ge=0, le=100
+    )
+    estimate_error: bool = _opt(
+        True, "Estimate each hole's fill error by refilling it with part of its rim withheld (costs a second fill)."
+    )
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole resolved configuration of a run."""
 
@@ -239,6 +268,7 @@ class Config:
     output: OutputConfig = field(default_factory=OutputConfig)
     survey: SurveyConfig = field(default_factory=SurveyConfig)
     flightplan: FlightPlanConfig = field(default_factory=FlightPlanConfig)
+    fill: FillConfig = field(default_factory=FillConfig)
 
     @property
     def cell_size_px(self) -> int:

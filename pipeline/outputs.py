@@ -21,20 +21,36 @@ from pyproj import CRS
 
 from . import __version__
 from .config import Config, to_dict
+from .fill import NOT_FILLED
 from .holes import CAUSES
 from .holes.outlines import hole_outline, merge_outlines, to_world
-from .io.raster import write_vrt
+from .io.raster import NODATA, write_vrt
 from .io.vector import write_layer
 from .plan import SurveyPlan
 from .stages.bin_tiles import TileResult
 from .stages.detect_holes import DetectResult
+from .stages.fill_holes import FILLED, HoleFill
+from .stages.fill_holes import NOT_FILLED as UNFILLED_STATUS
 from .stages.link_holes import HoleSet
 from .stages.merge_cells import CellResult
-from .stages.write_rasters import WriteResult
+from .stages.write_rasters import DESCRIPTIONS, WriteResult
+from .staging import Staging
 from .survey import tile_index_records
 
 #: Products a run moves from the staging folder into OUT (and replaces there).
-PRODUCTS = ("dsm", "dsm.vrt", "holes.gpkg", "manifest.json", "report.html")
+PRODUCTS = (
+    "dsm",
+    "dsm.vrt",
+    "fill_mask",
+    "fill_mask.vrt",
+    "fill_distance",
+    "fill_distance.vrt",
+    "dsm_unfilled",
+    "dsm_unfilled.vrt",
+    "holes.gpkg",
+    "manifest.json",
+    "report.html",
+)
 
 #: Flight-plan products: their number depends on the sorties, so older ones are matched by name.
 FLIGHTPLAN_PRODUCTS = (
@@ -70,24 +86,29 @@ class RunSummary:
         return self.points_read / self.seconds if self.seconds else 0.0
 
 
-def write_dsm_vrt(path: Path, plan: SurveyPlan, written: list[WriteResult]) -> None:
-    """The mosaic of the DSM tiles (none when no cell holds a point)."""
+def write_mosaics(staging: Staging, plan: SurveyPlan, written: list[WriteResult]) -> None:
+    """One VRT per raster product over its cell tiles (none when no cell holds a point)."""
     grid = plan.grid
     cells = plan.cell_by_id()
-    sources = []
-    for r in written:
-        if r.dsm_path:
-            w = cells[r.cell_id].window
-            sources.append((r.dsm_path, w.row_off, w.col_off, w.height, w.width))
-    if sources:
+    products = sorted({product for r in written for product in r.paths})
+    filled = any("fill_mask" in r.paths for r in written)
+    for product in products:
+        sources = []
+        for r in written:
+            if product in r.paths:
+                w = cells[r.cell_id].window
+                sources.append((r.paths[product], w.row_off, w.col_off, w.height, w.width))
+        byte = product == "fill_mask"
         write_vrt(
-            path,
+            staging.product(f"{product}.vrt"),
             sources,
             width=grid.width,
             height=grid.height,
             transform=grid.transform,
             crs_wkt=grid.crs_wkt,
-            description="DSM: highest point per pixel",
+            dtype="Byte" if byte else "Float32",
+            nodata=NOT_FILLED if byte else NODATA,
+            description=DESCRIPTIONS["dsm_filled" if product == "dsm" and filled else product],
         )
 
 
@@ -113,7 +134,7 @@ def write_survey_layers(
         tile_geometries.append(shapely.box(*bounds))
     write_layer(gpkg, "tiles", tile_records, tile_geometries, crs_wkt=grid.crs_wkt, geometry_type="Polygon")
     cells = plan.cell_by_id()
-    dsm_files = {w.cell_id: w.dsm_path for w in written}
+    dsm_files = {w.cell_id: w.paths.get("dsm") for w in written}
     cell_records, cell_geometries = [], []
     for r in cell_results:
         cell = cells[r.cell_id]
@@ -145,7 +166,12 @@ def write_survey_layers(
 
 
 def write_hole_layers(
-    gpkg: Path, plan: SurveyPlan, config: Config, holes: HoleSet, detected: list[DetectResult]
+    gpkg: Path,
+    plan: SurveyPlan,
+    config: Config,
+    holes: HoleSet,
+    detected: list[DetectResult],
+    fills: list[HoleFill] | None = None,
 ) -> dict[str, Any]:
     """The ``holes``, ``hole_parts``, ``vertical_holes`` and ``walls`` layers; returns the report's counts."""
     crs = plan.grid.crs_wkt
@@ -154,7 +180,7 @@ def write_hole_layers(
         for cell_index, d in enumerate(detected)
         for label, wkb in d.part_outlines.items()
     }
-    hole_records, hole_geometries = _hole_records(plan, config, holes, part_outlines)
+    hole_records, hole_geometries = _hole_records(plan, config, holes, part_outlines, fills)
     write_layer(gpkg, "holes", hole_records, hole_geometries, crs_wkt=crs, geometry_type="MultiPolygon")
     listed = {r["hole_id"] for r in hole_records}
     part_records, part_geometries, counts_by_type = _part_records(plan, holes, part_outlines, listed)
@@ -180,11 +206,15 @@ def write_hole_layers(
         "height_jump_px": int(sum(d.jump_px for d in detected)),
         "aoi_area_m2": round(sum(d.aoi_px for d in detected) * plan.pixel_area_m2, 2),
         "largest": sorted(hole_records, key=lambda r: -r["area_m2"])[:20],
+        "fill": _fill_counts(plan, catalog, fills) if fills is not None else {},
     }
 
 
-def _hole_records(plan: SurveyPlan, config: Config, holes: HoleSet, part_outlines: dict) -> tuple[list, list]:
+def _hole_records(
+    plan: SurveyPlan, config: Config, holes: HoleSet, part_outlines: dict, fills: list[HoleFill] | None
+) -> tuple[list, list]:
     """One record per listed hole, with its outline dissolved from its parts (exact: pixel edges)."""
+    fill_of = {f.hole_id: f for f in fills or []}
     catalog, causes, ring = holes.catalog, holes.causes, holes.ring
     by_hole: dict[int, list] = collections.defaultdict(list)
     for part in catalog.parts:
@@ -215,8 +245,7 @@ def _hole_records(plan: SurveyPlan, config: Config, holes: HoleSet, part_outline
                 "boundary_z_max": _finite(stats["ring_z_max"][i], ring_px),
                 "boundary_jump_px": int(stats["ring_jump_px"][i]),
                 "boundary_px": ring_px,
-                "fill_status": "unfilled",
-                "fill_method": None,
+                **_fill_fields(fill_of.get(hole_id), plan),
             }
         )
         geometries.append(
@@ -227,6 +256,39 @@ def _hole_records(plan: SurveyPlan, config: Config, holes: HoleSet, part_outline
             )
         )
     return records, geometries
+
+
+def _fill_fields(fill: HoleFill | None, plan: SurveyPlan) -> dict[str, Any]:
+    """The ``holes`` layer's fill fields: status, method, error estimate and reach, in metres."""
+    if fill is None:
+        return {
+            "fill_status": UNFILLED_STATUS,
+            "fill_method": None,
+            "fill_error_m": None,
+            "fill_max_distance_m": None,
+            "fill_note": None,
+        }
+    return {
+        "fill_status": fill.status,
+        "fill_method": fill.method,
+        "fill_error_m": _finite(fill.error_estimate * plan.survey.vertical_unit_m, 1),
+        "fill_max_distance_m": _finite(fill.max_distance * plan.survey.horizontal_unit_m, 1),
+        "fill_note": fill.detail or None,
+    }
+
+
+def _fill_counts(plan: SurveyPlan, catalog, fills: list[HoleFill]) -> dict[str, Any]:
+    """Fill figures for the manifest and the report: holes and pixels by status and method."""
+    by_status = collections.Counter(f.status for f in fills)
+    by_method = collections.Counter(f.method for f in fills if f.status == FILLED)
+    area = {int(h["hole_id"]): float(h["area_px"]) for h in catalog.holes}
+    skipped_m2 = sum(area.get(f.hole_id, 0.0) for f in fills if f.status != FILLED) * plan.pixel_area_m2
+    return {
+        "holes_by_status": dict(sorted(by_status.items())),
+        "holes_by_method": dict(sorted(by_method.items())),
+        "filled_area_m2": round(sum(f.pixels for f in fills) * plan.pixel_area_m2, 2),
+        "skipped_area_m2": round(skipped_m2, 2),
+    }
 
 
 def _part_records(plan: SurveyPlan, holes: HoleSet, part_outlines: dict, listed: set[int]):

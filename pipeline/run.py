@@ -31,14 +31,14 @@ from .outputs import (
     FLIGHTPLAN_PRODUCTS,
     PRODUCTS,
     RunSummary,
-    write_dsm_vrt,
     write_hole_layers,
     write_manifest,
+    write_mosaics,
     write_survey_layers,
 )
 from .plan import SurveyPlan, hole_params, plan_survey
 from .report import write_report
-from .stages import bin_tiles, detect_holes, link_holes, merge_cells, write_rasters
+from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells, write_rasters
 from .stages.bin_tiles import TileFailure, TileResult
 from .stages.merge_cells import CellResult
 from .stages.write_rasters import WriteResult
@@ -96,12 +96,16 @@ def run_survey(
     try:
         with _dask_client(client, scheduler, config) as dask_client, _Progress(progress) as bar:
             runner = _Runner(dask_client, bar)
-            rasters = _run_rasters(runner, plan, config, staging, timer)
-            detected, holes = None, None
+            filling = config.holes.enabled and config.fill.enabled
+            rasters = _run_rasters(runner, plan, config, staging, timer, write=not filling)
+            detected, holes, fills = None, None, None
             if config.holes.enabled:
                 detected, holes = _run_holes(runner, plan, config, rasters.cells, water_area, staging)
                 timer.lap("holes")
-        summary = _write_products(staging, plan, config, rasters, detected, holes, started, timer)
+            if holes is not None and filling:
+                fills = _run_fill(runner, plan, config, holes, rasters, staging)
+                timer.lap("fill")
+        summary = _write_products(staging, plan, config, rasters, detected, holes, fills, started, timer)
         flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
         staging.commit(PRODUCTS + flight_files, keep_work=config.output.keep_intermediate, replaces=FLIGHTPLAN_PRODUCTS)
     except BaseException:
@@ -126,12 +130,14 @@ class _Rasters:
     written: list[WriteResult]
 
 
-def _run_rasters(runner: _Runner, plan: SurveyPlan, config: Config, staging: Staging, timer: _StageTimer) -> _Rasters:
-    """Stage 1 (per tile), stage 2 (per cell) and the writer (per cell) as one graph.
+def _run_rasters(
+    runner: _Runner, plan: SurveyPlan, config: Config, staging: Staging, timer: _StageTimer, *, write: bool
+) -> _Rasters:
+    """Stage 1 (per tile), stage 2 (per cell) and, with ``write``, the writer (per cell) as one graph.
 
     Each cell depends on the tiles touching it and has a higher priority, so it
-    runs as soon as they are done, while other tiles are still decoding; its
-    rasters are written as soon as it is merged.
+    runs as soon as they are done, while other tiles are still decoding; when no
+    later stage changes heights, its rasters are written as soon as it is merged.
     """
     skip = config.survey.on_error == "skip"
     tile_tasks = bin_tiles.tile_tasks(plan, config, staging)
@@ -163,7 +169,7 @@ def _run_rasters(runner: _Runner, plan: SurveyPlan, config: Config, staging: Sta
             key=f"write-{task.cell.id}",
             priority=2,
         )
-        for task in write_rasters.write_tasks(plan, config, list(merge_futures), staging)
+        for task in (write_rasters.write_tasks(plan, config, list(merge_futures), staging) if write else [])
     ]
     results = _Rasters([], [], [], [])
     tiles_bar = runner.bar.add("decode + bin tiles", total=len(tile_futures))
@@ -232,16 +238,60 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
     return detected, holes
 
 
+def _run_fill(
+    runner: _Runner, plan: SurveyPlan, config: Config, holes: link_holes.HoleSet, rasters: _Rasters, staging: Staging
+) -> list[fill_holes.HoleFill]:
+    """Fill (per cell owning holes), then the writer (per cell) painting the fills into the rasters."""
+    params = fill_holes.fill_params(plan, config, hole_params(plan, config))
+    merged = [r.cell_id for r in rasters.cells]
+    sources = fill_holes.cell_sources(plan, holes, staging, merged)
+    tasks, fills = fill_holes.fill_tasks(plan, config, holes, sources, params, staging)
+    futures = [
+        runner.submit(
+            fill_holes.fill_cell_holes, task, label=f"cell {task.owner_cell} (fill)", key=f"fill-{task.owner_cell}"
+        )
+        for task in tasks
+    ]
+    handle = runner.bar.add("fill holes", total=len(futures))
+
+    def collect(result: list[fill_holes.HoleFill]) -> None:
+        fills.extend(result)
+        runner.bar.advance(handle)
+
+    runner.gather(futures, collect)
+    fills.sort(key=lambda f: f.hole_id)
+    cell_fills = write_rasters.cell_fills(plan, holes, sources, fills, params)
+    write_futures = [
+        runner.submit(
+            write_rasters.write_cell_rasters,
+            task,
+            label=f"cell {task.cell.id} (write rasters)",
+            key=f"write-{task.cell.id}",
+        )
+        for task in write_rasters.write_tasks(plan, config, merged, staging, cell_fills)
+    ]
+    write_bar = runner.bar.add("write rasters", total=len(write_futures))
+
+    def collect_written(result: WriteResult) -> None:
+        rasters.written.append(result)
+        runner.bar.advance(write_bar)
+
+    runner.gather(write_futures, collect_written)
+    order = {cell.id: i for i, cell in enumerate(plan.cells)}
+    rasters.written.sort(key=lambda r: order[r.cell_id])
+    return fills
+
+
 def _write_products(
-    staging: Staging, plan: SurveyPlan, config: Config, rasters: _Rasters, detected, holes, started, timer
+    staging: Staging, plan: SurveyPlan, config: Config, rasters: _Rasters, detected, holes, fills, started, timer
 ) -> RunSummary:
     """The mosaic, the layers, the manifest and the report, from the stages' kept results."""
     t0 = time.perf_counter()
     skipped = plan.survey.skipped + rasters.failed
-    write_dsm_vrt(staging.product("dsm.vrt"), plan, rasters.written)
+    write_mosaics(staging, plan, rasters.written)
     gpkg = staging.product("holes.gpkg")
     write_survey_layers(gpkg, plan, rasters.tiles, rasters.cells, rasters.written, skipped)
-    hole_summary = write_hole_layers(gpkg, plan, config, holes, detected) if holes is not None else {}
+    hole_summary = write_hole_layers(gpkg, plan, config, holes, detected, fills) if holes is not None else {}
     vrt = staging.product("dsm.vrt")
     flight_summary = {}
     if holes is not None and config.flightplan.enabled and vrt.exists():
@@ -259,7 +309,7 @@ def _write_products(
         seconds=time.perf_counter() - started,
         stage_seconds=timer.seconds,
         skipped=skipped,
-        dsm_tiles=sorted(os.path.relpath(r.dsm_path, staging.root) for r in rasters.written if r.dsm_path),
+        dsm_tiles=sorted(os.path.relpath(r.paths["dsm"], staging.root) for r in rasters.written if r.paths),
     )
     timer.seconds["outputs"] = time.perf_counter() - t0
     manifest = write_manifest(staging.product("manifest.json"), summary, plan, config, rasters.tiles, rasters.cells)

@@ -7,7 +7,9 @@ Everything a run writes goes into ``OUT/.holefill-partial-<id>/`` first::
         work/cells/<cell id>.npz   stage 2: merged statistics of a cell and its halo
         work/holes/<cell id>.npz   detection: part labels of a cell core
         work/holes/catalog.pkl     linking: the survey's hole catalog with causes
-        dsm/dsm_<cell id>.tif      the writer stage's rasters
+        work/fill/hole_<id>.npz    filling: one hole's heights, method codes, distances
+        dsm/dsm_<cell id>.tif      the writer stage's rasters (also fill_mask/, fill_distance/,
+                                   dsm_unfilled/)
         dsm.vrt, holes.gpkg, manifest.json, report.html
 
 Names depend on what a result is made of (a cell's position on the absolute
@@ -30,7 +32,16 @@ from pathlib import Path
 from .errors import OutputError
 
 #: Subfolders every task may write into; tasks never create parent folders.
-WORK_FOLDERS = ("work/tiles", "work/cells", "work/holes", "dsm")
+WORK_FOLDERS = (
+    "work/tiles",
+    "work/cells",
+    "work/holes",
+    "work/fill",
+    "dsm",
+    "fill_mask",
+    "fill_distance",
+    "dsm_unfilled",
+)
 
 
 @dataclass(frozen=True)
@@ -75,8 +86,15 @@ class Staging:
     def hole_catalog(self) -> Path:
         return self.work / "holes" / "catalog.pkl"
 
+    def hole_fill(self, hole_id: int) -> Path:
+        return self.work / "fill" / f"hole_{hole_id}.npz"
+
+    def raster_tile(self, product: str, cell_id: str) -> Path:
+        """One cell's tile of a raster product (``dsm``, ``fill_mask``, ``fill_distance``, ``dsm_unfilled``)."""
+        return self.root / product / f"{product}_{cell_id}.tif"
+
     def dsm_tile(self, cell_id: str) -> Path:
-        return self.root / "dsm" / f"dsm_{cell_id}.tif"
+        return self.raster_tile("dsm", cell_id)
 
     def product(self, name: str) -> Path:
         return self.root / name
@@ -93,15 +111,13 @@ class Staging:
                 if stale.name not in products and stale.is_file():
                     stale.unlink()
         for name in products + (("work",) if keep_work else ()):
-            source = self.root / name
-            if not source.exists():
-                continue
-            target = self.out / name
+            source, target = self.root / name, self.out / name
             if target.is_dir() and not target.is_symlink():
                 shutil.rmtree(target)
-            elif target.exists():
-                target.unlink()
-            os.replace(source, target)
+            elif target.exists() or target.is_symlink():
+                target.unlink()  # also a product an older run wrote and this one does not
+            if source.exists() and not (source.is_dir() and not any(source.iterdir())):
+                os.replace(source, target)
         shutil.rmtree(self.root, ignore_errors=True)
 
     def remove(self) -> None:

@@ -77,15 +77,20 @@ def test_dsm_does_not_depend_on_cell_size_or_tiling(tmp_path, survey_points, das
     for tiling, cell_m in [("one", 1000.0), ("one", 16.0), ("quadrants", 32.0), ("strips", 20.0)]:
         inputs = write_tiling(tmp_path / "in" / tiling, survey_points, tiling)
         out = tmp_path / f"out_{tiling}_{cell_m:g}"
-        run(inputs, out, dask_client, f"grid.cell_size_m={cell_m}")
-        dsm, transform, _ = read_raster(out / "dsm.vrt")
-        results[(tiling, cell_m)] = (dsm, transform, assemble_cells(out, dsm.shape))
-    (reference, ref_transform, ref_stats) = results[("one", 1000.0)]
+        run(inputs, out, dask_client, f"grid.cell_size_m={cell_m}", "output.keep_unfilled=true")
+        dsm, transform, _ = read_raster(out / "dsm_unfilled.vrt")
+        filled, _, _ = read_raster(out / "dsm.vrt")
+        results[(tiling, cell_m)] = (dsm, filled, transform, assemble_cells(out, dsm.shape))
+    (reference, ref_filled, ref_transform, ref_stats) = results[("one", 1000.0)]
     assert np.isfinite(reference).sum() > 0.8 * reference.size
-    assert np.isnan(reference).sum() > 400  # the circular hole and empty pixels stay nodata
-    for key, (dsm, transform, stats) in results.items():
+    assert np.isnan(reference).sum() > 400  # the circular hole and empty pixels are nodata before filling
+    assert np.isfinite(ref_filled).sum() > np.isfinite(reference).sum() + 300  # ... and filled after
+    for key, (dsm, filled, transform, stats) in results.items():
         assert transform == ref_transform, key
         np.testing.assert_array_equal(dsm, reference, err_msg=str(key))
+        # holes are filled whole, whatever the cells: equal up to the solver's rounding
+        np.testing.assert_array_equal(np.isnan(filled), np.isnan(ref_filled), err_msg=str(key))
+        np.testing.assert_allclose(filled, ref_filled, atol=1e-4, equal_nan=True, err_msg=str(key))
         for name in ("zmax", "zmin", "count", "voxels"):
             np.testing.assert_array_equal(stats[name], ref_stats[name], err_msg=f"{key} {name}")
 
@@ -98,7 +103,8 @@ def test_outputs_are_valid_cogs_and_layers(tmp_path, survey_points, dask_client)
     summary = run(inputs, out, dask_client, "grid.cell_size_m=25")
     assert summary.points_read == len(survey_points[0])
     assert sorted(p.name for p in out.iterdir()) == [
-        "dsm", "dsm.vrt", "flightplan.gpkg", "holes.gpkg", "manifest.json", "report.html", "work"
+        "dsm", "dsm.vrt", "fill_distance", "fill_distance.vrt", "fill_mask", "fill_mask.vrt",
+        "flightplan.gpkg", "holes.gpkg", "manifest.json", "report.html", "work",
     ]  # fmt: skip
     report = (out / "report.html").read_text()
     assert "By cause" in report and f"{summary.points_read:,}" in report

@@ -1,20 +1,56 @@
-"""The writer stage, one task per cell: the cell's DSM tile as a Cloud-optimized GeoTIFF.
+"""The writer stage, one task per cell: the cell's rasters as Cloud-optimized GeoTIFFs.
 
 It runs after every stage that changes a cell's heights, so the products are
-written once, from the kept stage results, not inside the merge.
+written once, from the kept stage results, not inside the merge:
+
+- ``dsm``: the highest point per pixel, with the filled holes painted in;
+- ``fill_mask`` (when filling): 0 measured, the fill method's code on filled
+  pixels (``pipeline.fill.METHOD_CODES``), 255 nodata (outside the survey area,
+  and skipped holes);
+- ``fill_distance`` (when filling): metres from each filled pixel to measured
+  data, 0 on measured pixels;
+- ``dsm_unfilled`` (``output.keep_unfilled``): the DSM before filling.
+
+Small voids a cell settled itself (closed, under ``holes.min_area_m2``) have no
+hole record; they are filled here from the cell's halo.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from ..config import Config
+from ..fill import NOT_FILLED, fill_distance
 from ..grid import Cell, Grid
-from ..io.intermediate import load_cell_statistics
+from ..io.intermediate import load_cell_statistics, load_hole_fill, load_labels
 from ..io.raster import RasterOptions, write_cog
 from ..plan import SurveyPlan
+from ..rasterize import PixelStatistics
 from ..staging import Staging
-from .merge_cells import CellResult
+from .fill_holes import FILLED, SMALL_VOID, CellSource, FillParams, HoleFill, fill_hole, hole_ids_of_labels
+from .link_holes import HoleSet
+
+#: Descriptions of the raster products, also used for their mosaics.
+DESCRIPTIONS = {
+    "dsm": "DSM: highest point per pixel",
+    "dsm_filled": "DSM: highest point per pixel, holes filled (see fill_mask)",
+    "dsm_unfilled": "DSM before filling: highest point per pixel",
+    "fill_mask": "0 measured, fill method code on filled pixels, 255 nodata",
+    "fill_distance": "Distance (m) from a filled pixel to measured data; 0 measured",
+}
+
+
+@dataclass(frozen=True)
+class CellFill:
+    """What the writer needs to paint a cell's fills: its labels, the hole results, the settings."""
+
+    labels_path: str
+    hole_of_label: np.ndarray
+    hole_results: tuple[str, ...]  # kept results of the filled holes touching the cell
+    params: FillParams
+    unit_m: float  # metres per survey horizontal unit (fill_distance is in metres)
 
 
 @dataclass(frozen=True)
@@ -24,14 +60,16 @@ class WriteTask:
     cell: Cell
     grid: Grid
     statistics_path: str
-    dsm_path: str
+    paths: dict[str, str]  # product -> tile path ("dsm", and with fill: "fill_mask", "fill_distance", ...)
     raster_options: RasterOptions
+    fill: CellFill | None = None
 
 
 @dataclass(frozen=True)
 class WriteResult:
     cell_id: str
-    dsm_path: str | None  # None: the cell holds no point, no tile is written
+    paths: dict[str, str]  # product -> the tile written; empty when the cell holds no point
+    filled_px: int = 0
 
 
 def raster_options(config: Config) -> RasterOptions:
@@ -44,37 +82,122 @@ def raster_options(config: Config) -> RasterOptions:
     )
 
 
-def write_tasks(plan: SurveyPlan, config: Config, merged_cell_ids: list[str], staging: Staging) -> list[WriteTask]:
-    """One task per merged cell."""
+def cell_fills(
+    plan: SurveyPlan, holes: HoleSet, sources: dict[str, CellSource], fills: list[HoleFill], params: FillParams
+) -> dict[str, CellFill]:
+    """Per merged cell: the kept results of the filled holes that have a part in it."""
+    result_of = {f.hole_id: f.result_path for f in fills if f.status == FILLED and f.result_path}
+    parts = holes.catalog.parts
+    touching: dict[str, set[int]] = {cell_id: set() for cell_id in sources}
+    for cell_id, hole_id in zip(parts["cell_id"], parts["hole_id"]):
+        if int(hole_id) in result_of and str(cell_id) in touching:
+            touching[str(cell_id)].add(int(hole_id))
+    return {
+        cell_id: CellFill(
+            labels_path=source.labels_path,
+            hole_of_label=source.hole_of_label,
+            hole_results=tuple(result_of[h] for h in sorted(touching[cell_id])),
+            params=params,
+            unit_m=plan.survey.horizontal_unit_m,
+        )
+        for cell_id, source in sources.items()
+    }
+
+
+def write_tasks(
+    plan: SurveyPlan,
+    config: Config,
+    merged_cell_ids: list[str],
+    staging: Staging,
+    fills: dict[str, CellFill] | None = None,
+) -> list[WriteTask]:
+    """One task per merged cell; ``fills`` (cell id -> CellFill) when holes are filled."""
     cells = plan.cell_by_id()
     options = raster_options(config)
+    products = ["dsm"]
+    if fills is not None:
+        products += ["fill_mask", "fill_distance"] + (["dsm_unfilled"] if config.output.keep_unfilled else [])
     return [
         WriteTask(
             cell=cells[cell_id],
             grid=plan.grid,
             statistics_path=str(staging.cell_statistics(cell_id)),
-            dsm_path=str(staging.dsm_tile(cell_id)),
+            paths={product: str(staging.raster_tile(product, cell_id)) for product in products},
             raster_options=options,
+            fill=fills.get(cell_id) if fills is not None else None,
         )
         for cell_id in merged_cell_ids
     ]
 
 
-def write_cell_rasters(task: WriteTask, merged: CellResult | None = None) -> WriteResult:
-    """Write the DSM tile of a cell core from its kept statistics.
+def write_cell_rasters(task: WriteTask, *after: object) -> WriteResult:
+    """Write a cell core's rasters from its kept statistics (and fills).
 
-    ``merged`` is the cell's stage-2 result, passed only so that the task runs after it.
+    ``after`` are results of the tasks this one must follow (the cell's merge, or the
+    fills touching it); they are passed only so that Dask orders the tasks.
     """
-    cell, grid = task.cell, task.grid
-    core = load_cell_statistics(task.statistics_path).crop(cell.window)
+    cell = task.cell
+    stats = load_cell_statistics(task.statistics_path)
+    core = stats.crop(cell.window)
     if not core.count.any():
-        return WriteResult(cell.id, None)
-    write_cog(
-        task.dsm_path,
-        core.zmax,
-        transform=grid.window_transform(cell.window),
-        crs_wkt=grid.crs_wkt,
-        options=task.raster_options,
-        description="DSM: highest point per pixel",
-    )
-    return WriteResult(cell.id, task.dsm_path)
+        return WriteResult(cell.id, {})
+    rasters: dict[str, np.ndarray] = {"dsm": core.zmax}
+    filled_px = 0
+    if task.fill is not None:
+        rasters["dsm_unfilled"] = core.zmax
+        rasters["dsm"], rasters["fill_mask"], rasters["fill_distance"] = _paint_fills(task, stats, core)
+        filled_px = int(((rasters["fill_mask"] > 0) & (rasters["fill_mask"] < NOT_FILLED)).sum())
+    written = {}
+    for product, path in task.paths.items():
+        write_cog(
+            path,
+            rasters[product],
+            transform=task.grid.window_transform(cell.window),
+            crs_wkt=task.grid.crs_wkt,
+            options=task.raster_options,
+            nodata=NOT_FILLED if product == "fill_mask" else -9999.0,
+            description=DESCRIPTIONS["dsm_filled" if product == "dsm" and task.fill else product],
+        )
+        written[product] = path
+    return WriteResult(cell.id, written, filled_px)
+
+
+def _paint_fills(task: WriteTask, stats: PixelStatistics, core: PixelStatistics):
+    """The filled DSM, the method codes and the distances over the cell core."""
+    fill = task.fill
+    assert fill is not None
+    window = task.cell.window
+    measured = core.count > 0
+    dsm = np.where(measured, core.zmax, np.nan).astype(np.float32)
+    codes = np.where(measured, 0, NOT_FILLED).astype(np.uint8)
+    distance = np.where(measured, 0.0, np.nan).astype(np.float32)
+    for path in fill.hole_results:
+        hole_window, mask, heights, hole_codes, hole_distance = load_hole_fill(path)
+        overlap = hole_window.intersection(window)
+        if overlap.is_empty:
+            continue
+        here, there = overlap.slices_within(window), overlap.slices_within(hole_window)
+        paint = mask[there]
+        dsm[here] = np.where(paint, heights[there], dsm[here])
+        codes[here] = np.where(paint, hole_codes[there], codes[here])
+        distance[here] = np.where(paint, hole_distance[there] * fill.unit_m, distance[here])
+    labels, _ = load_labels(fill.labels_path)
+    settled = hole_ids_of_labels(labels, fill.hole_of_label) == -1
+    if settled.any():
+        _fill_settled_voids(fill, stats, window, settled, dsm, codes, distance)
+    return dsm, codes, distance
+
+
+def _fill_settled_voids(fill: CellFill, stats: PixelStatistics, window, settled, dsm, codes, distance) -> None:
+    """Small closed voids of the core, filled from the cell and its halo (they never cross a cell)."""
+    halo = stats.window
+    rows, cols = window.slices_within(halo)
+    region = np.zeros(halo.shape, bool)
+    region[rows, cols] = settled
+    measured = stats.count > 0
+    outcome = fill_hole(stats.zmax, stats.zmin, measured, region, SMALL_VOID, fill.params, one_piece=False)
+    near = fill_distance(measured, pixel_size=fill.params.pixel_size)[rows, cols]
+    done = settled & np.isfinite(outcome.heights[rows, cols])
+    dsm[done] = outcome.heights[rows, cols][done]
+    codes[done] = outcome.method_code[rows, cols][done]
+    distance[done] = near[done] * fill.unit_m

@@ -1,0 +1,297 @@
+"""Filling, one task per cell that owns holes: each hole filled whole, over its own window.
+
+A hole belongs to the cell holding its first pixel (raster order). Its task reads
+the hole's window (bounding box grown by ``fill.margin_px``) from the kept cell
+statistics and part labels of every cell under it, fills the hole in one piece
+with the method its cause calls for, and keeps the result under
+``work/fill/hole_<id>.npz``; the writer stage paints it into every cell it
+covers. Filling a hole whole, never cell by cell, makes the fill independent of
+the cell size: the same hole gives the same heights with 64-pixel or 1000-pixel
+cells (docs/filling.md, "Cells and layers").
+
+Holes are chosen for filling on the client: larger than ``fill.max_area_m2`` or
+farther than ``fill.max_distance_m`` from measured data, a hole is not invented;
+it stays nodata, marked ``skipped: too large``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..config import Config
+from ..fill import (
+    METHOD_NAMES,
+    FillOutcome,
+    FillSettings,
+    fill_distance,
+    fill_region,
+    lower_side_support,
+)
+from ..grid import Grid, PixelWindow
+from ..io.intermediate import load_cell_statistics, load_labels, save_hole_fill
+from ..plan import HoleParams, SurveyPlan
+from ..staging import Staging
+from .link_holes import HoleSet
+
+#: The cause a small void is filled as (it is not classified when a cell settles it).
+SMALL_VOID = "small void"
+
+#: ``fill_status`` values of the ``holes`` layer.
+FILLED, TOO_LARGE, NO_SUPPORT, NOT_FILLED = "filled", "skipped: too large", "skipped: no support", "unfilled"
+
+
+@dataclass(frozen=True)
+class FillParams:
+    """The ``[fill]`` settings in survey units, shared by every fill and writer task."""
+
+    method: str
+    by_cause: bool
+    pixel_size: float  # survey units
+    max_distance: float  # survey units
+    water_percentile: float
+    jump_threshold: float  # z units
+    settings: FillSettings
+
+
+@dataclass(frozen=True)
+class CellSource:
+    """Where a cell's kept heights and hole labels are, and how its labels map to hole ids."""
+
+    cell_id: str
+    core: PixelWindow
+    statistics_path: str
+    labels_path: str
+    hole_of_label: np.ndarray  # part label -> hole id; the last entry serves label -1 (a settled void)
+
+
+@dataclass(frozen=True)
+class HoleToFill:
+    hole_id: int
+    cause: str
+    window: PixelWindow  # the hole's bounding box grown by the margin, clipped to the grid
+    result_path: str
+
+
+@dataclass(frozen=True)
+class FillTask:
+    """Fill the holes one cell owns."""
+
+    owner_cell: str
+    holes: tuple[HoleToFill, ...]
+    sources: tuple[CellSource, ...]  # every cell whose core meets one of the holes' windows
+    params: FillParams
+
+
+@dataclass(frozen=True)
+class HoleFill:
+    """How one hole was filled (or why not): a row of the ``holes`` layer's fill fields."""
+
+    hole_id: int
+    status: str
+    method: str | None = None
+    pixels: int = 0
+    max_distance: float = math.nan  # survey units, farthest filled pixel from measured data
+    error_estimate: float = math.nan  # z units, leave-rim-out RMSE
+    degraded: bool = False
+    detail: str = ""
+    result_path: str | None = None
+
+
+def fill_params(plan: SurveyPlan, config: Config, params: HoleParams) -> FillParams:
+    fill = config.fill
+    return FillParams(
+        method=fill.method,
+        by_cause=fill.by_cause,
+        pixel_size=plan.grid.resolution,
+        max_distance=fill.max_distance_m / plan.survey.horizontal_unit_m,
+        water_percentile=fill.water_percentile,
+        jump_threshold=params.jump_threshold,
+        settings=FillSettings(estimate_error=fill.estimate_error),
+    )
+
+
+def cell_sources(
+    plan: SurveyPlan, holes: HoleSet, staging: Staging, merged_cell_ids: list[str]
+) -> dict[str, CellSource]:
+    """Every merged cell's kept files and label-to-hole lookup (one pass over the parts table)."""
+    parts = holes.catalog.parts
+    by_cell: dict[str, list[int]] = defaultdict(list)
+    for row, cell_id in enumerate(parts["cell_id"]):
+        by_cell[str(cell_id)].append(row)
+    cells = plan.cell_by_id()
+    sources = {}
+    for cell_id in merged_cell_ids:
+        rows = np.asarray(by_cell.get(cell_id, []), dtype=np.int64)
+        labels = parts["label"][rows] if len(rows) else np.empty(0, np.int64)
+        lookup = np.zeros(int(labels.max()) + 2 if len(labels) else 2, dtype=np.int64)
+        lookup[labels] = parts["hole_id"][rows]
+        lookup[-1] = -1
+        sources[cell_id] = CellSource(
+            cell_id,
+            cells[cell_id].window,
+            str(staging.cell_statistics(cell_id)),
+            str(staging.cell_labels(cell_id)),
+            lookup,
+        )
+    return sources
+
+
+def fill_tasks(
+    plan: SurveyPlan,
+    config: Config,
+    holes: HoleSet,
+    sources: dict[str, CellSource],
+    params: FillParams,
+    staging: Staging,
+) -> tuple[list[FillTask], list[HoleFill]]:
+    """One task per cell owning holes to fill; the holes skipped before any work."""
+    grid = plan.grid
+    catalog, stats = holes.catalog, holes.catalog.stats
+    margin = config.fill.margin_px
+    owned: dict[str, list[HoleToFill]] = defaultdict(list)
+    skipped = []
+    for i, hole in enumerate(catalog.holes):
+        hole_id = int(hole["hole_id"])
+        if float(hole["area_px"]) * plan.pixel_area_m2 > config.fill.max_area_m2:
+            skipped.append(
+                HoleFill(hole_id, TOO_LARGE, detail=f"area over fill.max_area_m2 = {config.fill.max_area_m2:g}")
+            )
+            continue
+        row0, col0 = int(stats["row_min"][i]), int(stats["col_min"][i])
+        box = PixelWindow(row0, col0, int(stats["row_max"][i]) - row0 + 1, int(stats["col_max"][i]) - col0 + 1)
+        owner = _cell_of_pixel(grid, int(stats["first_row"][i]), int(stats["first_col"][i]))
+        owned[owner].append(
+            HoleToFill(
+                hole_id=hole_id,
+                # a small void is filled alike whether a cell settled it or it crossed cells
+                cause=SMALL_VOID if hole["is_small"] else str(holes.causes["cause"][i]),
+                window=box.expand(margin).intersection(grid.window),
+                result_path=str(staging.hole_fill(hole_id)),
+            )
+        )
+    tasks = []
+    for owner, to_fill in owned.items():
+        needed: dict[str, CellSource] = {}
+        for hole in to_fill:
+            for ix, iy in grid.cell_indices_under(hole.window):
+                cell_id = grid.cell(ix, iy).id
+                if cell_id in sources:
+                    needed[cell_id] = sources[cell_id]
+        tasks.append(FillTask(owner, tuple(to_fill), tuple(needed.values()), params))
+    return tasks, skipped
+
+
+def fill_cell_holes(task: FillTask) -> list[HoleFill]:
+    """Fill every hole a cell owns, each over its own window, and keep the results."""
+    reader = _WindowReader(task.sources)
+    return [_fill_one(hole, reader, task.params) for hole in task.holes]
+
+
+def _fill_one(hole: HoleToFill, reader: _WindowReader, params: FillParams) -> HoleFill:
+    zmax, zmin, measured, hole_ids = reader.read(hole.window)
+    region = hole_ids == hole.hole_id
+    distance = fill_distance(measured, pixel_size=params.pixel_size)
+    farthest = float(distance[region].max()) if region.any() else 0.0
+    if farthest > params.max_distance:
+        return HoleFill(
+            hole.hole_id, TOO_LARGE, max_distance=farthest, detail="farther from data than fill.max_distance_m"
+        )
+    outcome = fill_hole(zmax, zmin, measured, region, hole.cause, params)
+    filled = region & np.isfinite(outcome.heights)
+    if not filled.any():
+        return HoleFill(hole.hole_id, NO_SUPPORT, detail="no measured rim to fill from")
+    save_hole_fill(hole.result_path, hole.window, filled, outcome.heights, outcome.method_code, distance)
+    return HoleFill(hole.hole_id, FILLED, result_path=hole.result_path, **_summary(outcome, filled, distance))
+
+
+def fill_hole(
+    zmax: np.ndarray,
+    zmin: np.ndarray,
+    measured: np.ndarray,
+    region: np.ndarray,
+    cause: str,
+    params: FillParams,
+    *,
+    one_piece: bool = True,
+) -> FillOutcome:
+    """Fill one region by its cause (pure; docs/filling.md "Fill by cause").
+
+    Water is flat at a low percentile of its rim's lowest returns (hydro-flattening);
+    an occlusion hole is ground hidden by a building or a tree, filled from the low
+    side of its rim only, so no ramp runs from the roof to the street; anything else
+    with the configured method from its whole rim. ``one_piece``: the region is one
+    hole (even if only 8-connected); otherwise each 4-connected piece is filled alone.
+    """
+    heights = np.where(measured, zmax, np.nan)
+    labels = region.astype(np.int32) if one_piece else None
+    common = {"pixel_size": params.pixel_size, "labels": labels}
+    if params.by_cause and cause == "water":
+        settings = replace(params.settings, flat_percentile=params.water_percentile)
+        return fill_region(np.where(measured, zmin, np.nan), region, method="flat", settings=settings, **common)
+    support = None
+    if params.by_cause and cause == "occlusion":
+        support = lower_side_support(heights, region, jump_threshold=params.jump_threshold)
+    return fill_region(heights, region, method=params.method, settings=params.settings, support=support, **common)
+
+
+def _summary(outcome: FillOutcome, filled: np.ndarray, distance: np.ndarray) -> dict:
+    """The method that filled most pixels, the worst error estimate, degradation notes."""
+    counts = np.bincount(outcome.method_code[filled], minlength=256)
+    errors = [c.error_estimate for c in outcome.components if np.isfinite(c.error_estimate)]
+    return {
+        "method": METHOD_NAMES.get(int(counts.argmax()), "unknown"),
+        "pixels": int(filled.sum()),
+        "max_distance": float(distance[filled].max()),
+        "error_estimate": max(errors) if errors else math.nan,
+        "degraded": any(c.degraded for c in outcome.components),
+        "detail": "; ".join(c.detail for c in outcome.components if c.detail),
+    }
+
+
+def hole_ids_of_labels(labels: np.ndarray, hole_of_label: np.ndarray) -> np.ndarray:
+    """A cell's hole-id raster from its part labels: 0 no hole, -1 a void the cell settled."""
+    known = (labels > 0) & (labels < len(hole_of_label) - 1)
+    ids = np.where(known, hole_of_label[np.where(known, labels, 0)], 0)
+    return np.where(labels == -1, -1, ids)
+
+
+def _cell_of_pixel(grid: Grid, row: int, col: int) -> str:
+    (ix, iy), *_ = grid.cell_indices_under(PixelWindow(row, col, 1, 1))
+    return grid.cell(ix, iy).id
+
+
+class _WindowReader:
+    """Heights, measured pixels and hole ids over any window, from the kept cell files."""
+
+    def __init__(self, sources: tuple[CellSource, ...]) -> None:
+        self._sources = sources
+        self._loaded: dict[str, tuple] = {}
+
+    def _cell(self, source: CellSource) -> tuple:
+        if source.cell_id not in self._loaded:
+            core = load_cell_statistics(source.statistics_path).crop(source.core)
+            labels, _ = load_labels(source.labels_path)
+            hole_ids = hole_ids_of_labels(labels, source.hole_of_label)
+            self._loaded[source.cell_id] = (core.zmax, core.zmin, core.count > 0, hole_ids)
+        return self._loaded[source.cell_id]
+
+    def read(self, window: PixelWindow) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        zmax = np.full(window.shape, np.nan, np.float64)
+        zmin = np.full(window.shape, np.nan, np.float64)
+        measured = np.zeros(window.shape, bool)
+        hole_ids = np.zeros(window.shape, np.int64)
+        for source in self._sources:
+            overlap = source.core.intersection(window)
+            if overlap.is_empty:
+                continue
+            inside, within = overlap.slices_within(window), overlap.slices_within(source.core)
+            cell_zmax, cell_zmin, cell_measured, cell_holes = self._cell(source)
+            zmax[inside] = cell_zmax[within]
+            zmin[inside] = cell_zmin[within]
+            measured[inside] = cell_measured[within]
+            hole_ids[inside] = cell_holes[within]
+        return zmax, zmin, measured, hole_ids
