@@ -39,6 +39,7 @@ from .link_holes import HoleSet
 
 #: The cause a small void is filled as (it is not classified when a cell settles it).
 SMALL_VOID = "small void"
+OCCLUSION = "occlusion"
 
 #: ``fill_status`` values of the ``holes`` layer.
 FILLED, TOO_LARGE, NO_SUPPORT, NOT_FILLED = "filled", "skipped: too large", "skipped: no support", "unfilled"
@@ -221,8 +222,9 @@ def fill_hole(
     """Fill one region by its cause (pure; docs/filling.md "Fill by cause").
 
     Water is flat at a low percentile of its rim's lowest returns (hydro-flattening);
-    an occlusion hole is ground hidden by a building or a tree, filled from the low
-    side of its rim only, so no ramp runs from the roof to the street; anything else
+    an occlusion hole (and a small void at a step) is ground hidden by a building or
+    a tree, filled from the low side of its rim only, so no ramp runs from the roof
+    to the street; anything else
     with the configured method from its whole rim. ``one_piece``: the region is one
     hole (even if only 8-connected); otherwise each 4-connected piece is filled alone.
     """
@@ -233,7 +235,9 @@ def fill_hole(
         settings = replace(params.settings, flat_percentile=params.water_percentile)
         return fill_region(np.where(measured, zmin, np.nan), region, method="flat", settings=settings, **common)
     support = None
-    if params.by_cause and cause == "occlusion":
+    if params.by_cause and cause in (OCCLUSION, SMALL_VOID):
+        # a small void at a step (a building's edge) is hidden ground like an occlusion; with
+        # no step on its rim every rim pixel is on the low side and nothing changes
         support = lower_side_support(heights, region, jump_threshold=params.jump_threshold)
     return fill_region(heights, region, method=params.method, settings=params.settings, support=support, **common)
 
