@@ -41,6 +41,9 @@ from .link_holes import HoleSet
 SMALL_VOID = "small void"
 OCCLUSION = "occlusion"
 
+#: Largest window (pixels) a hole is filled over; a hole spread wider is a strip for the flight plan.
+MAX_WINDOW_PX = 4096 * 4096
+
 #: ``fill_status`` values of the ``holes`` layer.
 FILLED, TOO_LARGE, NO_SUPPORT, NOT_FILLED = "filled", "skipped: too large", "skipped: no support", "unfilled"
 
@@ -164,6 +167,9 @@ def fill_tasks(
             continue
         row0, col0 = int(stats["row_min"][i]), int(stats["col_min"][i])
         box = PixelWindow(row0, col0, int(stats["row_max"][i]) - row0 + 1, int(stats["col_max"][i]) - col0 + 1)
+        if box.height * box.width > MAX_WINDOW_PX:
+            skipped.append(HoleFill(hole_id, TOO_LARGE, detail=f"spread over {box.height} x {box.width} pixels"))
+            continue
         owner = _cell_of_pixel(grid, int(stats["first_row"][i]), int(stats["first_col"][i]))
         owned[owner].append(
             HoleToFill(
