@@ -183,6 +183,40 @@ def _min_area_px(config, resolution: float) -> int:
     return max(1, math.ceil(config.holes.min_area_m2 / resolution**2))
 
 
+@main.command("plan")
+@click.argument("holes_gpkg", type=click.Path(dir_okay=False))
+@click.option(
+    "--dsm", "dsm_path", required=True, type=click.Path(), help="The DSM (GeoTIFF, COG or VRT), e.g. OUT/dsm.vrt."
+)
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output folder.")
+@config_option
+@set_option
+@click.option(
+    "--home", help="Take-off point X,Y in the survey CRS (flightplan.home; default: the centre of the holes)."
+)
+def plan_command(holes_gpkg, dsm_path, out_dir, config_path, overrides, home):
+    """Re-plan re-flights from a finished run's holes.gpkg and DSM, without re-processing."""
+    from .config import load_config
+    from .flight_replan import replan_flights
+
+    config = load_config(config_path, overrides)
+    if home is not None:
+        try:
+            x, y = (float(v) for v in home.split(","))
+        except ValueError:
+            raise ConfigError(f"--home {home}: expected X,Y in the survey CRS, e.g. 651200,6862100") from None
+        config = config.replace("flightplan", source=f"--home {home}", home=[x, y])
+    summary = replan_flights(holes_gpkg, dsm_path, config, out_dir)
+    click.echo(
+        f"{summary['holes_planned']} of {summary['holes']} holes planned: {summary['patterns']} patterns, "
+        f"{summary['lanes']} lanes, {summary['sorties']} sorties, route {summary['flown_route_m']:,.0f} m "
+        f"(greedy {summary['greedy_route_m']:,.0f} m) -> {out_dir}",
+        err=True,
+    )
+    for hole_id, reason in summary["holes_not_planned"].items():
+        logging.getLogger(__name__).info("hole %s not planned: %s", hole_id, reason)
+
+
 @main.command("config")
 @click.option("--show", is_flag=True, help="Print the resolved configuration as TOML.")
 @config_option

@@ -218,3 +218,33 @@ def test_ellipsoid_reference_is_refused_without_a_vertical_datum(survey, tmp_pat
     except CRSError as e:  # no geoid grid here: refused, nothing written
         assert "geoid grid" in str(e)
         assert not (Path(tmp_path) / "flightplan.plan").exists()
+
+
+def test_holefill_plan_replans_into_a_folder_and_replaces_older_sorties(survey, tmp_path):
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    folder, _ = survey
+    out = tmp_path / "replan"
+    runner = CliRunner()
+    args = ["plan", str(folder / "holes.gpkg"), "--dsm", str(folder / "dsm.tif"), "--out", str(out)]
+    result = runner.invoke(
+        main, [*args, "--set", "flightplan.max_flight_time_s=260", "--set", "flightplan.setup_time_s=30"]
+    )
+    assert result.exit_code == 0, result.output
+    several = sorted(p.name for p in out.glob("flightplan_s*.plan"))
+    assert len(several) >= 2
+    # another drone, one sortie: the older sortie files go, nothing else is left behind
+    result = runner.invoke(main, [*args, "--set", "flightplan.altitude_agl_m=90", "--home", f"{X0 + 600},{Y0 + 700}"])
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in out.iterdir()) == [
+        "flightplan.gpkg", "flightplan.kml", "flightplan.kmz", "flightplan.plan", "flightplan.waypoints",
+    ]  # fmt: skip
+    result = runner.invoke(main, [*args, "--home", "somewhere"])
+    assert result.exit_code == 2 and "--home somewhere: expected X,Y" in result.output
+    result = runner.invoke(
+        main, ["plan", str(tmp_path / "none.gpkg"), "--dsm", str(folder / "dsm.tif"), "--out", str(tmp_path / "o")]
+    )
+    assert result.exit_code == 3 and "none.gpkg: holes file not found" in result.output
+    assert not (tmp_path / "o").exists()

@@ -143,6 +143,24 @@ def height_at(dsm: np.ndarray, transform: AffineLike, point: Point2, *, search_m
     return float(np.median(values)) if values.size else math.nan
 
 
+def nearest_data_point(dsm: np.ndarray, transform: AffineLike, point: Point2) -> Point2 | None:
+    """The centre of the DSM pixel with data nearest to ``point`` (None when the DSM is empty)."""
+    import scipy.ndimage as ndi
+
+    empty = ~np.isfinite(dsm)
+    if empty.all():
+        return None
+    inverse = _inverse(transform)
+    col = inverse[0] * point[0] + inverse[1] * point[1] + inverse[2]
+    row = inverse[3] * point[0] + inverse[4] * point[1] + inverse[5]
+    r = min(max(int(math.floor(row)), 0), dsm.shape[0] - 1)
+    c = min(max(int(math.floor(col)), 0), dsm.shape[1] - 1)
+    _, (rows, cols) = ndi.distance_transform_edt(empty, return_indices=True)
+    rr, cc = int(rows[r, c]) + 0.5, int(cols[r, c]) + 0.5
+    t = transform
+    return (t.a * cc + t.b * rr + t.c, t.d * cc + t.e * rr + t.f)
+
+
 def lane_sections(
     dsm: np.ndarray,
     transform: AffineLike,

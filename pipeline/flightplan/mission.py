@@ -23,7 +23,7 @@ import numpy as np
 import pyproj
 import shapely
 
-from .altitude import AffineLike, height_at, lane_sections, max_height_along
+from .altitude import AffineLike, height_at, lane_sections, max_height_along, nearest_data_point
 from .coverage import CoverageParams, CoveragePattern, Lane, Point2, cluster_holes, plan_pattern, split_pattern
 from .route import (
     PatternEnds,
@@ -149,8 +149,12 @@ def plan_mission(
     params: FlightParams,
     home: Point2 | None = None,
     to_ellipsoid: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
+    snap_home: bool = False,
 ) -> FlightPlan:
     """Plan the re-flight of the holes a drone can re-scan.
+
+    With ``snap_home`` (a home point nobody chose: the centre of the survey or the
+    holes), a home without a DSM height moves to the nearest pixel with one.
 
     Parameters
     ----------
@@ -192,6 +196,14 @@ def plan_mission(
     )
     sortie_visits = [improve_route(v, unit_ends, home) for v in sortie_visits]
     home_ground = height_at(dsm, transform, home)
+    if not math.isfinite(home_ground) and sortie_visits and snap_home:
+        # a default home in a hole or off the data: the nearest point with a surface height
+        snapped = nearest_data_point(dsm, transform, home)
+        if snapped is not None:
+            return plan_mission(
+                holes, dsm, transform, crs_wkt=crs_wkt, params=params, home=snapped, to_ellipsoid=to_ellipsoid,
+                snap_home=False,
+            )  # fmt: skip
     if not math.isfinite(home_ground) and sortie_visits:
         raise ValueError(f"no DSM height within 10 m of home {home}; choose a home point on open ground with data")
     to_lonlat = pyproj.Transformer.from_crs(pyproj.CRS.from_user_input(crs_wkt), "EPSG:4326", always_xy=True)

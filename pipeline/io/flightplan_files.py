@@ -178,8 +178,9 @@ def plan_flights(
         to_ellipsoid = ellipsoid_transformer(vertical_crs_for(dsm_crs, config.flightplan.vertical_crs), probe=probe)
     try:
         plan = plan_mission(
-            holes, dsm, transform, crs_wkt=holes_crs, params=params, home=home, to_ellipsoid=to_ellipsoid
-        )
+            holes, dsm, transform, crs_wkt=holes_crs, params=params, home=home, to_ellipsoid=to_ellipsoid,
+            snap_home=not config.flightplan.home,
+        )  # fmt: skip
     except ValueError as e:
         raise InputDataError(dsm_path, str(e)) from None
     files = write_flightplan(
