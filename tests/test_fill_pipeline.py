@@ -100,3 +100,31 @@ def test_water_is_filled_flat(tmp_path, dask_client):
     dsm, _, _ = read_raster(out / "dsm.vrt")
     assert np.isfinite(dsm[water]).all()
     assert np.ptp(dsm[water]) == 0.0  # hydro-flattened: one height
+
+
+def test_run_plans_flights_for_the_missed_strip_only(tmp_path, dask_client):
+    import json
+
+
+    spec = preset("demo", width_m=400.0, height_m=300.0, water=False, seed=3)
+    survey = generate_survey(tmp_path / "tiles", spec)
+    truth = write_truth(survey, tmp_path)
+    out = run(tmp_path, truth, dask_client, "out")
+    holes = read_layer(out / "holes.gpkg", "holes")
+    strips = holes[holes["cause"] == "missed_coverage"]
+    assert len(strips) >= 1 and (holes["cause"] == "occlusion").any()
+    # the strip is too large to invent: left nodata for the re-flight
+    assert (strips["fill_status"] == "skipped: too large").all()
+    status = read_layer(out / "flightplan.gpkg", "holes_status")
+    planned = set(status.loc[status["planned"], "hole_id"])
+    assert planned == set(strips.loc[strips["area_m2"] >= 25, "hole_id"])
+    for suffix in ("plan", "waypoints", "kmz", "kml"):
+        assert list(out.glob(f"flightplan*.{suffix}")), suffix
+    lanes = read_layer(out / "flightplan.gpkg", "flight_lines")
+    lane_holes = {int(h) for ids in lanes["hole_ids"] for h in str(ids).split(";") if h}
+    assert lane_holes == planned
+    plan = json.loads(next(out.glob("flightplan*.plan")).read_text())
+    assert plan["mission"]["items"][0]["command"] == 22
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["flightplan"]["holes_planned"] == len(planned)
+    assert sorted(manifest["outputs"]["flightplan"]) == sorted(p.name for p in out.glob("flightplan*"))
