@@ -121,7 +121,7 @@ def test_run_plans_flights_for_the_missed_strip_only(tmp_path, dask_client):
     for suffix in ("plan", "waypoints", "kmz", "kml"):
         assert list(out.glob(f"flightplan*.{suffix}")), suffix
     lanes = read_layer(out / "flightplan.gpkg", "flight_lines")
-    lane_holes = {int(h) for ids in lanes["hole_ids"] for h in str(ids).split(";") if h}
+    lane_holes = {int(h) for ids in lanes["hole_ids"] for h in str(ids).split(",") if h}
     assert lane_holes == planned
     plan = json.loads(next(out.glob("flightplan*.plan")).read_text())
     assert plan["mission"]["items"][0]["command"] == 22
