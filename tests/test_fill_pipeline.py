@@ -105,7 +105,6 @@ def test_water_is_filled_flat(tmp_path, dask_client):
 def test_run_plans_flights_for_the_missed_strip_only(tmp_path, dask_client):
     import json
 
-
     spec = preset("demo", width_m=400.0, height_m=300.0, water=False, seed=3)
     survey = generate_survey(tmp_path / "tiles", spec)
     truth = write_truth(survey, tmp_path)
