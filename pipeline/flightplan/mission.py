@@ -423,6 +423,7 @@ def _finish_waypoints(
     elif reference == "amsl":
         altitude = heights
     else:
+        assert to_ellipsoid is not None, "plan_mission checks that 'ellipsoid' comes with a conversion"
         altitude = to_ellipsoid(x, y, heights)
     return tuple(
         Waypoint(

@@ -160,7 +160,9 @@ def plan_flights(
     """
     params = flight_params(config.flightplan)
     holes, holes_crs = read_holes(holes_gpkg)
-    home = home or (tuple(config.flightplan.home) if config.flightplan.home else None)
+    if home is None and config.flightplan.home:
+        home_x, home_y = config.flightplan.home  # flight_params checked: [] or [x, y]
+        home = (home_x, home_y)
     reach = params.coverage.swath_m + params.coverage.margin_m + params.coverage.run_in_m + 500.0
     extent = [h.geometry.bounds for h in holes if h.geometry is not None and not h.geometry.is_empty]
     if home is not None:
