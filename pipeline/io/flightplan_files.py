@@ -251,12 +251,22 @@ def write_flightplan(
 
 
 def _write_gpkg(path: Path, plan: FlightPlan) -> None:
-    crs = plan.crs_wkt
-    reference = {
-        "takeoff": "relative to take-off (DSM at home)",
-        "amsl": "AMSL (DSM datum)",
-        "ellipsoid": "WGS84 ellipsoid",
-    }[plan.altitude_reference]
+    """``flightplan.gpkg``: the layers flight_lines, waypoints, route and holes_status, in that order."""
+    _write_flight_lines_layer(path, plan)
+    _write_waypoints_layer(path, plan)
+    _write_route_layer(path, plan)
+    _write_holes_status_layer(path, plan)
+
+
+#: The ``altitude_ref`` attribute of the waypoints layer, per altitude reference.
+_ALTITUDE_REFERENCE_LABELS = {
+    "takeoff": "relative to take-off (DSM at home)",
+    "amsl": "AMSL (DSM datum)",
+    "ellipsoid": "WGS84 ellipsoid",
+}
+
+
+def _write_flight_lines_layer(path: Path, plan: FlightPlan) -> None:
     lines = [(s, lane) for s in plan.sorties for lane in s.lanes]
     write_layer(
         path,
@@ -273,9 +283,13 @@ def _write_gpkg(path: Path, plan: FlightPlan) -> None:
             for _, fl in lines
         ],
         [LineString([fl.lane.start, fl.lane.end]) for _, fl in lines],
-        crs_wkt=crs,
+        crs_wkt=plan.crs_wkt,
         geometry_type="LineString",
     )
+
+
+def _write_waypoints_layer(path: Path, plan: FlightPlan) -> None:
+    reference = _ALTITUDE_REFERENCE_LABELS[plan.altitude_reference]
     points = [w for s in plan.sorties for w in s.waypoints]
     write_layer(
         path,
@@ -296,9 +310,12 @@ def _write_gpkg(path: Path, plan: FlightPlan) -> None:
             for w in points
         ],
         [Point(w.x, w.y) for w in points],
-        crs_wkt=crs,
+        crs_wkt=plan.crs_wkt,
         geometry_type="Point",
     )
+
+
+def _write_route_layer(path: Path, plan: FlightPlan) -> None:
     write_layer(
         path,
         "route",
@@ -312,9 +329,12 @@ def _write_gpkg(path: Path, plan: FlightPlan) -> None:
             for s in plan.sorties
         ],
         [LineString([(w.x, w.y) for w in s.waypoints]) for s in plan.sorties],
-        crs_wkt=crs,
+        crs_wkt=plan.crs_wkt,
         geometry_type="LineString",
     )
+
+
+def _write_holes_status_layer(path: Path, plan: FlightPlan) -> None:
     write_layer(
         path,
         "holes_status",
@@ -330,7 +350,7 @@ def _write_gpkg(path: Path, plan: FlightPlan) -> None:
             for d in plan.decisions
         ],
         [d.geometry for d in plan.decisions],
-        crs_wkt=crs,
+        crs_wkt=plan.crs_wkt,
         geometry_type="MultiPolygon",
     )
 
