@@ -196,8 +196,33 @@ def detect_cell_holes(
     R = _check_inputs(
         arrays, cell, grid_window, connectivity=connectivity, local_radius_px=local_radius_px, height_bin=height_bin
     )
-    core = cell.window
     work = _work_arrays(arrays, cell, R)
+    return _find_parts(
+        work,
+        cell,
+        connectivity=connectivity,
+        local_radius_px=local_radius_px,
+        jump_threshold=jump_threshold,
+        low_tolerance=low_tolerance,
+        height_bin=height_bin,
+        min_area_px=min_area_px,
+    )
+
+
+def _find_parts(
+    work: _Work,
+    cell: Cell,
+    *,
+    connectivity: int,
+    local_radius_px: int,
+    jump_threshold: float,
+    low_tolerance: float,
+    height_bin: float,
+    min_area_px: int,
+) -> CellHoles:
+    """Label, classify and measure the hole parts of a cell core from its checked work arrays."""
+    R = work.R
+    core = cell.window
     structure = ndi.generate_binary_structure(2, 1 if connectivity == 4 else 2)
     labels, n = ndi.label(work.core(work.hole), structure=structure)
     labels = labels.astype(np.int32, copy=False)
