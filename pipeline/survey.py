@@ -122,49 +122,8 @@ def scan_survey(
     paths = find_inputs(inputs)
     assigned = _parse_crs(crs, "--crs") if crs else None
     target = _parse_crs(target_crs, "--target-crs") if target_crs else None
-
-    def scan_one(path: Path) -> TileHeader | InputDataError:
-        try:
-            header = read_header(path)
-        except InputDataError as e:
-            return e
-        if header.point_count == 0:
-            return InputDataError(path, "tile has zero points (header point count is 0)")
-        return header
-
-    with ThreadPoolExecutor(max_workers=min(8, len(paths))) as pool:
-        scanned = list(pool.map(scan_one, paths))
-
-    skipped: list[dict[str, str]] = []
-    headers: list[tuple[TileHeader, CRS]] = []
-    for path, result in zip(paths, scanned):
-        try:
-            if isinstance(result, InputDataError):
-                raise result
-            headers.append((result, _tile_crs(result, assigned)))
-        except InputDataError as e:
-            if on_error != "skip":
-                raise
-            logger.warning("skipping %s", e)
-            skipped.append({"path": str(path), "reason": e.reason})
-    if not headers:
-        raise InputDataError("INPUT", "no usable tile: every input was skipped")
-
-    survey_crs = target if target is not None else headers[0][1]
-    if target is None:
-        for header, tile_crs in headers[1:]:
-            if not tile_crs.equals(survey_crs, ignore_axis_order=True):
-                raise CRSError(
-                    header.path,
-                    f"CRS '{tile_crs.name}' differs from '{survey_crs.name}' of {Path(headers[0][0].path).name}; "
-                    "pass --target-crs to reproject every tile to one CRS",
-                )
-    if not survey_crs.is_projected:
-        raise CRSError(
-            headers[0][0].path,
-            f"CRS '{survey_crs.name}' is not projected; a DSM grid needs metric or foot units: "
-            "pass --target-crs with a projected CRS (e.g. the local UTM zone)",
-        )
+    headers, skipped = _read_headers(paths, assigned, on_error)
+    survey_crs = _survey_crs(headers, target)
     tiles = []
     reproject = False
     for index, (header, tile_crs) in enumerate(headers):
@@ -181,6 +140,61 @@ def scan_survey(
         vertical_unit_m=_vertical_unit(survey_crs, horizontal),
         skipped=skipped,
     )
+
+
+def _scan_one(path: Path) -> TileHeader | InputDataError:
+    """A tile's header, or the error that makes it unusable (returned, for the caller's policy)."""
+    try:
+        header = read_header(path)
+    except InputDataError as e:
+        return e
+    if header.point_count == 0:
+        return InputDataError(path, "tile has zero points (header point count is 0)")
+    return header
+
+
+def _read_headers(
+    paths: list[Path], assigned: CRS | None, on_error: str
+) -> tuple[list[tuple[TileHeader, CRS]], list[dict[str, str]]]:
+    """Every usable tile's header and CRS, in input order, and the skipped tiles (``on_error="skip"``)."""
+    with ThreadPoolExecutor(max_workers=min(8, len(paths))) as pool:
+        scanned = list(pool.map(_scan_one, paths))
+
+    skipped: list[dict[str, str]] = []
+    headers: list[tuple[TileHeader, CRS]] = []
+    for path, result in zip(paths, scanned):
+        try:
+            if isinstance(result, InputDataError):
+                raise result
+            headers.append((result, _tile_crs(result, assigned)))
+        except InputDataError as e:
+            if on_error != "skip":
+                raise
+            logger.warning("skipping %s", e)
+            skipped.append({"path": str(path), "reason": e.reason})
+    if not headers:
+        raise InputDataError("INPUT", "no usable tile: every input was skipped")
+    return headers, skipped
+
+
+def _survey_crs(headers: list[tuple[TileHeader, CRS]], target: CRS | None) -> CRS:
+    """``target``, or else the one CRS all tiles share; it must be projected."""
+    survey_crs = target if target is not None else headers[0][1]
+    if target is None:
+        for header, tile_crs in headers[1:]:
+            if not tile_crs.equals(survey_crs, ignore_axis_order=True):
+                raise CRSError(
+                    header.path,
+                    f"CRS '{tile_crs.name}' differs from '{survey_crs.name}' of {Path(headers[0][0].path).name}; "
+                    "pass --target-crs to reproject every tile to one CRS",
+                )
+    if not survey_crs.is_projected:
+        raise CRSError(
+            headers[0][0].path,
+            f"CRS '{survey_crs.name}' is not projected; a DSM grid needs metric or foot units: "
+            "pass --target-crs with a projected CRS (e.g. the local UTM zone)",
+        )
+    return survey_crs
 
 
 def _parse_crs(text: str, option: str) -> CRS:

@@ -183,18 +183,7 @@ def plan_mission(
         home = _default_home(patterns, holes)
     units, unit_ends, unflyable = _flyable_units(patterns, home, params)
     decisions = _mark_unflyable(decisions, unflyable, patterns)
-    greedy = greedy_route(unit_ends, home)
-    improved = improve_route(greedy, unit_ends, home)
-    sortie_visits = split_sorties(
-        improved,
-        unit_ends,
-        home,
-        lane_speed_m_s=params.speed_m_s,
-        transit_speed_m_s=params.transit_speed_m_s,
-        setup_time_s=params.setup_time_s,
-        max_flight_time_s=params.max_flight_time_s,
-    )
-    sortie_visits = [improve_route(v, unit_ends, home) for v in sortie_visits]
+    greedy, improved, sortie_visits = _routes(unit_ends, home, params)
     home_ground = height_at(dsm, transform, home)
     if not math.isfinite(home_ground) and sortie_visits and snap_home:
         # a default home in a hole or off the data: the nearest point with a surface height
@@ -207,20 +196,22 @@ def plan_mission(
     if not math.isfinite(home_ground) and sortie_visits:
         raise ValueError(f"no DSM height within 10 m of home {home}; choose a home point on open ground with data")
     to_lonlat = pyproj.Transformer.from_crs(pyproj.CRS.from_user_input(crs_wkt), "EPSG:4326", always_xy=True)
-    sorties = []
-    for number, visits in enumerate(sortie_visits, start=1):
-        raw = _sortie_points(visits, units, home, dsm, transform, params)
-        waypoints = _finish_waypoints(number, raw, to_lonlat, home_ground, params.altitude_reference, to_ellipsoid)
-        lanes = tuple(
-            FlownLane(number, units[v.pattern].pattern_id, units[v.pattern].hole_ids, lane)
-            for v in visits
-            for lane in pattern_variants(units[v.pattern])[v.variant]
+    sorties = [
+        _sortie(
+            number,
+            visits,
+            units,
+            unit_ends,
+            home,
+            dsm,
+            transform,
+            params,
+            to_lonlat=to_lonlat,
+            home_ground=home_ground,
+            to_ellipsoid=to_ellipsoid,
         )
-        length = route_length(visits, unit_ends, home)
-        duration = sortie_duration(
-            visits, unit_ends, home, params.speed_m_s, params.transit_speed_m_s, params.setup_time_s
-        )
-        sorties.append(Sortie(number, waypoints, lanes, length, duration))
+        for number, visits in enumerate(sortie_visits, start=1)
+    ]
     home_lonlat = to_lonlat.transform(*home)
     return FlightPlan(
         decisions=tuple(decisions),
@@ -235,6 +226,51 @@ def plan_mission(
         greedy_length_m=route_length(greedy, unit_ends, home),
         improved_length_m=route_length(improved, unit_ends, home),
     )
+
+
+def _routes(
+    unit_ends: list[PatternEnds], home: Point2, params: FlightParams
+) -> tuple[list[Visit], list[Visit], list[list[Visit]]]:
+    """The greedy route, its improvement, and that split into sorties (each improved on its own)."""
+    greedy = greedy_route(unit_ends, home)
+    improved = improve_route(greedy, unit_ends, home)
+    sortie_visits = split_sorties(
+        improved,
+        unit_ends,
+        home,
+        lane_speed_m_s=params.speed_m_s,
+        transit_speed_m_s=params.transit_speed_m_s,
+        setup_time_s=params.setup_time_s,
+        max_flight_time_s=params.max_flight_time_s,
+    )
+    return greedy, improved, [improve_route(v, unit_ends, home) for v in sortie_visits]
+
+
+def _sortie(
+    number: int,
+    visits: list[Visit],
+    units: list[CoveragePattern],
+    unit_ends: list[PatternEnds],
+    home: Point2,
+    dsm: np.ndarray,
+    transform: AffineLike,
+    params: FlightParams,
+    *,
+    to_lonlat: pyproj.Transformer,
+    home_ground: float,
+    to_ellipsoid: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None,
+) -> Sortie:
+    """Sortie ``number``: its waypoints, the lanes it flies, its length and duration."""
+    raw = _sortie_points(visits, units, home, dsm, transform, params)
+    waypoints = _finish_waypoints(number, raw, to_lonlat, home_ground, params.altitude_reference, to_ellipsoid)
+    lanes = tuple(
+        FlownLane(number, units[v.pattern].pattern_id, units[v.pattern].hole_ids, lane)
+        for v in visits
+        for lane in pattern_variants(units[v.pattern])[v.variant]
+    )
+    length = route_length(visits, unit_ends, home)
+    duration = sortie_duration(visits, unit_ends, home, params.speed_m_s, params.transit_speed_m_s, params.setup_time_s)
+    return Sortie(number, waypoints, lanes, length, duration)
 
 
 def _select(holes: list[HoleInput], params: FlightParams) -> tuple[list[HoleInput], list[HoleDecision]]:
@@ -435,6 +471,7 @@ def _finish_waypoints(
     elif reference == "amsl":
         altitude = heights
     else:
+        assert to_ellipsoid is not None, "plan_mission checks that 'ellipsoid' comes with a conversion"
         altitude = to_ellipsoid(x, y, heights)
     return tuple(
         Waypoint(

@@ -393,6 +393,14 @@ def _ring_kernel(
     )
 
 
+def _key_fields(dtype: np.dtype) -> tuple[str, str]:
+    """Names of the first two fields of a (row, key, count) table's structured dtype."""
+    names = dtype.names
+    if names is None or len(names) < 2:
+        raise TypeError(f"a (row, key, count) table needs a structured dtype, got {dtype}")
+    return names[0], names[1]
+
+
 def _coo_counts(rows: np.ndarray, keys: np.ndarray, dtype: np.dtype) -> np.ndarray:
     """Counts of (row, key) pairs as a table sorted by (row, key)."""
     if not len(rows):
@@ -406,8 +414,9 @@ def _coo_counts(rows: np.ndarray, keys: np.ndarray, dtype: np.dtype) -> np.ndarr
     new[1:] = packed[1:] != packed[:-1]
     starts = np.flatnonzero(new)
     out = np.zeros(len(starts), dtype)
-    out[dtype.names[0]], key = np.divmod(packed[starts], span)
-    out[dtype.names[1]] = key + k0
+    row_name, key_name = _key_fields(dtype)
+    out[row_name], key = np.divmod(packed[starts], span)
+    out[key_name] = key + k0
     out["count"] = np.diff(np.append(starts, len(packed)))
     return out
 
@@ -427,8 +436,9 @@ def _sum_coo(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], dtype: np.d
     new[1:] = (rows[1:] != rows[:-1]) | (keys[1:] != keys[:-1])
     starts = np.flatnonzero(new)
     out = np.zeros(len(starts), dtype)
-    out[dtype.names[0]] = rows[starts]
-    out[dtype.names[1]] = keys[starts]
+    row_name, key_name = _key_fields(dtype)
+    out[row_name] = rows[starts]
+    out[key_name] = keys[starts]
     out["count"] = np.add.reduceat(counts, starts)
     return out
 

@@ -11,6 +11,7 @@ from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
+import numpy.typing as npt
 import scipy.ndimage as ndi
 
 from ..grid import Cell, PixelWindow
@@ -195,8 +196,33 @@ def detect_cell_holes(
     R = _check_inputs(
         arrays, cell, grid_window, connectivity=connectivity, local_radius_px=local_radius_px, height_bin=height_bin
     )
-    core = cell.window
     work = _work_arrays(arrays, cell, R)
+    return _find_parts(
+        work,
+        cell,
+        connectivity=connectivity,
+        local_radius_px=local_radius_px,
+        jump_threshold=jump_threshold,
+        low_tolerance=low_tolerance,
+        height_bin=height_bin,
+        min_area_px=min_area_px,
+    )
+
+
+def _find_parts(
+    work: _Work,
+    cell: Cell,
+    *,
+    connectivity: int,
+    local_radius_px: int,
+    jump_threshold: float,
+    low_tolerance: float,
+    height_bin: float,
+    min_area_px: int,
+) -> CellHoles:
+    """Label, classify and measure the hole parts of a cell core from its checked work arrays."""
+    R = work.R
+    core = cell.window
     structure = ndi.generate_binary_structure(2, 1 if connectivity == 4 else 2)
     labels, n = ndi.label(work.core(work.hole), structure=structure)
     labels = labels.astype(np.int32, copy=False)
@@ -307,15 +333,20 @@ def _work_arrays(arrays: dict[str, np.ndarray | None], cell: Cell, R: int) -> _W
     """The arrays of :func:`detect_cell_holes` cut to the work window (see :class:`_Work`)."""
     work = cell.window.expand(R)
 
-    def view(name: str, fill, dtype=None) -> np.ndarray | None:
+    def view(name: str, fill: float | int | bool, dtype: npt.DTypeLike | None = None) -> np.ndarray | None:
         arr = arrays[name]
         return None if arr is None else _work_view(np.asarray(arr, dtype=dtype), cell, work, fill)
 
-    count_w = view("count", 0)
-    if arrays["aoi"] is None:
-        aoi_w = _work_view(np.ones(cell.halo_window.shape, dtype=bool), cell, work, False)
-    else:
-        aoi_w = view("aoi", False, bool)
+    def required(name: str, fill: float | int | bool) -> np.ndarray:
+        arr = arrays[name]
+        if arr is None:
+            raise ValueError(f"detect_cell_holes: {name} is required, got None")
+        return _work_view(np.asarray(arr), cell, work, fill)
+
+    count_w = required("count", 0)
+    aoi = arrays["aoi"]
+    aoi_halo = np.ones(cell.halo_window.shape, dtype=bool) if aoi is None else np.asarray(aoi, dtype=bool)
+    aoi_w = _work_view(aoi_halo, cell, work, False)
     data_w = count_w > 0
     water_points = view("water_points", 0)
     return _Work(
@@ -323,8 +354,8 @@ def _work_arrays(arrays: dict[str, np.ndarray | None], cell: Cell, R: int) -> _W
         hole=~data_w & aoi_w,
         aoi=aoi_w,
         data=data_w,
-        zmax=view("zmax", np.nan),
-        zmin=view("zmin", np.nan),
+        zmax=required("zmax", np.nan),
+        zmin=required("zmin", np.nan),
         water=None if water_points is None else water_points > 0,
         mask=view("water_mask", False, bool),
         line=view("flight_line", _NO_LINE, np.int64),

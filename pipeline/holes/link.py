@@ -195,15 +195,18 @@ class _EdgePixels:
     @classmethod
     def of(cls, cells: Sequence[CellHoles], offsets: np.ndarray) -> _EdgePixels:
         empty = np.zeros(0, np.int64)
-        rows, cols, nodes, side = [empty], [empty], [empty], [empty]
+        row_parts: list[np.ndarray] = [empty]
+        col_parts: list[np.ndarray] = [empty]
+        node_parts: list[np.ndarray] = [empty]
+        side_parts: list[np.ndarray] = [empty]
         for k, c in enumerate(cells):
             for strip in c.edges:
                 m = strip.labels > 0
-                rows.append(strip.rows[m])
-                cols.append(strip.cols[m])
-                nodes.append(offsets[k] + strip.labels[m].astype(np.int64) - 1)
-                side.append(np.full(int(m.sum()), SIDES.index(strip.side), np.int64))
-        rows, cols, nodes, side = (np.concatenate(x) for x in (rows, cols, nodes, side))
+                row_parts.append(strip.rows[m])
+                col_parts.append(strip.cols[m])
+                node_parts.append(offsets[k] + strip.labels[m].astype(np.int64) - 1)
+                side_parts.append(np.full(int(m.sum()), SIDES.index(strip.side), np.int64))
+        rows, cols, nodes, side = (np.concatenate(x) for x in (row_parts, col_parts, node_parts, side_parts))
         keys, first_index = np.unique((rows + 1) * _BIG + (cols + 1), return_index=True)
         return cls(rows, cols, nodes, side, keys, nodes[first_index])
 

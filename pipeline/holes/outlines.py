@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from typing import TypeAlias
 
 import numpy as np
 import shapely
@@ -48,7 +49,9 @@ __all__ = [
     "to_world",
 ]
 
-Polygonal = Polygon | MultiPolygon
+Polygonal: TypeAlias = Polygon | MultiPolygon
+#: A fitted line: a point on it and its unit direction.
+_Line: TypeAlias = tuple[np.ndarray, np.ndarray]
 
 
 def label_outlines(
@@ -349,7 +352,7 @@ def _straighten_ring(
                 j += 1
         runs.append((int(label[i]), i, j))
         i = j + 1
-    lines = []
+    lines: list[_Line | None] = []
     for lab, i, j in runs:
         if lab < 0:
             lines.append(None)
@@ -357,34 +360,34 @@ def _straighten_ring(
         verts = ring[[(k % n) for k in range(i, j + 2)]]
         d = np.array([math.cos(directions[lab]), math.sin(directions[lab])])
         lines.append((verts.mean(axis=0), d))
-    out = []
+    corners: list[np.ndarray] = []
     for k in range(len(runs)):
         a, b = lines[k - 1], lines[k]  # the runs before and after vertex at the start of run k
         v = ring[runs[k][1]]
         if a is not None and b is not None:
             p = _intersect(a, b)
             if p is None or np.hypot(*(p - v)) > max_shift:  # nearly parallel: step between them
-                out.extend([_project(v, a), _project(v, b)])
+                corners.extend([_project(v, a), _project(v, b)])
             else:
-                out.append(p)
+                corners.append(p)
         elif a is not None:
-            out.append(_project(v, a))
+            corners.append(_project(v, a))
         elif b is not None:
-            out.append(_project(v, b))
+            corners.append(_project(v, b))
         else:
-            out.append(v)
-    out = np.asarray(out)
+            corners.append(v)
+    out = np.asarray(corners)
     keep = np.ones(len(out), bool)
     keep[1:] = np.hypot(*(out[1:] - out[:-1]).T) > 1e-9
     return out[keep]
 
 
-def _project(v: np.ndarray, line: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+def _project(v: np.ndarray, line: _Line) -> np.ndarray:
     p, d = line
     return p + d * float((v - p) @ d)
 
 
-def _intersect(a, b) -> np.ndarray | None:
+def _intersect(a: _Line, b: _Line) -> np.ndarray | None:
     (p, d), (q, f) = a, b
     det = d[0] * (-f[1]) - d[1] * (-f[0])
     if abs(det) < math.sin(math.radians(20)):

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numba
 import numpy as np
@@ -302,9 +302,7 @@ def fit_wall(
     """
     if pixel_values not in ("extremes", "centre"):
         raise ValueError(f"pixel_values must be 'extremes' or 'centre', got {pixel_values!r}")
-    n0 = np.asarray(segment.normal, dtype=np.float64)
-    pts = np.stack([segment.cols + 0.5, segment.rows + 0.5], axis=1)
-    rho0 = float((pts @ n0).mean())
+    n0, pts, rho0 = _initial_line(segment)
     sp = _support(
         zmax,
         zmin,
@@ -316,16 +314,39 @@ def fit_wall(
         pixel_values=pixel_values,
         points_per_pixel=points_per_pixel,
     )
+    fit, n_measured = _fit_support(sp, n0, rho0, support_px=support_px, empty_is_low=empty_is_low)
+    if fit is None or not fit.x[3] - fit.x[2] > min_height:
+        return None
+    return _wall(fit, segment, pts, n_measured=n_measured, n_support=len(sp.zx), transform=transform)
+
+
+def _initial_line(segment: WallSegment) -> tuple[np.ndarray, np.ndarray, float]:
+    """The segment's uphill normal, its pixel centres (x = column, y = row) and the line's offset along the normal."""
+    n0 = np.asarray(segment.normal, dtype=np.float64)
+    pts = np.stack([segment.cols + 0.5, segment.rows + 0.5], axis=1)
+    rho0 = float((pts @ n0).mean())
+    return n0, pts, rho0
+
+
+def _fit_support(
+    sp: _Support, n0: np.ndarray, rho0: float, *, support_px: float, empty_is_low: bool
+) -> tuple[Any, int]:
+    """Fit the step to the support's observations, from a start at the initial line.
+
+    Returns scipy's result (None when there is too little support on either side,
+    no step, or the fit fails) and the number of measured values (highest plus lowest
+    points), which come first among the residuals.
+    """
     measured = np.isfinite(sp.zx)
     d0 = sp.d0
     if measured.sum() < 6 or (d0[measured] < 0).sum() < 3 or (d0[measured] > 0).sum() < 3:
-        return None
+        return None, 0
     lows = np.concatenate([sp.zn[measured & (d0 < -0.5)], sp.zx[measured & (d0 < -0.5)]])
     highs = sp.zx[measured & (d0 > 0.5)]
     low0 = float(np.nanpercentile(lows, 20)) if np.isfinite(lows).any() else float(np.nanmin(sp.zx))
     high0 = float(np.percentile(highs, 80)) if len(highs) else float(np.nanmax(sp.zx))
     if not high0 > low0:
-        return None
+        return None, 0
     step0 = high0 - low0
     has_min = measured & np.isfinite(sp.zn)
     empty = ~measured if empty_is_low else np.zeros(len(sp.zx), bool)
@@ -341,10 +362,7 @@ def fit_wall(
     lower = [phi0 - 0.6, rho0 - support_px, low0 - step0, low0, math.log(0.001)]
     upper = [phi0 + 0.6, rho0 + support_px, high0, high0 + step0, math.log(support_px)]
     fit = _fit_step(observations, x0, lower, upper, step0)
-    if fit is None or not fit.x[3] - fit.x[2] > min_height:
-        return None
-    n_measured = int(measured.sum() + has_min.sum())
-    return _wall(fit, segment, pts, n_measured=n_measured, n_support=len(sp.zx), transform=transform)
+    return fit, int(measured.sum() + has_min.sum())
 
 
 class _Support(NamedTuple):

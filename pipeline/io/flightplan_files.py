@@ -160,7 +160,9 @@ def plan_flights(
     """
     params = flight_params(config.flightplan)
     holes, holes_crs = read_holes(holes_gpkg)
-    home = home or (tuple(config.flightplan.home) if config.flightplan.home else None)
+    if home is None and config.flightplan.home:
+        home_x, home_y = config.flightplan.home  # flight_params checked: [] or [x, y]
+        home = (home_x, home_y)
     reach = params.coverage.swath_m + params.coverage.margin_m + params.coverage.run_in_m + 500.0
     extent = [h.geometry.bounds for h in holes if h.geometry is not None and not h.geometry.is_empty]
     if home is not None:
@@ -250,12 +252,22 @@ def write_flightplan(
 
 
 def _write_gpkg(path: Path, plan: FlightPlan) -> None:
-    crs = plan.crs_wkt
-    reference = {
-        "takeoff": "relative to take-off (DSM at home)",
-        "amsl": "AMSL (DSM datum)",
-        "ellipsoid": "WGS84 ellipsoid",
-    }[plan.altitude_reference]
+    """``flightplan.gpkg``: the layers flight_lines, waypoints, route and holes_status, in that order."""
+    _write_flight_lines_layer(path, plan)
+    _write_waypoints_layer(path, plan)
+    _write_route_layer(path, plan)
+    _write_holes_status_layer(path, plan)
+
+
+#: The ``altitude_ref`` attribute of the waypoints layer, per altitude reference.
+_ALTITUDE_REFERENCE_LABELS = {
+    "takeoff": "relative to take-off (DSM at home)",
+    "amsl": "AMSL (DSM datum)",
+    "ellipsoid": "WGS84 ellipsoid",
+}
+
+
+def _write_flight_lines_layer(path: Path, plan: FlightPlan) -> None:
     lines = [(s, lane) for s in plan.sorties for lane in s.lanes]
     write_layer(
         path,
@@ -272,9 +284,13 @@ def _write_gpkg(path: Path, plan: FlightPlan) -> None:
             for _, fl in lines
         ],
         [LineString([fl.lane.start, fl.lane.end]) for _, fl in lines],
-        crs_wkt=crs,
+        crs_wkt=plan.crs_wkt,
         geometry_type="LineString",
     )
+
+
+def _write_waypoints_layer(path: Path, plan: FlightPlan) -> None:
+    reference = _ALTITUDE_REFERENCE_LABELS[plan.altitude_reference]
     points = [w for s in plan.sorties for w in s.waypoints]
     write_layer(
         path,
@@ -295,9 +311,12 @@ def _write_gpkg(path: Path, plan: FlightPlan) -> None:
             for w in points
         ],
         [Point(w.x, w.y) for w in points],
-        crs_wkt=crs,
+        crs_wkt=plan.crs_wkt,
         geometry_type="Point",
     )
+
+
+def _write_route_layer(path: Path, plan: FlightPlan) -> None:
     write_layer(
         path,
         "route",
@@ -311,9 +330,12 @@ def _write_gpkg(path: Path, plan: FlightPlan) -> None:
             for s in plan.sorties
         ],
         [LineString([(w.x, w.y) for w in s.waypoints]) for s in plan.sorties],
-        crs_wkt=crs,
+        crs_wkt=plan.crs_wkt,
         geometry_type="LineString",
     )
+
+
+def _write_holes_status_layer(path: Path, plan: FlightPlan) -> None:
     write_layer(
         path,
         "holes_status",
@@ -329,7 +351,7 @@ def _write_gpkg(path: Path, plan: FlightPlan) -> None:
             for d in plan.decisions
         ],
         [d.geometry for d in plan.decisions],
-        crs_wkt=crs,
+        crs_wkt=plan.crs_wkt,
         geometry_type="MultiPolygon",
     )
 
