@@ -49,7 +49,7 @@ def merge_line_moments(parts: list[np.ndarray]) -> np.ndarray:
     unique, index = np.unique(joined["line"], return_inverse=True)
     out = np.zeros(len(unique), LINE_MOMENT_DTYPE)
     out["line"] = unique
-    for name in LINE_MOMENT_DTYPE.names[1:]:
+    for name in ("n", "r", "c", "rr", "cc", "rc"):
         out[name] = np.bincount(index, weights=joined[name], minlength=len(unique))
     return out
 

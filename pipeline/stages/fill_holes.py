@@ -236,16 +236,26 @@ def fill_hole(
     """
     heights = np.where(measured, zmax, np.nan)
     labels = region.astype(np.int32) if one_piece else None
-    common = {"pixel_size": params.pixel_size, "labels": labels}
     if params.by_cause and cause == "water":
         settings = replace(params.settings, flat_percentile=params.water_percentile)
-        return fill_region(np.where(measured, zmin, np.nan), region, method="flat", settings=settings, **common)
+        water_rim = np.where(measured, zmin, np.nan)
+        return fill_region(
+            water_rim, region, method="flat", settings=settings, pixel_size=params.pixel_size, labels=labels
+        )
     support = None
     if params.by_cause and cause in (OCCLUSION, SMALL_VOID):
         # a small void at a step (a building's edge) is hidden ground like an occlusion; with
         # no step on its rim every rim pixel is on the low side and nothing changes
         support = lower_side_support(heights, region, jump_threshold=params.jump_threshold)
-    return fill_region(heights, region, method=params.method, settings=params.settings, support=support, **common)
+    return fill_region(
+        heights,
+        region,
+        method=params.method,
+        settings=params.settings,
+        support=support,
+        pixel_size=params.pixel_size,
+        labels=labels,
+    )
 
 
 def _summary(outcome: FillOutcome, filled: np.ndarray, distance: np.ndarray) -> dict:
