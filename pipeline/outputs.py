@@ -245,6 +245,7 @@ def _hole_records(
                 "boundary_z_max": _finite(stats["ring_z_max"][i], ring_px),
                 "boundary_jump_px": int(stats["ring_jump_px"][i]),
                 "boundary_px": ring_px,
+                "azimuth_deg": _finite(holes.azimuth_deg[i], 1),
                 **_fill_fields(fill_of.get(hole_id), plan),
             }
         )

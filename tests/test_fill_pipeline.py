@@ -122,6 +122,9 @@ def test_run_plans_flights_for_the_missed_strip_only(tmp_path, dask_client):
     lanes = read_layer(out / "flightplan.gpkg", "flight_lines")
     lane_holes = {int(h) for ids in lanes["hole_ids"] for h in str(ids).split(",") if h}
     assert lane_holes == planned
+    # the synthetic survey is flown north-south: the strip's lanes are too, beside the flown lines
+    assert all(min(a % 180, 180 - a % 180) < 2.0 for a in strips["azimuth_deg"])
+    assert all(min(a % 180, 180 - a % 180) < 2.0 for a in lanes["azimuth_deg"])
     plan = json.loads(next(out.glob("flightplan*.plan")).read_text())
     assert plan["mission"]["items"][0]["command"] == 22
     manifest = json.loads((out / "manifest.json").read_text())

@@ -54,11 +54,14 @@ def merge_line_moments(parts: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def line_azimuths(moments: np.ndarray, *, min_elongation: float = 3.0) -> dict[int, float]:
+def line_azimuths(moments: np.ndarray, *, min_elongation: float = 1.4) -> dict[int, float]:
     """Azimuth (degrees clockwise from grid north, 0-180) of every line whose strip is elongated.
 
-    A line whose pixels are not at least ``min_elongation`` times longer than wide
-    (a line clipped to a corner, a few stray returns) has no reliable direction.
+    ``min_elongation`` is the ratio of the standard deviations along and across the
+    principal axis: a uniform strip as long as it is wide has 1, a 300 m stretch of a
+    200 m swath 1.5, a kilometre of it 5. Below it (a line clipped to a corner, a few
+    stray returns) a line has no reliable direction, and the re-flight falls back to
+    the hole's own long side.
     """
     out = {}
     for m in moments:

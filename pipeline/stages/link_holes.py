@@ -15,6 +15,7 @@ import numpy as np
 
 from ..config import Config
 from ..holes import CauseRules, HoleCatalog, classify_causes, link_holes, ring_metrics
+from ..holes.flight_lines import axial_mean, line_azimuths, merge_line_moments
 from ..io.intermediate import save_object
 from ..plan import HoleParams, SurveyPlan
 from .detect_holes import DetectResult
@@ -30,6 +31,7 @@ class HoleSet:
     catalog: HoleCatalog
     causes: np.ndarray
     ring: np.ndarray
+    azimuth_deg: np.ndarray  # float64: for a missed strip, the direction of the flight lines beside it; else NaN
 
 
 def link_cells(detected: list[DetectResult], plan: SurveyPlan, config: Config, params: HoleParams) -> HoleSet:
@@ -41,7 +43,25 @@ def link_cells(detected: list[DetectResult], plan: SurveyPlan, config: Config, p
         vertical_unit_m=plan.survey.vertical_unit_m,
     )
     causes = classify_causes(catalog.stats, rules)
-    return HoleSet(catalog=catalog, causes=causes, ring=ring_metrics(catalog.stats))
+    directions = line_azimuths(merge_line_moments([d.line_moments for d in detected]))
+    azimuths = strip_azimuths(catalog.stats.line_hist, causes["cause"] == "missed_coverage", directions)
+    return HoleSet(catalog=catalog, causes=causes, ring=ring_metrics(catalog.stats), azimuth_deg=azimuths)
+
+
+def strip_azimuths(line_hist: np.ndarray, is_strip: np.ndarray, directions: dict[int, float]) -> np.ndarray:
+    """Per hole, the mean direction of the flight lines on its rim (missed strips only; else NaN).
+
+    A missed strip lies between flight lines flown in one direction; its re-flight is
+    laid parallel to them. Lines weigh by the rim pixels they hold.
+    """
+    out = np.full(len(is_strip), np.nan)
+    rows = line_hist["row"]
+    for hole in np.flatnonzero(is_strip):
+        entries = line_hist[rows == hole]
+        known = [(directions[int(e["line"])], float(e["count"])) for e in entries if int(e["line"]) in directions]
+        if known:
+            out[hole] = axial_mean([a for a, _ in known], [w for _, w in known])
+    return out
 
 
 def keep_hole_set(holes: HoleSet, path: str) -> None:
