@@ -61,7 +61,7 @@ def write_report(path: str | Path, manifest: dict[str, Any], largest_holes: list
             _table(["type", "parts"], [[kind, f"{n:,}"] for kind, n in holes["parts_by_type"].items()]),
             "<h3>Largest holes</h3>",
             _table(
-                ["hole", "area m²", "cause", "rule", "cells", "layers", "boundary jumps"],
+                ["hole", "area m²", "cause", "rule", "cells", "layers", "boundary jumps", "fill"],
                 [
                     [
                         h["hole_id"],
@@ -71,6 +71,7 @@ def write_report(path: str | Path, manifest: dict[str, Any], largest_holes: list
                         h["n_cells"],
                         h["max_layer"],
                         f"{h['boundary_jump_px']}/{h['boundary_px']}",
+                        f"{h['fill_status']}" + (f" ({h['fill_method']})" if h.get("fill_method") else ""),
                     ]
                     for h in largest_holes
                 ],
@@ -78,11 +79,38 @@ def write_report(path: str | Path, manifest: dict[str, Any], largest_holes: list
             f"<p>{holes['vertical_hole_groups']:,} vertical-hole groups, {holes['walls']:,} fitted walls, "
             f"{holes['height_jump_px']:,} height-jump pixels.</p>",
         ]
+    parts += _fill_section(holes.get("fill") or {}) + _flight_section(manifest.get("flightplan") or {})
     parts += ["<h2>Products</h2>", "<p>dsm.vrt (and dsm/*.tif), holes.gpkg, manifest.json: see docs/outputs.md.</p>"]
     parts.append("</body></html>")
     path = Path(path)
     path.write_text("\n".join(parts), encoding="utf-8")
     return path
+
+
+def _fill_section(fill: dict[str, Any]) -> list[str]:
+    if not fill:
+        return []
+    return [
+        "<h2>Filling</h2>",
+        f"<p>{fill['filled_area_m2']:,.0f} m² filled; {fill['skipped_area_m2']:,.0f} m² left nodata "
+        "(holes too large to invent: see the flight plan). fill_mask.vrt says how each pixel was filled, "
+        "fill_distance.vrt how far it lies from measured data.</p>",
+        _table(["status", "holes"], [[k, f"{n:,}"] for k, n in fill["holes_by_status"].items()]),
+        _table(["method", "holes"], [[k, f"{n:,}"] for k, n in fill["holes_by_method"].items()]),
+    ]
+
+
+def _flight_section(plan: dict[str, Any]) -> list[str]:
+    if not plan:
+        return []
+    rows = [
+        ["holes planned / listed", f"{plan['holes_planned']} / {plan['holes']}"],
+        ["patterns, lanes, sorties", f"{plan['patterns']}, {plan['lanes']}, {plan['sorties']}"],
+        ["route (greedy)", f"{plan['flown_route_m']:,.0f} m ({plan['greedy_route_m']:,.0f} m)"],
+        ["sortie durations (s)", ", ".join(f"{d:,.0f}" for d in plan["sortie_durations_s"]) or "-"],
+        ["altitude reference", plan["altitude_reference"]],
+    ]
+    return ["<h2>Re-flight plan</h2>", _table(["", ""], rows)]
 
 
 def _table(header: list[str], rows: list[list[Any]]) -> str:

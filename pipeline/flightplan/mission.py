@@ -181,18 +181,13 @@ def plan_mission(
     patterns = _patterns(selected, params.coverage)
     if home is None:
         home = _default_home(patterns, holes)
+    if snap_home and not math.isfinite(height_at(dsm, transform, home)):
+        # a home nobody chose, in a hole or off the data: the nearest point with a surface height
+        home = nearest_data_point(dsm, transform, home) or home
     units, unit_ends, unflyable = _flyable_units(patterns, home, params)
     decisions = _mark_unflyable(decisions, unflyable, patterns)
     greedy, improved, sortie_visits = _routes(unit_ends, home, params)
     home_ground = height_at(dsm, transform, home)
-    if not math.isfinite(home_ground) and sortie_visits and snap_home:
-        # a default home in a hole or off the data: the nearest point with a surface height
-        snapped = nearest_data_point(dsm, transform, home)
-        if snapped is not None:
-            return plan_mission(
-                holes, dsm, transform, crs_wkt=crs_wkt, params=params, home=snapped, to_ellipsoid=to_ellipsoid,
-                snap_home=False,
-            )  # fmt: skip
     if not math.isfinite(home_ground) and sortie_visits:
         raise ValueError(f"no DSM height within 10 m of home {home}; choose a home point on open ground with data")
     to_lonlat = pyproj.Transformer.from_crs(pyproj.CRS.from_user_input(crs_wkt), "EPSG:4326", always_xy=True)
