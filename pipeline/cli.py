@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
 from pathlib import Path
 
 import click
 
 from . import __version__
-from .errors import ConfigError, CRSError, HolefillError, InputDataError, OutputError
+from .errors import ConfigError, CRSError, HolefillError, InputDataError, OutputError, TaskError
 
 #: Exit status per error class (the first matching class wins).
 EXIT_CODES: tuple[tuple[type[BaseException], int], ...] = (
@@ -32,12 +33,29 @@ class _Group(click.Group):
     """Turn holefill's exceptions into one clear line on stderr and an exit status."""
 
     def invoke(self, ctx: click.Context):
+        previous = signal.signal(signal.SIGTERM, _terminate)
         try:
             return super().invoke(ctx)
         except HolefillError as e:
             click.echo(f"holefill: error: {e}", err=True)
             code = next(code for cls, code in EXIT_CODES if isinstance(e, cls))
+            if isinstance(e, TaskError):
+                click.echo("holefill: finished tasks are kept: run again with --resume to continue", err=True)
             ctx.exit(code)
+        except KeyboardInterrupt:
+            click.echo("holefill: interrupted; finished tasks are kept: run again with --resume to continue", err=True)
+            ctx.exit(EXIT_INTERRUPTED)
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+
+
+#: Exit status of a run stopped by Ctrl-C or SIGTERM (what shells and schedulers expect).
+EXIT_INTERRUPTED = 130
+
+
+def _terminate(signum, frame) -> None:
+    """SIGTERM (timeout, SLURM, systemd) stops a run the way Ctrl-C does."""
+    raise KeyboardInterrupt
 
 
 def _configure_logging(verbose: int, quiet: int) -> None:
@@ -84,7 +102,10 @@ def main(verbose: int, quiet: int) -> None:
 @click.option("--water", type=click.Path(dir_okay=False), help="Polygon file of known water (holes.water).")
 @click.option("--on-error", type=click.Choice(["fail", "skip"]), help="What a bad tile does (survey.on_error).")
 @click.option("--progress/--no-progress", default=None, help="Progress bar (default: when stderr is a terminal).")
-def run(inputs, out_dir, config_path, overrides, scheduler, workers, crs, target_crs, aoi, water, on_error, progress):
+@click.option("--resume", is_flag=True, help="Continue an interrupted run of the same inputs and configuration.")
+def run(
+    inputs, out_dir, config_path, overrides, scheduler, workers, crs, target_crs, aoi, water, on_error, progress, resume
+):
     """Build the DSM of a survey. INPUT may be files, folders or globs of LAS/LAZ/COPC."""
     from .config import load_config
     from .run import run_survey
@@ -103,6 +124,7 @@ def run(inputs, out_dir, config_path, overrides, scheduler, workers, crs, target
         aoi=aoi,
         water=water,
         progress=sys.stderr.isatty() if progress is None else progress,
+        resume=resume,
     )
     _report(summary)
 

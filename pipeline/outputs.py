@@ -80,6 +80,7 @@ class RunSummary:
     dsm_tiles: list[str] = field(default_factory=list)
     holes: dict[str, Any] = field(default_factory=dict)
     flightplan: dict[str, Any] = field(default_factory=dict)
+    resumed_tasks: int = 0  # tasks an interrupted run had finished, not run again
 
     @property
     def points_per_second(self) -> float:
@@ -372,6 +373,7 @@ def write_manifest(
     """``manifest.json``: the resolved configuration, inputs, outputs and figures of the run."""
     grid = plan.grid
     manifest = {
+        "complete": True,  # written last: a manifest in OUT means one complete result (pipeline.staging)
         "holefill_version": __version__,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "host": socket.gethostname(),
@@ -406,6 +408,7 @@ def write_manifest(
             "points_per_second": round(summary.points_per_second),
             "stage_seconds": {k: round(v, 3) for k, v in summary.stage_seconds.items()},
             "empty_pixels": sum(r.empty_pixels for r in cell_results),
+            "resumed_tasks": summary.resumed_tasks,
         },
         "holes": summary.holes,
         "flightplan": {k: v for k, v in summary.flightplan.items() if k != "files"},

@@ -14,6 +14,8 @@ when the whole run has succeeded (``pipeline.staging``).
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
 import logging
 import os
 import time
@@ -23,7 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .config import Config
+from . import __version__
+from .config import Config, to_dict
 from .errors import HolefillError, InputDataError, TaskError
 from .io.flightplan_files import plan_flights
 from .io.vector import read_survey_area
@@ -42,7 +45,7 @@ from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells
 from .stages.bin_tiles import TileFailure, TileResult
 from .stages.merge_cells import CellResult
 from .stages.write_rasters import WriteResult
-from .staging import Staging
+from .staging import Staging, input_fingerprint, kept_result, run_and_keep
 from .survey import scan_survey
 
 logger = logging.getLogger(__name__)
@@ -58,6 +61,7 @@ def run_survey(
     aoi: str | os.PathLike | None = None,
     water: str | os.PathLike | None = None,
     progress: bool = False,
+    resume: bool = False,
 ) -> RunSummary:
     """Run the pipeline on a survey and write the products into ``out_dir``.
 
@@ -80,6 +84,9 @@ def run_survey(
         A polygon file of known water (default: ``config.holes.water``).
     progress : bool
         Show a progress bar on stderr.
+    resume : bool
+        Continue an interrupted run of the same inputs and configuration into the same
+        folder: tasks that finished then are not run again.
     """
     started = time.perf_counter()
     out = Path(out_dir)
@@ -92,10 +99,10 @@ def run_survey(
     timer = _StageTimer(started)
     timer.lap("scan")
     created_out = not out.exists()
-    staging = Staging.create(out)
+    staging = Staging.create(out, run_key=run_key(plan, config, aoi, water), resume=resume)
     try:
         with _dask_client(client, scheduler, config) as dask_client, _Progress(progress) as bar:
-            runner = _Runner(dask_client, bar)
+            runner = _Runner(dask_client, bar, staging)
             filling = config.holes.enabled and config.fill.enabled
             rasters = _run_rasters(runner, plan, config, staging, timer, write=not filling)
             detected, holes, fills = None, None, None
@@ -105,9 +112,15 @@ def run_survey(
             if holes is not None and filling:
                 fills = _run_fill(runner, plan, config, holes, rasters, staging)
                 timer.lap("fill")
-        summary = _write_products(staging, plan, config, rasters, detected, holes, fills, started, timer)
+        summary = _write_products(
+            staging, plan, config, rasters, detected, holes, fills, started, timer, runner.resumed_tasks
+        )
         flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
         staging.commit(PRODUCTS + flight_files, keep_work=config.output.keep_intermediate, replaces=FLIGHTPLAN_PRODUCTS)
+    except (KeyboardInterrupt, SystemExit, TaskError):
+        # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
+        staging.keep_for_resume()
+        raise
     except BaseException:
         staging.remove()
         if created_out:
@@ -144,7 +157,7 @@ def _run_rasters(
     tile_function = bin_tiles.rasterize_tile_or_skip if skip else bin_tiles.rasterize_tile
     tile_futures = {
         task.tile_index: runner.submit(
-            tile_function, task, label=f"tile {task.path}", key=f"rasterize-{task.tile_index}"
+            tile_function, task, label=f"tile {task.path}", key=f"rasterize-{Path(task.output_dir).name}"
         )
         for task in tile_tasks
     }
@@ -283,7 +296,16 @@ def _run_fill(
 
 
 def _write_products(
-    staging: Staging, plan: SurveyPlan, config: Config, rasters: _Rasters, detected, holes, fills, started, timer
+    staging: Staging,
+    plan: SurveyPlan,
+    config: Config,
+    rasters: _Rasters,
+    detected,
+    holes,
+    fills,
+    started,
+    timer,
+    resumed_tasks: int = 0,
 ) -> RunSummary:
     """The mosaic, the layers, the manifest and the report, from the stages' kept results."""
     t0 = time.perf_counter()
@@ -300,6 +322,7 @@ def _write_products(
         timer.lap("flightplan")
     summary = RunSummary(
         flightplan=flight_summary,
+        resumed_tasks=resumed_tasks,
         holes=hole_summary,
         out_dir=str(staging.out),
         tiles=len(rasters.tiles),
@@ -329,25 +352,46 @@ class _Runner:
     :class:`~pipeline.errors.TaskError` line naming the task's tile or cell.
     """
 
-    def __init__(self, client: Any, bar: _Progress) -> None:
+    def __init__(self, client: Any, bar: _Progress, staging: Staging | None = None) -> None:
         self.client = client
         self.bar = bar
+        self.staging = staging
+        self.resumed_tasks = 0
         self._run_id = uuid.uuid4().hex[:8]
         self._labels: dict[Any, str] = {}
 
     def submit(self, function: Callable, *args: Any, label: str, key: str, priority: int = 0) -> Any:
-        future = self.client.submit(function, *args, pure=False, priority=priority, key=f"{key}-{self._run_id}")
+        """Submit one task; with a staging folder its result is kept under ``key`` for a resumed run.
+
+        In a resumed run, a task whose result was kept is not run again: a
+        :class:`_Kept` stands in for its future (as an argument of later tasks too).
+        """
+        args = tuple(a.value if isinstance(a, _Kept) else a for a in args)
+        if self.staging is None:
+            future = self.client.submit(function, *args, pure=False, priority=priority, key=f"{key}-{self._run_id}")
+        else:
+            kept = self.staging.task_result(key)
+            if self.staging.resumed and (value := kept_result(kept)) is not None:
+                self.resumed_tasks += 1
+                return _Kept(value)
+            future = self.client.submit(
+                run_and_keep, function, str(kept), *args, pure=False, priority=priority, key=f"{key}-{self._run_id}"
+            )
         self._labels[future.key] = label
         return future
 
     def gather(self, futures: list[Any], collect: Callable[[Any], None]) -> None:
         from distributed import as_completed
 
+        pending = [f for f in futures if not isinstance(f, _Kept)]
         try:
-            for future in as_completed(futures):
+            for kept in futures:
+                if isinstance(kept, _Kept):
+                    collect(kept.value)
+            for future in as_completed(pending):
                 collect(self._result(future))
         except BaseException:
-            self.client.cancel(futures)
+            self.client.cancel(pending)
             raise
 
     def _result(self, future: Any) -> Any:
@@ -357,6 +401,24 @@ class _Runner:
             raise
         except Exception as e:  # a worker's unforeseen failure: one line, naming the task
             raise TaskError(self._labels.get(future.key, str(future.key)), e) from None
+
+
+@dataclass(frozen=True)
+class _Kept:
+    """The result of a task that an interrupted run finished: stands in for its future."""
+
+    value: Any
+
+
+def run_key(plan: SurveyPlan, config: Config, aoi: Any, water: Any) -> str:
+    """What a run is made of: inputs (path, size, time), AOI and water files, configuration, version.
+
+    Only a partial folder of the same key is resumed; the Dask settings do not count.
+    """
+    parts = [__version__, {k: v for k, v in to_dict(config).items() if k != "dask"}]
+    parts += [input_fingerprint(t.path) for t in plan.survey.tiles]
+    parts += [input_fingerprint(str(p)) if p else "" for p in (aoi, water)]
+    return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 class _StageTimer:

@@ -15,21 +15,42 @@ Everything a run writes goes into ``OUT/.holefill-partial-<id>/`` first::
 Names depend on what a result is made of (a cell's position on the absolute
 lattice, a tile's path, size and modification time), never on the order in
 which inputs were scanned, so a later stage, a resumed run or an incremental run
-can find them. Products are moved into OUT only when the whole run has
-succeeded; a failed run's folder is deleted.
+can find them.
+
+**Complete or absent.** Products are moved into OUT only when the whole run has
+succeeded, ``manifest.json`` last: the old manifest is removed before any product
+is replaced, so ``OUT/manifest.json`` exists exactly when OUT holds one complete
+result (its ``"complete": true`` says so too). A failed run's folder is deleted.
+
+**One run at a time.** ``OUT/.holefill.lock`` (pid and host) refuses a second run
+into the same folder; a lock whose process is gone is taken over.
+
+**Interrupted runs.** A run stopped by Ctrl-C or SIGTERM keeps its folder, and
+every finished task has left its result under ``work/done/``; ``--resume`` picks
+the folder of the same inputs and configuration (``run.json``) and reruns only
+what is missing. Other partial folders are reported and removed.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
+import logging
 import os
+import pickle
 import shutil
+import socket
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from .errors import OutputError
+from .io.intermediate import load_object, save_object
+
+logger = logging.getLogger(__name__)
 
 #: Subfolders every task may write into; tasks never create parent folders.
 WORK_FOLDERS = (
@@ -37,6 +58,7 @@ WORK_FOLDERS = (
     "work/cells",
     "work/holes",
     "work/fill",
+    "work/done",
     "dsm",
     "fill_mask",
     "fill_distance",
@@ -50,23 +72,35 @@ class Staging:
 
     out: Path
     root: Path
+    resumed: bool = False
 
     @classmethod
-    def create(cls, out: str | os.PathLike) -> Staging:
-        """Make the run's private folder inside OUT (created if needed) and check it is writable."""
+    def create(cls, out: str | os.PathLike, *, run_key: str = "", resume: bool = False) -> Staging:
+        """Lock OUT, make (or, with ``resume``, find) the run's private folder and check it is writable.
+
+        ``run_key`` identifies the inputs and configuration; only a partial folder of
+        the same key is resumed. Partial folders of other, interrupted runs are removed.
+        """
         out = Path(out)
         try:
             out.mkdir(parents=True, exist_ok=True)
-            root = out / f".holefill-partial-{uuid.uuid4().hex[:10]}"
-            root.mkdir()
-            for sub in WORK_FOLDERS:
-                (root / sub).mkdir(parents=True)
-            probe = root / ".write-test"
-            probe.write_bytes(b"")
-            probe.unlink()
+            _lock(out)
         except OSError as e:
             raise OutputError(f"{out}: output folder cannot be created or written: {e.strerror or e}") from None
-        return cls(out, root)
+        try:
+            root = _partial_to_resume(out, run_key) if resume else None
+            _remove_stale_partials(out, keep=root)
+            resumed = root is not None
+            if root is None:
+                root = out / f"{PARTIAL_PREFIX}{uuid.uuid4().hex[:10]}"
+                root.mkdir()
+            for sub in WORK_FOLDERS:
+                (root / sub).mkdir(parents=True, exist_ok=True)
+            (root / RUN_FILE).write_text(json.dumps({"run_key": run_key, "pid": os.getpid()}))
+        except OSError as e:
+            _unlock(out)
+            raise OutputError(f"{out}: output folder cannot be created or written: {e.strerror or e}") from None
+        return cls(out, root, resumed)
 
     @property
     def work(self) -> Path:
@@ -89,6 +123,10 @@ class Staging:
     def hole_fill(self, hole_id: int) -> Path:
         return self.work / "fill" / f"hole_{hole_id}.npz"
 
+    def task_result(self, key: str) -> Path:
+        """Where a finished task keeps its (small) result, for a resumed run."""
+        return self.work / "done" / f"{key}.pkl"
+
     def raster_tile(self, product: str, cell_id: str) -> Path:
         """One cell's tile of a raster product (``dsm``, ``fill_mask``, ``fill_distance``, ``dsm_unfilled``)."""
         return self.root / product / f"{product}_{cell_id}.tif"
@@ -100,17 +138,22 @@ class Staging:
         return self.root / name
 
     def commit(self, products: tuple[str, ...], *, keep_work: bool, replaces: tuple[str, ...] = ()) -> None:
-        """Move every product into OUT, replacing older ones, then delete the staging folder.
+        """Move every product into OUT, ``manifest.json`` last, then delete the staging folder.
 
-        ``replaces``: glob patterns of products an older run may have left in OUT that
-        this run does not write again (e.g. the files of a sortie no longer planned);
-        they are removed so that OUT never mixes two runs.
+        The old manifest goes first, so a commit cut short leaves no manifest: OUT is
+        then visibly incomplete. ``replaces``: glob patterns of products an older run
+        may have left in OUT that this run does not write again (e.g. the files of a
+        sortie no longer planned); they are removed so that OUT never mixes two runs.
         """
+        manifest = MANIFEST if MANIFEST in products else None
+        if manifest is not None:
+            (self.out / manifest).unlink(missing_ok=True)
         for pattern in replaces:
             for stale in self.out.glob(pattern):
                 if stale.name not in products and stale.is_file():
                     stale.unlink()
-        for name in products + (("work",) if keep_work else ()):
+        ordered = [name for name in products if name != manifest] + ([manifest] if manifest else [])
+        for name in ordered + (["work"] if keep_work else []):
             source, target = self.root / name, self.out / name
             if target.is_dir() and not target.is_symlink():
                 shutil.rmtree(target)
@@ -119,14 +162,105 @@ class Staging:
             if source.exists() and not (source.is_dir() and not any(source.iterdir())):
                 os.replace(source, target)
         shutil.rmtree(self.root, ignore_errors=True)
+        _unlock(self.out)
 
     def remove(self) -> None:
         """Delete a failed run's staging folder; a task still finishing may race the first try."""
         for _ in range(5):
             shutil.rmtree(self.root, ignore_errors=True)
             if not self.root.exists():
-                return
+                break
             time.sleep(0.2)
+        _unlock(self.out)
+
+    def keep_for_resume(self) -> None:
+        """An interrupted run: keep the folder (finished tasks' results) for ``--resume``; unlock."""
+        _unlock(self.out)
+
+
+def run_and_keep(function: Callable[..., Any], result_path: str, *args: Any) -> Any:
+    """Run a task and keep its result under ``result_path`` (what a resumed run reads back)."""
+    result = function(*args)
+    save_object(result_path, result)
+    return result
+
+
+def kept_result(path: Path) -> Any | None:
+    """A finished task's kept result, or None when there is none (or it is unreadable)."""
+    if not path.exists():
+        return None
+    try:
+        return load_object(path)
+    except (OSError, ValueError, EOFError, pickle.UnpicklingError, AttributeError):
+        return None
+
+
+PARTIAL_PREFIX = ".holefill-partial-"
+RUN_FILE = "run.json"
+LOCK_FILE = ".holefill.lock"
+MANIFEST = "manifest.json"
+
+
+def _lock(out: Path) -> None:
+    """Take ``OUT/.holefill.lock``, or refuse when a live run holds it."""
+    lock = out / LOCK_FILE
+    me = {"pid": os.getpid(), "host": socket.gethostname()}
+    for _ in range(2):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            holder = _read_json(lock)
+            if holder.get("host") == me["host"] and not _alive(int(holder.get("pid", 0))):
+                lock.unlink(missing_ok=True)  # its run died without cleaning up: take over
+                continue
+            raise OutputError(
+                f"{out}: another holefill run (pid {holder.get('pid', '?')} on {holder.get('host', '?')}) is writing "
+                f"into this folder; wait for it, or remove {lock} if that run is gone"
+            ) from None
+        with os.fdopen(fd, "w") as fh:
+            json.dump(me, fh)
+        return
+    raise OutputError(f"{out}: cannot take the lock {lock}")
+
+
+def _unlock(out: Path) -> None:
+    lock = out / LOCK_FILE
+    if _read_json(lock).get("pid") == os.getpid():
+        lock.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _partial_to_resume(out: Path, run_key: str) -> Path | None:
+    """The newest partial folder of the same inputs and configuration."""
+    candidates = [p for p in out.glob(f"{PARTIAL_PREFIX}*") if _read_json(p / RUN_FILE).get("run_key") == run_key]
+    return max(candidates, key=lambda p: p.stat().st_mtime) if candidates else None
+
+
+def _remove_stale_partials(out: Path, *, keep: Path | None) -> None:
+    for partial in out.glob(f"{PARTIAL_PREFIX}*"):
+        if partial == keep or not partial.is_dir():
+            continue
+        size = sum(f.stat().st_size for f in partial.rglob("*") if f.is_file())
+        logger.warning("removing %s, left by an interrupted run (%.1f MB)", partial, size / 1e6)
+        shutil.rmtree(partial, ignore_errors=True)
 
 
 def input_fingerprint(path: str, *parts: object) -> str:

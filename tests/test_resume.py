@@ -1,0 +1,146 @@
+"""Batch runs that can be trusted: killed and resumed, interrupted, locked, complete or absent."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.io.raster import read_raster
+from pipeline.io.vector import list_layers, read_layer
+from pipeline.synth import generate_survey, preset
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("resume")
+    generate_survey(folder / "tiles", preset("demo", width_m=400.0, height_m=300.0, tile_size_m=50.0, seed=11))
+    return folder
+
+
+def holefill(*args: str, **kwargs) -> subprocess.Popen:
+    """``holefill`` as a user runs it, in its own process group (so a kill reaches its workers)."""
+    command = [sys.executable, "-m", "pipeline.cli", "run", *args, "--workers", "1", "--no-progress"]
+    return subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, **kwargs
+    )
+
+
+def wait_for_kept_tiles(out: Path, n: int, process: subprocess.Popen, timeout: float = 120.0) -> None:
+    started = time.monotonic()
+    while time.monotonic() - started < timeout:
+        if len(list(out.glob(".holefill-partial-*/work/done/rasterize-*.pkl"))) >= n:
+            return
+        assert process.poll() is None, process.communicate()
+        time.sleep(0.05)
+    raise AssertionError("the run kept no tile result in time")
+
+
+def plain(values) -> list:
+    return [None if value is None or value != value else value for value in values.tolist()]
+
+
+def same_outputs(a: Path, b: Path) -> None:
+    for name in ("dsm.vrt", "fill_mask.vrt", "fill_distance.vrt"):
+        va, ta, _ = read_raster(a / name)
+        vb, tb, _ = read_raster(b / name)
+        assert ta == tb
+        np.testing.assert_array_equal(va, vb, err_msg=name)
+    for layer in list_layers(a / "holes.gpkg"):
+        fa, fb = read_layer(a / "holes.gpkg", layer), read_layer(b / "holes.gpkg", layer)
+        assert list(fa.columns) == list(fb.columns), layer
+        assert len(fa) == len(fb), layer
+        for column in fa.columns:
+            if column == "geometry":
+                assert fa.geometry.geom_equals_exact(fb.geometry, tolerance=0).all(), layer
+            elif column != "path":
+                assert plain(fa[column]) == plain(fb[column]), (layer, column)
+
+
+def test_killed_run_resumes_to_the_same_outputs(survey, tmp_path):
+    tiles = str(survey / "tiles")
+    reference = tmp_path / "reference"
+    done = holefill(tiles, "--out", str(reference))
+    assert done.wait(timeout=300) == 0, done.communicate()
+    out = tmp_path / "out"
+    killed = holefill(tiles, "--out", str(out))
+    wait_for_kept_tiles(out, 4, killed)
+    os.killpg(killed.pid, signal.SIGKILL)  # the client and its workers, as a lost node would
+    killed.wait(timeout=30)
+    assert not (out / "manifest.json").exists()  # nothing looks complete
+    resumed = holefill(tiles, "--out", str(out), "--resume")
+    _, err = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, err
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["complete"] and manifest["summary"]["resumed_tasks"] >= 4
+    assert not list(out.glob(".holefill-partial-*")) and not (out / ".holefill.lock").exists()
+    same_outputs(reference, out)
+
+
+def test_sigterm_stops_like_ctrl_c_and_a_later_run_cleans_up(survey, tmp_path):
+    tiles = str(survey / "tiles")
+    out = tmp_path / "out"
+    run = holefill(tiles, "--out", str(out))
+    wait_for_kept_tiles(out, 2, run)
+    run.send_signal(signal.SIGTERM)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 130, err
+    assert "run again with --resume" in err and "Traceback" not in err
+    assert len(list(out.glob(".holefill-partial-*"))) == 1 and not (out / ".holefill.lock").exists()
+    # a fresh run (not --resume) reports the stale partial folder and removes it
+    again = holefill(tiles, "--out", str(out))
+    _, err = again.communicate(timeout=300)
+    assert again.returncode == 0 and "left by an interrupted run" in err
+    assert not list(out.glob(".holefill-partial-*"))
+
+
+def test_second_run_into_the_same_folder_is_refused(survey, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    import socket
+
+    (out / ".holefill.lock").write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+    run = holefill(str(survey / "tiles"), "--out", str(out))
+    _, err = run.communicate(timeout=120)
+    assert run.returncode == 4 and "another holefill run" in err and str(os.getpid()) in err
+    assert sorted(p.name for p in out.iterdir()) == [".holefill.lock"]
+    # a lock left by a process that is gone is taken over
+    (out / ".holefill.lock").write_text(json.dumps({"pid": 2**22 + 12345, "host": socket.gethostname()}))
+    run = holefill(str(survey / "tiles"), "--out", str(out))
+    _, err = run.communicate(timeout=300)
+    assert run.returncode == 0, err
+    assert not (out / ".holefill.lock").exists()
+
+
+def test_manifest_is_written_last_and_replaced_first(survey, tmp_path):
+    from pipeline.staging import Staging
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "manifest.json").write_text("{}")
+    staging = Staging.create(out)
+    (staging.root / "dsm.vrt").write_text("new")
+    (staging.root / "manifest.json").write_text('{"complete": true}')
+    moved = []
+    original = os.replace
+
+    def spy(source, target):
+        moved.append((Path(target).name, (out / "manifest.json").exists()))
+        return original(source, target)
+
+    os.replace = spy
+    try:
+        staging.commit(("dsm.vrt", "manifest.json"), keep_work=False)
+    finally:
+        os.replace = original
+    assert moved == [("dsm.vrt", False), ("manifest.json", False)]
+    assert json.loads((out / "manifest.json").read_text())["complete"]
