@@ -20,7 +20,6 @@ Pure: arrays in, arrays out.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -80,6 +79,7 @@ class BlockMap:
     top: int
     inside: np.ndarray  # bool (rows, cols): in the footprint
     border: np.ndarray  # bool: in the footprint with a 4-neighbour outside it
+    everywhere: bool = False  # a given AOI is authoritative: every block counts as inside, none as border
 
     def slice_for(self, grid: Grid, window: PixelWindow) -> BlockMap:
         """The blocks under a window (with one block of margin), small enough to ship to a task."""
@@ -87,6 +87,8 @@ class BlockMap:
         c1, r1 = _block_of(grid, window.row_off, window.col_off + window.width - 1, self.block_px)
         rows = slice(max(0, self.top - (r1 + 1)), max(0, self.top - (r0 - 1) + 1))
         cols = slice(max(0, c0 - 1 - self.left), max(0, c1 + 1 - self.left + 1))
+        if self.everywhere:
+            return self
         return BlockMap(
             self.block_px,
             self.left + cols.start,
@@ -114,17 +116,23 @@ def occupied_blocks(count: np.ndarray, window: PixelWindow, grid: Grid, block_px
 def footprint_map(
     keys: list[np.ndarray], grid: Grid, block_px: int, *, closing_blocks: int, everything: bool = False
 ) -> BlockMap:
-    """Close and fill the survey's block occupancy into its footprint (``everything``: the whole grid)."""
-    left = math.floor(grid.col_min / block_px)
-    right = math.floor((grid.col_min + grid.width - 1) / block_px)
-    top = math.floor(grid.row_top / block_px)
-    bottom = math.floor((grid.row_top - grid.height + 1) / block_px)
+    """Close and fill the survey's block occupancy into its footprint (``everything``: the whole grid).
+
+    The map covers only the bounding box of the occupied blocks (nothing outside
+    it can be inside a closing of them), so its size follows the data, never the
+    survey's bounding box; with ``everything`` no map is built at all.
+    """
+    packed = np.concatenate(keys) if keys else np.empty(0, np.int64)
+    if everything or len(packed) == 0:
+        empty = np.zeros((0, 0), bool)
+        return BlockMap(block_px, 0, 0, empty, empty, everywhere=everything)
+    block_cols, block_rows = _unpack(packed)
+    left, right = int(block_cols.min()), int(block_cols.max())
+    bottom, top = int(block_rows.min()), int(block_rows.max())
     occupied = np.zeros((top - bottom + 1, right - left + 1), bool)
-    if keys:
-        block_cols, block_rows = _unpack(np.concatenate(keys))
-        occupied[top - block_rows, block_cols - left] = True
-    inside = np.ones_like(occupied) if everything else data_footprint(occupied, closing_px=closing_blocks)
-    border = np.zeros_like(inside) if everything else inside & ~ndi.binary_erosion(inside, border_value=0)
+    occupied[top - block_rows, block_cols - left] = True
+    inside = data_footprint(occupied, closing_px=closing_blocks)
+    border = inside & ~ndi.binary_erosion(inside, border_value=0)
     return BlockMap(block_px, left, top, inside, border)
 
 
@@ -149,6 +157,10 @@ def aoi_mask(
     survey_area : ndarray of bool, shape of ``window``
         The tile windows or the ``--aoi`` polygon.
     """
+    if blocks.everywhere:
+        return survey_area.copy()
+    if blocks.inside.size == 0:
+        return np.zeros(window.shape, bool)
     rows = np.arange(window.row_off, window.row_end)
     cols = np.arange(window.col_off, window.col_end)
     block_rows = blocks.top - np.floor_divide(grid.row_top - rows, blocks.block_px)
