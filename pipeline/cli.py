@@ -17,7 +17,7 @@ from pathlib import Path
 import click
 
 from . import __version__
-from .errors import ConfigError, CRSError, HolefillError, InputDataError, OutputError, TaskError
+from .errors import ClusterError, ConfigError, CRSError, HolefillError, InputDataError, OutputError, TaskError
 
 #: Exit status per error class (the first matching class wins).
 EXIT_CODES: tuple[tuple[type[BaseException], int], ...] = (
@@ -25,6 +25,7 @@ EXIT_CODES: tuple[tuple[type[BaseException], int], ...] = (
     (CRSError, 3),
     (InputDataError, 3),
     (OutputError, 4),
+    (ClusterError, 1),
     (HolefillError, 1),
 )
 
@@ -51,6 +52,8 @@ class _Group(click.Group):
 
 #: Exit status of a run stopped by Ctrl-C or SIGTERM (what shells and schedulers expect).
 EXIT_INTERRUPTED = 130
+#: Exit status of a run that wrote its outputs but skipped tiles (``--on-error skip``), listed in the manifest.
+EXIT_PARTIAL = 5
 
 
 def _terminate(signum, frame) -> None:
@@ -127,6 +130,8 @@ def run(
         resume=resume,
     )
     _report(summary)
+    if summary.skipped:  # outputs written, but some tiles are missing from them
+        click.get_current_context().exit(EXIT_PARTIAL)
 
 
 @main.command()

@@ -32,6 +32,10 @@ class CRSError(InputDataError):
     """A tile's coordinate reference system is missing, unreadable or inconsistent."""
 
 
+class ClusterError(HolefillError):
+    """The Dask scheduler cannot be reached or the cluster cannot start."""
+
+
 class OutputError(HolefillError, OSError):
     """The output folder cannot be created or written."""
 

@@ -27,7 +27,7 @@ from typing import Any
 
 from . import __version__
 from .config import Config, to_dict
-from .errors import HolefillError, InputDataError, TaskError
+from .errors import ClusterError, HolefillError, InputDataError, TaskError
 from .io.flightplan_files import plan_flights
 from .io.vector import read_survey_area
 from .outputs import (
@@ -89,11 +89,13 @@ def run_survey(
         folder: tasks that finished then are not run again.
     """
     started = time.perf_counter()
-    out = Path(out_dir)
+    out = Path(out_dir).absolute()  # workers of a remote cluster resolve paths on their own machines
     survey = scan_survey(
         inputs, crs=config.survey.crs, target_crs=config.survey.target_crs, on_error=config.survey.on_error
     )
     plan = plan_survey(survey, config, aoi=aoi)
+    if not plan.cells:
+        raise InputDataError(aoi or "INPUT", "the survey area does not overlap the data of any tile")
     water = water or config.holes.water or None
     water_area = read_survey_area(water, survey.crs, what="water") if water else None
     timer = _StageTimer(started)
@@ -218,6 +220,13 @@ def _run_rasters(
     timer.lap("merge_tail")
     if not results.tiles:
         raise InputDataError("INPUT", "no tile could be decoded: every tile failed")
+    if not any(r.points_used for r in results.tiles):
+        f = config.filter
+        raise InputDataError(
+            "INPUT",
+            f"no point is left after filtering (filter.keep_classes = {f.keep_classes}, "
+            f"filter.drop_classes = {f.drop_classes}, filter.drop_withheld = {str(f.drop_withheld).lower()})",
+        )
     results.tiles.sort(key=lambda r: r.tile_index)
     order = {cell.id: i for i, cell in enumerate(plan.cells)}
     results.cells.sort(key=lambda r: order[r.cell_id])
@@ -434,6 +443,10 @@ class _StageTimer:
         self._last = now
 
 
+#: Seconds to wait for a ``--scheduler`` before giving up with one line.
+SCHEDULER_TIMEOUT_S = 10
+
+
 @contextlib.contextmanager
 def _dask_client(client, scheduler: str | None, config: Config) -> Iterator[Any]:
     if client is not None:
@@ -442,7 +455,13 @@ def _dask_client(client, scheduler: str | None, config: Config) -> Iterator[Any]
     from distributed import Client, LocalCluster
 
     if scheduler:
-        with Client(scheduler) as remote:
+        try:
+            remote = Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
+        except (OSError, TimeoutError) as e:
+            raise ClusterError(
+                f"{scheduler}: cannot reach the Dask scheduler within {SCHEDULER_TIMEOUT_S} s ({type(e).__name__})"
+            ) from None
+        with remote:
             yield remote
         return
     workers = config.dask.workers or os.cpu_count() or 1

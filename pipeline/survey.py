@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import glob
 import logging
+import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -75,7 +76,8 @@ def find_inputs(inputs: list[str] | tuple[str, ...]) -> list[Path]:
     for item in inputs:
         path = Path(item)
         if path.is_dir():
-            matches = sorted(p for p in path.rglob("*") if p.is_file() and p.suffix.lower() in POINT_CLOUD_SUFFIXES)
+            candidates = [p for p in path.rglob("*") if p.suffix.lower() in POINT_CLOUD_SUFFIXES]
+            matches = sorted(p for p in candidates if p.is_file() or (p.is_symlink() and not p.exists()))
             if not matches:
                 raise InputDataError(path, "folder holds no .las or .laz file")
             found.extend(matches)
@@ -88,7 +90,7 @@ def find_inputs(inputs: list[str] | tuple[str, ...]) -> list[Path]:
             found.extend(matches)
         else:
             raise InputDataError(path, "no such file or folder")
-    unique = list(dict.fromkeys(p.resolve() for p in found))
+    unique = list(dict.fromkeys(p if p.is_symlink() and not p.exists() else p.resolve() for p in found))
     if not unique:
         raise InputDataError("INPUT", "no input files given")
     return unique
@@ -144,6 +146,8 @@ def scan_survey(
 
 def _scan_one(path: Path) -> TileHeader | InputDataError:
     """A tile's header, or the error that makes it unusable (returned, for the caller's policy)."""
+    if path.is_symlink() and not path.exists():
+        return InputDataError(path, f"broken symbolic link (to {os.readlink(path)})")
     try:
         header = read_header(path)
     except InputDataError as e:

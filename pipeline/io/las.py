@@ -7,6 +7,7 @@ The only module that imports laspy. Every failure is turned into an
 from __future__ import annotations
 
 import logging
+import math
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -109,6 +110,14 @@ def read_header(path: str | os.PathLike) -> TileHeader:
     if not compressed:
         record_length = header.point_format.size
         data_end = header.offset_to_point_data + count * record_length
+        evlrs = int(getattr(header, "number_of_evlrs", 0) or 0)
+        if not evlrs and file_size - data_end >= record_length:
+            held = (file_size - header.offset_to_point_data) // record_length
+            raise InputDataError(
+                path,
+                f"header point count is {count:,} but the file holds {held:,} point records: the header "
+                f"under-reports its points (refused rather than dropping {held - count:,}; repair the header)",
+            )
         if file_size < data_end:
             held = max(0, (file_size - header.offset_to_point_data) // record_length)
             raise InputDataError(
@@ -127,6 +136,7 @@ def read_header(path: str | os.PathLike) -> TileHeader:
     except Exception as e:
         crs_problem = f"its CRS record cannot be parsed ({e})"
     mins, maxs = header.mins, header.maxs
+    _check_bounds(path, mins, maxs, count)
     return TileHeader(
         path=str(path),
         format="COPC" if is_copc else ("LAZ" if compressed else "LAS"),
@@ -182,6 +192,32 @@ def iter_point_chunks(
         raise InputDataError(path, f"point data cannot be decoded {where}: {e} (file corrupt or truncated)") from None
     if expected is not None and decoded < expected:
         raise InputDataError(path, f"header point count is {expected:,} but only {decoded:,} points could be decoded")
+
+
+#: A header whose box leaves more than this area (CRS units squared) per point is not believed.
+IMPLAUSIBLE_AREA_PER_POINT = 1e4
+#: ... when the box is also larger than this (a few sparse points in a small box are fine).
+IMPLAUSIBLE_MIN_AREA = 1e8
+
+
+def _check_bounds(path: Path, mins, maxs, count: int) -> None:
+    """Refuse header bounds that are not numbers, inverted, or absurd for the point count.
+
+    A grid is planned from headers before any point is read, so one absurd box (a
+    truncated file's header, a coordinate typo) would make the whole survey's grid.
+    """
+    values = [float(v) for v in (*mins[:3], *maxs[:3])]
+    if not all(math.isfinite(v) for v in values):
+        raise InputDataError(path, f"header bounds are not finite numbers (min {list(mins)}, max {list(maxs)})")
+    if any(lo > hi for lo, hi in zip(mins[:3], maxs[:3])):
+        raise InputDataError(path, f"header bounds are inverted (min {list(mins)} above max {list(maxs)})")
+    area = (float(maxs[0]) - float(mins[0])) * (float(maxs[1]) - float(mins[1]))
+    if area > IMPLAUSIBLE_MIN_AREA and area / max(count, 1) > IMPLAUSIBLE_AREA_PER_POINT:
+        raise InputDataError(
+            path,
+            f"header bounds span {area:.3g} square units for {count:,} points (one point per "
+            f"{area / max(count, 1):.3g}): the bounds are implausible",
+        )
 
 
 def _class_and_withheld(records: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

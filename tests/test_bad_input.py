@@ -1,0 +1,105 @@
+"""Every bad input gives one clear line naming the file and the problem, the documented exit status,
+and no half-written output (tested through the command line, as users meet them)."""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import time
+from pathlib import Path
+
+import pytest
+import shapely
+from click.testing import CliRunner
+
+from pipeline.cli import main
+from pipeline.io.vector import write_layer
+
+from .lasfiles import random_points, write_points
+
+
+@pytest.fixture
+def runner():
+    return CliRunner()
+
+
+def run(runner, *args):
+    return runner.invoke(main, ["run", *map(str, args), "--no-progress"])
+
+
+def one_error_line(result) -> str:
+    lines = [line for line in result.output.strip().splitlines() if line.startswith("holefill: error:")]
+    assert len(lines) == 1 and "Traceback" not in result.output, result.output
+    return lines[0]
+
+
+def patch(path: Path, offset: int, fmt: str, *values) -> None:
+    data = bytearray(path.read_bytes())
+    struct.pack_into(fmt, data, offset, *values)
+    path.write_bytes(bytes(data))
+
+
+def test_nan_and_absurd_header_bounds(runner, tmp_path, rng):
+    path = write_points(tmp_path / "nan.las", *random_points(rng, 500), version="1.2")
+    patch(path, 179, "<d", float("nan"))  # max x
+    result = run(runner, path, "--out", tmp_path / "o")
+    assert result.exit_code == 3 and "nan.las: header bounds are not finite" in one_error_line(result)
+    path = write_points(tmp_path / "far.las", *random_points(rng, 500), version="1.2")
+    patch(path, 179, "<d", 460_000.0 + 1100.0)  # max x 460 km east: a box of 4.6e7 m x 80 m for 500 points
+    patch(path, 195, "<d", 200_000.0)  # max y
+    result = run(runner, path, "--out", tmp_path / "o")
+    assert result.exit_code == 3 and "far.las: header bounds span" in one_error_line(result)
+    assert not (tmp_path / "o").exists()
+
+
+def test_header_that_under_reports_its_points_is_refused(runner, tmp_path, rng):
+    path = write_points(tmp_path / "short.las", *random_points(rng, 500), version="1.2")
+    patch(path, 107, "<I", 300)  # legacy point count: 300 of the records present
+    result = run(runner, path, "--out", tmp_path / "o")
+    line = one_error_line(result)
+    assert result.exit_code == 3 and "short.las: header point count is 300 but the file holds" in line
+
+
+def test_filter_removing_every_point_and_aoi_outside_the_data(runner, tmp_path, rng):
+    path = write_points(tmp_path / "a.laz", *random_points(rng, 2000))
+    result = run(runner, path, "--out", tmp_path / "o", "--set", "filter.keep_classes=[9]")
+    assert result.exit_code == 3 and "no point is left after filtering" in one_error_line(result)
+    assert not (tmp_path / "o").exists()
+    aoi = tmp_path / "far.gpkg"
+    write_layer(aoi, "aoi", [{"id": 1}], [shapely.box(50_000, 50_000, 50_100, 50_100)], crs_wkt="EPSG:2154")
+    result = run(runner, path, "--out", tmp_path / "o", "--aoi", aoi)
+    assert result.exit_code == 3 and "does not overlap the data" in one_error_line(result)
+    assert not (tmp_path / "o").exists()
+
+
+def test_broken_links_are_named_and_skipped(runner, tmp_path, rng):
+    folder = tmp_path / "tiles"
+    folder.mkdir()
+    write_points(folder / "a.laz", *random_points(rng, 2000))
+    os.symlink(tmp_path / "gone.laz", folder / "b.laz")
+    result = run(runner, folder, "--out", tmp_path / "o")
+    assert result.exit_code == 3 and "b.laz: broken symbolic link" in one_error_line(result)
+    result = run(runner, folder, "--out", tmp_path / "o", "--on-error", "skip", "--set", "grid.cell_size_m=50")
+    assert result.exit_code == 5, result.output  # partial success: outputs written, a tile skipped
+    manifest = json.loads((tmp_path / "o" / "manifest.json").read_text())
+    assert manifest["skipped"][0]["reason"].startswith("broken symbolic link")
+
+
+def test_unreachable_scheduler_fails_within_seconds(runner, tmp_path, rng):
+    path = write_points(tmp_path / "a.laz", *random_points(rng, 500))
+    started = time.monotonic()
+    result = run(runner, path, "--out", tmp_path / "o", "--scheduler", "tcp://127.0.0.1:9")
+    assert result.exit_code == 1 and "cannot reach the Dask scheduler" in one_error_line(result)
+    assert time.monotonic() - started < 30
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_relative_output_folder_on_a_running_scheduler(runner, tmp_path, rng, dask_client, monkeypatch):
+    path = write_points(tmp_path / "a.laz", *random_points(rng, 2000))
+    monkeypatch.chdir(tmp_path)
+    result = run(runner, path, "--out", "relative/out", "--scheduler", dask_client.scheduler.address,
+                 "--set", "grid.cell_size_m=50")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "relative" / "out" / "manifest.json").exists()
