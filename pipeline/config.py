@@ -97,6 +97,12 @@ class CausesConfig:
     water_min_mask_fraction: float = _opt(
         0.5, "water_mask rule: share of the hole inside the given water polygons.", ge=0, le=1
     )
+    gap_min_fraction: float = _opt(
+        0.5,
+        "coverage_gap rule (missed coverage): share of the hole outside every flight line's swath.",
+        ge=0,
+        le=1,
+    )
     water_min_point_fraction: float = _opt(
         0.1, "water_points rule: share of the ring (or of the hole) holding water-class points.", ge=0, le=1
     )
@@ -146,6 +152,12 @@ class CausesConfig:
     water_min_flat_fraction: float = _opt(0.7, "flat_low_rim rule: share of the ring that is flat.", ge=0, le=1)
     water_min_low_fraction: float = _opt(
         0.5, "flat_low_rim rule: share of the ring at the local minimum height.", ge=0, le=1
+    )
+    water_max_below_fraction: float = _opt(
+        0.25,
+        "level_rim rule: share of the ring below its level (the most populated height window).",
+        ge=0,
+        le=1,
     )
     low_quantile: float = _opt(0.05, "Quantile of the ring heights taken as the ring's low level.", ge=0, le=1)
     high_quantile: float = _opt(

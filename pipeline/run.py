@@ -238,7 +238,8 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
     """Detection (per cell) on the footprint gathered from stage 2, then linking on the client."""
     params = hole_params(plan, config)
     blocks = merge_cells.footprint_blocks(cells, plan, config)
-    tasks = detect_holes.detect_tasks(plan, params, cells, blocks, water, staging)
+    gaps = merge_cells.survey_coverage_gaps(cells)
+    tasks = detect_holes.detect_tasks(plan, params, cells, blocks, water, staging, gaps)
     futures = [
         runner.submit(
             detect_holes.detect_cell, task, label=f"cell {task.cell.id} (find holes)", key=f"detect-{task.cell.id}"

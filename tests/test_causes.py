@@ -74,7 +74,16 @@ def test_a_changed_strip_key_changes_missed_coverage():
 
 
 def test_rule_order_is_one_table():
-    assert [rule for rule, _ in RULES] == ["water_mask", "water_points", "jumps", "shadow", "strip", "flat_low_rim"]
+    assert [rule for rule, _ in RULES] == [
+        "water_mask",
+        "coverage_gap",
+        "water_points",
+        "jumps",
+        "shadow",
+        "strip",
+        "level_rim",
+        "flat_low_rim",
+    ]
 
 
 @pytest.mark.parametrize(

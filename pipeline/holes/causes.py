@@ -15,6 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..config import CausesConfig, Config
+from ._kernels import _BIG
 from .stats import HoleStats, _hist_quantiles, ring_metrics, shape_metrics
 
 __all__ = ["CAUSE_DTYPE", "CAUSES", "CONFIG_KEYS", "RULES", "CauseRules", "classify_causes"]
@@ -26,10 +27,12 @@ CAUSES: tuple[str, ...] = ("occlusion", "water", "missed_coverage", "unknown")
 #: A hole no rule claims is ``unknown`` / ``none`` (``no_ring`` without any measured neighbour).
 RULES: tuple[tuple[str, str], ...] = (
     ("water_mask", "water"),
+    ("coverage_gap", "missed_coverage"),
     ("water_points", "water"),
     ("jumps", "occlusion"),
     ("shadow", "occlusion"),
     ("strip", "missed_coverage"),
+    ("level_rim", "water"),
     ("flat_low_rim", "water"),
 )
 
@@ -53,6 +56,8 @@ class CauseRules:
         Height-jump threshold in z units, as used for detection (``holes.jump_threshold_m``).
     water_min_mask_fraction, water_min_point_fraction
         ``water_mask`` / ``water_points`` rules.
+    gap_min_fraction
+        ``coverage_gap`` rule.
     occlusion_min_jump_fraction
         ``jumps`` rule.
     shadow_min_high_fraction, shadow_min_residual_ratio, max_terrain_slope
@@ -64,6 +69,8 @@ class CauseRules:
         ``strip`` rule.
     water_flat_tolerance, water_min_flat_fraction, water_min_low_fraction
         ``flat_low_rim`` rule (``water_flat_tolerance`` in z units).
+    water_max_below_fraction
+        ``level_rim`` rule (with ``water_flat_tolerance`` and ``water_min_flat_fraction``).
     low_quantile, high_quantile
         Quantiles of the ring heights taken as its low and high level.
     """
@@ -71,6 +78,7 @@ class CauseRules:
     pixel_size: float
     jump_threshold: float
     water_min_mask_fraction: float
+    gap_min_fraction: float
     water_min_point_fraction: float
     occlusion_min_jump_fraction: float
     shadow_min_high_fraction: float
@@ -86,6 +94,7 @@ class CauseRules:
     water_flat_tolerance: float
     water_min_flat_fraction: float
     water_min_low_fraction: float
+    water_max_below_fraction: float
     low_quantile: float
     high_quantile: float
 
@@ -140,9 +149,11 @@ def classify_causes(stats: HoleStats, rules: CauseRules) -> np.ndarray:
 
     1. ``water`` / ``water_mask``: at least ``water_min_mask_fraction`` of the hole
        lies inside the given water mask.
-    2. ``water`` / ``water_points``: at least ``water_min_point_fraction`` of the
+    2. ``missed_coverage`` / ``coverage_gap``: at least ``gap_min_fraction`` of the
+       hole lies in a coverage gap (no flight line's swath, :mod:`pipeline.holes.coverage`).
+    3. ``water`` / ``water_points``: at least ``water_min_point_fraction`` of the
        ring (or of the hole) holds water-class points.
-    3. ``occlusion`` ([UAS] 3.2), if the step exceeds ``jump_threshold`` and the hole
+    4. ``occlusion`` ([UAS] 3.2), if the step exceeds ``jump_threshold`` and the hole
        is thin enough to lie in its shadow (``thickness_px * pixel_size <=
        max_shadow_ratio * step``), and either ``jumps``: at least
        ``occlusion_min_jump_fraction`` of the ring pixels are height jumps; or
@@ -150,16 +161,16 @@ def classify_causes(stats: HoleStats, rules: CauseRules) -> np.ndarray:
        ``jump_threshold`` above the low level, and that is no terrain slope (the
        ring's plane is steeper than ``max_terrain_slope``, or the ring scatters
        about it by at least ``shadow_min_residual_ratio * jump_threshold``).
-    4. ``missed_coverage`` / ``strip``: a long straight strip (``fill >=
+    5. ``missed_coverage`` / ``strip``: a long straight strip (``fill >=
        strip_min_fill``, ``length_px >= strip_min_length_px``, ``elongation >=
        strip_min_elongation``); where flight-line ids were given, its ring must also
        come from two or more lines each holding at least ``strip_min_line_share`` of
        it, the two most common holding at least ``strip_two_line_share``, and the
        elongation needed is ``strip_min_elongation_with_lines``.
-    5. ``water`` / ``flat_low_rim``: at least ``water_min_flat_fraction`` of the ring
+    6. ``water`` / ``flat_low_rim``: at least ``water_min_flat_fraction`` of the ring
        lies within ``water_flat_tolerance`` above the low level and at least
        ``water_min_low_fraction`` of it is at the local minimum (``ring_low_px``).
-    6. ``unknown`` / ``none`` (``no_ring`` when no measured pixel borders the hole).
+    7. ``unknown`` / ``none`` (``no_ring`` when no measured pixel borders the hole).
 
     Parameters
     ----------
@@ -194,6 +205,8 @@ class _RingEvidence(NamedTuple):
     low_frac: np.ndarray  # pixels at the local minimum
     high_frac: np.ndarray  # pixels more than jump_threshold above the low level
     flat_frac: np.ndarray  # pixels within water_flat_tolerance above the low level
+    level_frac: np.ndarray  # pixels in the most populated height window water_flat_tolerance wide
+    below_frac: np.ndarray  # pixels below that window
     step: np.ndarray  # height of the step beside the hole
 
     @classmethod
@@ -209,6 +222,7 @@ class _RingEvidence(NamedTuple):
         high = np.where(centres > q_lo[hrow] + rules.jump_threshold, hcount, 0.0)
         flat = np.where(centres <= q_lo[hrow] + rules.water_flat_tolerance, hcount, 0.0)
         mean_jump_span = stats["ring_jump_span_sum"] / np.maximum(stats["ring_jump_px"], 1)
+        level, below = _level_window(stats, rules.water_flat_tolerance)
         return cls(
             has_ring=ring > 0,
             size=ring1,
@@ -216,6 +230,8 @@ class _RingEvidence(NamedTuple):
             low_frac=stats["ring_low_px"] / ring1,
             high_frac=np.bincount(hrow, high, minlength=k) / ring1,
             flat_frac=np.bincount(hrow, flat, minlength=k) / ring1,
+            level_frac=level / ring1,
+            below_frac=below / ring1,
             step=np.fmax(np.nan_to_num(q_hi - q_lo, nan=0.0), mean_jump_span),
         )
 
@@ -234,20 +250,26 @@ def _rule_conditions(stats: HoleStats, ring: _RingEvidence, rules: CauseRules) -
         np.nan_to_num(ring_fit["plane_residual_std"]) >= rules.shadow_min_residual_ratio * rules.jump_threshold
     )
     strip_shape = (shape["fill"] >= rules.strip_min_fill) & (shape["length_px"] >= rules.strip_min_length_px)
-    strip = strip_shape & (shape["elongation"] >= rules.strip_min_elongation)
+    in_swath = stats["swath_px"] / area1 >= 0.5  # the lines flew over it: not a gap in coverage
+    strip = strip_shape & ~in_swath & (shape["elongation"] >= rules.strip_min_elongation)
     if len(stats.line_hist):
         has_lines, between_two_lines = _between_two_lines(stats, ring.size, rules)
         strip_with_lines = (
-            strip_shape & between_two_lines & (shape["elongation"] >= rules.strip_min_elongation_with_lines)
+            strip_shape & ~in_swath & between_two_lines & (shape["elongation"] >= rules.strip_min_elongation_with_lines)
         )
         strip = np.where(has_lines, strip_with_lines, strip)
     return {
         "water_mask": stats["water_mask_px"] / area1 >= rules.water_min_mask_fraction,
+        "coverage_gap": stats["gap_px"] / area1 >= rules.gap_min_fraction,
         "water_points": (ring.has_ring & (stats["ring_water_px"] / ring.size >= rules.water_min_point_fraction))
         | (stats["hole_water_px"] / area1 >= rules.water_min_point_fraction),
         "jumps": shadow_like & (ring.jump_frac >= rules.occlusion_min_jump_fraction),
         "shadow": shadow_like & (ring.high_frac >= rules.shadow_min_high_fraction) & not_terrain,
         "strip": strip,
+        "level_rim": ring.has_ring
+        & in_swath
+        & (ring.level_frac >= rules.water_min_flat_fraction)
+        & (ring.below_frac <= rules.water_max_below_fraction),
         "flat_low_rim": ring.has_ring
         & (ring.flat_frac >= rules.water_min_flat_fraction)
         & (ring.low_frac >= rules.water_min_low_fraction),
@@ -273,3 +295,30 @@ def _between_two_lines(stats: HoleStats, ring_size: np.ndarray, rules: CauseRule
     rank = position - np.maximum.accumulate(np.where(starts, position, 0))
     top_two = np.bincount(ranked_rows[rank < 2], share[order][rank < 2], minlength=k)
     return has_lines, (n_lines >= 2) & (top_two >= rules.strip_two_line_share)
+
+
+def _level_window(stats: HoleStats, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per row: ring pixels in the most populated height window ``tolerance`` wide, and below it.
+
+    The window spans ``max(1, round(tolerance / height_bin))`` histogram bins; ties go
+    to the lowest window. A shore is a contour line: most of the ring in one window.
+    """
+    k = len(stats)
+    hist = stats.height_hist
+    level, below = np.zeros(k), np.zeros(k)
+    if not len(hist):
+        return level, below
+    width = max(1, round(tolerance / stats.height_bin))
+    rows, bins = hist["row"], hist["bin"]
+    counts = hist["count"].astype(np.float64)
+    cum = np.concatenate([[0.0], np.cumsum(counts)])
+    row_start = np.searchsorted(rows, rows)  # histogram sorted by (row, bin)
+    key = rows * _BIG + bins
+    end = np.searchsorted(key, rows * _BIG + bins + width)  # first entry past the window
+    inside = cum[end] - cum[np.arange(len(hist))]
+    under = cum[np.arange(len(hist))] - cum[row_start]
+    order = np.lexsort((np.arange(len(hist)), -inside, rows))  # best window first within each row
+    first = order[np.r_[True, rows[order][1:] != rows[order][:-1]]]
+    level[rows[first]] = inside[first]
+    below[rows[first]] = under[first]
+    return level, below

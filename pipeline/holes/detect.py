@@ -126,6 +126,7 @@ def detect_cell_holes(
     water_points: np.ndarray | None = None,
     water_mask: np.ndarray | None = None,
     flight_line: np.ndarray | None = None,
+    coverage: np.ndarray | None = None,
     min_area_px: int = 0,
 ) -> CellHoles:
     """Find, classify and measure the hole parts of one cell.
@@ -168,6 +169,11 @@ def detect_cell_holes(
         True inside known water polygons.
     flight_line : ndarray of int, same shape, optional
         An id of a flight line covering each pixel (e.g. a point_source_id), < 0: unknown.
+    coverage : ndarray of int, same shape, optional
+        Per pixel: 2 in a coverage gap (no flight line's swath reaches), 1 inside a
+        flight line's swath, 0 unknown (:meth:`pipeline.holes.coverage.CoverageGaps.classes`).
+        Hole pixels inside and outside a gap are labelled apart: no part straddles a
+        gap's edge, so a river crossing a missed strip gives two holes.
     min_area_px : int
         Closed parts (complete holes: they touch neither the core edge nor the AOI
         boundary) smaller than this are settled here as small voids: counted in
@@ -192,6 +198,7 @@ def detect_cell_holes(
         "water_points": water_points,
         "water_mask": water_mask,
         "flight_line": flight_line,
+        "coverage": coverage,
     }
     R = _check_inputs(
         arrays, cell, grid_window, connectivity=connectivity, local_radius_px=local_radius_px, height_bin=height_bin
@@ -223,9 +230,7 @@ def _find_parts(
     """Label, classify and measure the hole parts of a cell core from its checked work arrays."""
     R = work.R
     core = cell.window
-    structure = ndi.generate_binary_structure(2, 1 if connectivity == 4 else 2)
-    labels, n = ndi.label(work.core(work.hole), structure=structure)
-    labels = labels.astype(np.int32, copy=False)
+    labels, n = _label_holes(work, connectivity)
     data_core = work.core(work.data)
     core_has_data = bool(data_core.any())
     edges = _edge_strips(labels, core)
@@ -322,6 +327,8 @@ class _Work(NamedTuple):
     water: np.ndarray | None  # holds water-class points
     mask: np.ndarray | None  # inside the water mask
     line: np.ndarray | None  # flight line id, < 0 unknown
+    gap: np.ndarray | None  # inside a coverage gap
+    swath: np.ndarray | None  # inside a flight line's swath
 
     def core(self, arr: np.ndarray) -> np.ndarray:
         """The view of a work-window array over the core."""
@@ -349,6 +356,7 @@ def _work_arrays(arrays: dict[str, np.ndarray | None], cell: Cell, R: int) -> _W
     aoi_w = _work_view(aoi_halo, cell, work, False)
     data_w = count_w > 0
     water_points = view("water_points", 0)
+    coverage_w = view("coverage", 0, np.int8)
     return _Work(
         R=R,
         hole=~data_w & aoi_w,
@@ -359,7 +367,30 @@ def _work_arrays(arrays: dict[str, np.ndarray | None], cell: Cell, R: int) -> _W
         water=None if water_points is None else water_points > 0,
         mask=view("water_mask", False, bool),
         line=view("flight_line", _NO_LINE, np.int64),
+        gap=None if coverage_w is None else coverage_w == 2,
+        swath=None if coverage_w is None else coverage_w == 1,
     )
+
+
+def _label_holes(work: _Work, connectivity: int) -> tuple[np.ndarray, int]:
+    """Parts of the core's hole pixels, numbered in raster order of their first pixels.
+
+    With a coverage gap, the pixels inside and outside it are labelled apart.
+    """
+    structure = ndi.generate_binary_structure(2, 1 if connectivity == 4 else 2)
+    hole = work.core(work.hole)
+    if work.gap is None or not (gap := work.core(work.gap) & hole).any():
+        labels, n = ndi.label(hole, structure=structure)
+        return labels.astype(np.int32, copy=False), int(n)
+    inside, n_in = ndi.label(gap, structure=structure)
+    outside, n_out = ndi.label(hole & ~gap, structure=structure)
+    merged = np.where(inside > 0, inside, np.where(outside > 0, outside + n_in, 0)).ravel()
+    n = int(n_in + n_out)
+    values, first = np.unique(merged, return_index=True)
+    present = values > 0
+    relabel = np.zeros(n + 1, np.int32)
+    relabel[values[present][np.argsort(first[present])]] = np.arange(1, n + 1, dtype=np.int32)
+    return relabel[merged].reshape(hole.shape), n
 
 
 def _closed_parts(cols: dict[str, np.ndarray], edges: tuple[EdgeStrip, ...], n: int) -> np.ndarray:
@@ -526,6 +557,10 @@ def _pixel_statistics(
     cols["touches_data"] = sums.near_data[1:] > 0
     cols["hole_water_px"] = sums.water[1:]
     cols["water_mask_px"] = sums.in_mask[1:]
+    for name, where in (("gap_px", work.gap), ("swath_px", work.swath)):
+        cols[name] = (
+            np.zeros(n, np.int64) if where is None else np.bincount(labels[work.core(where)], minlength=n + 1)[1:]
+        )
 
 
 def _ring_moments(cols: dict[str, np.ndarray], count: np.ndarray, sums: np.ndarray, core: PixelWindow) -> None:

@@ -125,7 +125,7 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
 
     Parts of adjacent cells whose edge pixels touch (4-adjacency across the
     shared edge; with 8-connectivity also diagonally, including across cell
-    corners) belong to one hole: the connected components of that contact graph
+    corners), both inside a coverage gap or both outside, belong to one hole: the connected components of that contact graph
     (a union-find) are the global holes. Layers follow [OPEN] section 3.2:
     layer 1 = parts that touch measured data (a measured pixel 4-adjacent, in
     the core or the halo), layer n + 1 = parts linked to a layer-n part.
@@ -153,7 +153,8 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
     offsets = np.concatenate([[0], np.cumsum(sizes)])  # parts of cell k are nodes offsets[k]..offsets[k + 1]
     n_nodes = int(offsets[-1])
     edges = _EdgePixels.of(cells, offsets)
-    graph = _contact_graph(edges, connectivity, n_nodes)
+    in_gap = np.concatenate([c.stats["gap_px"] > 0 for c in cells])
+    graph = _contact_graph(edges, connectivity, n_nodes, in_gap)
     n_comp, comp = csgraph.connected_components(graph, directed=False)
     entries, e_comp = _shared_ring_entries(cells, offsets, comp, edges)
     merged = merge_hole_stats(
@@ -219,8 +220,12 @@ class _EdgePixels:
         return np.where(self.keys[i] == key, self.key_nodes[i], -1)
 
 
-def _contact_graph(edges: _EdgePixels, connectivity: int, n_nodes: int) -> sparse.csr_matrix:
-    """Symmetric 0/1 adjacency of the parts whose edge pixels touch across a cell edge."""
+def _contact_graph(edges: _EdgePixels, connectivity: int, n_nodes: int, in_gap: np.ndarray) -> sparse.csr_matrix:
+    """Symmetric 0/1 adjacency of the parts whose edge pixels touch across a cell edge.
+
+    Parts inside a coverage gap link only to parts inside one (``in_gap`` per node),
+    as detection labels them apart within a cell.
+    """
     a_list, b_list = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     for s, side in enumerate(SIDES):
         m = edges.side == s
@@ -234,7 +239,7 @@ def _contact_graph(edges: _EdgePixels, connectivity: int, n_nodes: int) -> spars
             a_list.append(edges.nodes[m][ok])
             b_list.append(other[ok])
     a, b = np.concatenate(a_list), np.concatenate(b_list)
-    keep = a != b
+    keep = (a != b) & (in_gap[a] == in_gap[b])
     a, b = a[keep], b[keep]
     graph = sparse.coo_matrix(
         (np.ones(2 * len(a), np.int8), (np.concatenate([a, b]), np.concatenate([b, a]))),

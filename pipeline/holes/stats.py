@@ -69,6 +69,8 @@ STATS_COLUMNS: dict[str, tuple[type, str, str]] = {
     "ring_jump_span_sum": (np.float64, "sum", "sum of zmax - zmin over ring jump pixels"),
     "hole_water_px": (np.int64, "sum", "hole pixels with water-class points (if count excludes them)"),
     "water_mask_px": (np.int64, "sum", "hole pixels inside the given water mask"),
+    "gap_px": (np.int64, "sum", "hole pixels inside a coverage gap (no flight line's swath)"),
+    "swath_px": (np.int64, "sum", "hole pixels inside a flight line's swath"),
     "touches_data": (np.bool_, "any", "a measured pixel is 4-adjacent somewhere"),
 }
 

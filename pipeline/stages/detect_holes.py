@@ -15,6 +15,7 @@ from ..config import HOLE_CONTEXT_PX
 from ..footprint import BlockMap, aoi_mask, window_union_mask
 from ..grid import Cell, Grid, PixelWindow
 from ..holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
+from ..holes.coverage import CoverageGaps
 from ..holes.flight_lines import line_moments
 from ..holes.outlines import label_outlines
 from ..holes.walls import Wall, find_walls
@@ -39,6 +40,7 @@ class DetectTask:
     survey_area_wkb: bytes | None  # the --aoi polygon, else the tile windows are the survey area
     water_wkb: bytes | None  # the --water polygons
     params: HoleParams
+    gaps: CoverageGaps | None = None  # between the flight lines' swaths, survey-wide
 
 
 @dataclass(frozen=True)
@@ -60,6 +62,7 @@ def detect_tasks(
     blocks: BlockMap,
     water: shapely.Geometry | None,
     staging: Staging,
+    gaps: CoverageGaps | None = None,
 ) -> list[DetectTask]:
     """One task per merged cell, in plan order."""
     cells = plan.cell_by_id()
@@ -79,6 +82,7 @@ def detect_tasks(
                 survey_area_wkb=area_wkb,
                 water_wkb=water_wkb,
                 params=params,
+                gaps=gaps if gaps else None,
             )
         )
     return tasks
@@ -156,6 +160,7 @@ def _cell_holes(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray) -> Ce
         water_points=stats.water,
         water_mask=water_mask,
         flight_line=stats.source.astype(np.int64) - 1,
+        coverage=task.gaps.classes(stats.window) if task.gaps is not None else None,
         min_area_px=params.min_area_px,
         local_radius_px=HOLE_CONTEXT_PX,
     )

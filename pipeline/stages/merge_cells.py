@@ -14,6 +14,8 @@ import numpy as np
 from ..config import Config
 from ..footprint import BlockMap, footprint_map, occupied_blocks
 from ..grid import Cell, Grid, PixelWindow
+from ..holes.coverage import CoverageGaps, coverage_gaps
+from ..holes.flight_lines import line_moments, merge_line_moments
 from ..io.intermediate import load_tile_shared_keys, load_tile_statistics, save_cell_statistics
 from ..plan import SurveyPlan
 from ..rasterize import merge_statistics, shared_pixel_mask
@@ -44,6 +46,7 @@ class CellResult:
     pixels: int
     empty_pixels: int
     occupied_blocks: np.ndarray  # packed keys of the footprint blocks holding data
+    line_moments: np.ndarray  # LINE_MOMENT_DTYPE: pixel moments of each flight line in the core
 
 
 def merge_tasks(plan: SurveyPlan, tiles: list[TileTask], staging: Staging) -> list[tuple[CellTask, list[int]]]:
@@ -93,6 +96,9 @@ def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
         pixels=cell.window.height * cell.window.width,
         empty_pixels=int((core.count == 0).sum()),
         occupied_blocks=occupied_blocks(core.count, cell.window, grid, task.block_px),
+        line_moments=line_moments(
+            core.source.astype(np.int64) - 1, row_off=cell.window.row_off, col_off=cell.window.col_off
+        ),
     )
 
 
@@ -110,3 +116,8 @@ def footprint_blocks(results: list[CellResult], plan: SurveyPlan, config: Config
         closing_blocks=math.ceil(holes.footprint_closing_m / holes.footprint_block_m),
         everything=plan.aoi_given,
     )
+
+
+def survey_coverage_gaps(results: list[CellResult]) -> CoverageGaps:
+    """Gather: the gaps between the flight lines' swaths, from the cells' line moments (exact sums)."""
+    return coverage_gaps(merge_line_moments([r.line_moments for r in results]))

@@ -1,0 +1,158 @@
+"""Coverage gaps: where no flight line's swath reaches, from the lines' pixel moments (pure).
+
+A flight line covers a straight band on the ground. The pixels whose highest
+return came from one line (``point_source_id``, kept per pixel by stage 1) form
+that band, minus what higher-numbered lines overlap: still a band, whose centre,
+direction, length and width follow from the pixels' first and second moments (a
+uniform rectangle of side ``L`` has variance ``L**2 / 12`` along it). The moments
+are sums over cells (:mod:`pipeline.holes.flight_lines`), so the bands, and the
+gaps between them, are the same for any cell size.
+
+A *coverage gap* is the space between two adjacent, parallel bands that no band
+covers: a missed line or a swath gap. Hole detection labels the hole pixels
+inside a gap apart from the others (``detect_cell_holes(..., coverage_gap=)``),
+so a river crossing a missed strip becomes two holes, each with its own cause.
+See ``docs/holes.md``, "Coverage gaps".
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..grid import PixelWindow
+
+__all__ = ["IN_GAP", "IN_SWATH", "UNKNOWN", "Band", "CoverageGaps", "coverage_gaps", "line_bands"]
+
+#: Coverage classes of a pixel (:meth:`CoverageGaps.classes`, ``detect_cell_holes(coverage=)``).
+UNKNOWN, IN_SWATH, IN_GAP = 0, 1, 2
+
+#: Lines whose directions differ by more than this are not neighbours of one gap.
+MAX_PARALLEL_DEG = 5.0
+#: Elongation (length / width) a line's band needs to have a direction at all.
+MIN_BAND_ELONGATION = 1.4
+#: A band is a rectangle when its pixel count is this share of length x width (holes in it lower it).
+BAND_FILL_RANGE = (0.8, 1.1)
+
+
+@dataclass(frozen=True)
+class Band:
+    """The band one flight line covers, in global pixel coordinates (row, column indices).
+
+    ``direction`` is the unit vector (d_row, d_col) along track; ``centre`` the
+    band's centroid; ``half_length`` and ``half_width`` its half sides in pixels.
+    """
+
+    line: int
+    centre: tuple[float, float]
+    direction: tuple[float, float]
+    half_length: float
+    half_width: float
+
+
+@dataclass(frozen=True)
+class CoverageGaps:
+    """Strips between adjacent parallel bands that no band covers.
+
+    Each gap is a rectangle in its own frame: along-track unit vector ``direction``,
+    across-track coordinate in ``(across_lo, across_hi)``, along-track in
+    ``(along_lo, along_hi)`` (pixels, measured from the origin of the grid).
+    """
+
+    gaps: tuple[tuple[tuple[float, float], float, float, float, float], ...]
+    bands: tuple[Band, ...]
+
+    def __bool__(self) -> bool:
+        return bool(self.gaps or self.bands)
+
+    def classes(self, window: PixelWindow, *, margin_px: float = 3.0) -> np.ndarray:
+        """Per pixel of ``window``: ``IN_GAP``, ``IN_SWATH`` or ``UNKNOWN`` (int8).
+
+        A gap is grown by ``margin_px`` across and along track, a band shrunk by as
+        much: the margin absorbs the jitter of swath edges, so that a missed strip is
+        not cut into a core and slivers along its edges. A gap wins over a band.
+        """
+        rows = np.arange(window.row_off, window.row_end, dtype=np.float64)[:, None]
+        cols = np.arange(window.col_off, window.col_end, dtype=np.float64)[None, :]
+        out = np.full(window.shape, UNKNOWN, np.int8)
+        for band in self.bands:
+            (dr, dc), (cr, cc) = band.direction, band.centre
+            along = np.abs((rows - cr) * dr + (cols - cc) * dc)
+            across = np.abs((cols - cc) * dr - (rows - cr) * dc)
+            out[(along < band.half_length - margin_px) & (across < band.half_width - margin_px)] = IN_SWATH
+        for (dr, dc), lo, hi, a_lo, a_hi in self.gaps:
+            along = rows * dr + cols * dc
+            across = cols * dr - rows * dc
+            inside = (
+                (across > lo - margin_px)
+                & (across < hi + margin_px)
+                & (along > a_lo - margin_px)
+                & (along < a_hi + margin_px)
+            )
+            out[inside] = IN_GAP
+        return out
+
+
+def line_bands(moments: np.ndarray) -> list[Band]:
+    """The band of every line whose pixels form an elongated rectangle (``LINE_MOMENT_DTYPE`` rows)."""
+    bands = []
+    for m in moments:
+        n = float(m["n"])
+        if n < 100:
+            continue
+        mr, mc = m["r"] / n, m["c"] / n
+        var_r = m["rr"] / n - mr * mr + 1.0 / 12.0
+        var_c = m["cc"] / n - mc * mc + 1.0 / 12.0
+        cov = m["rc"] / n - mr * mc
+        values, vectors = np.linalg.eigh(np.array([[var_r, cov], [cov, var_c]]))
+        if values[0] <= 0:
+            continue
+        half_width, half_length = math.sqrt(3.0 * values[0]), math.sqrt(3.0 * values[1])
+        fill = n / (4.0 * half_width * half_length)
+        if half_length < MIN_BAND_ELONGATION * half_width or not BAND_FILL_RANGE[0] <= fill <= BAND_FILL_RANGE[1]:
+            continue
+        dr, dc = vectors[:, 1]
+        if dr < 0 or (dr == 0 and dc < 0):  # one orientation per axis
+            dr, dc = -dr, -dc
+        bands.append(Band(int(m["line"]), (float(mr), float(mc)), (float(dr), float(dc)), half_length, half_width))
+    return bands
+
+
+def coverage_gaps(moments: np.ndarray, *, min_width_px: float = 2.0) -> CoverageGaps:
+    """The gaps between adjacent parallel flight-line bands (``LINE_MOMENT_DTYPE`` rows, merged).
+
+    Bands are sorted across track in their common direction; two consecutive bands
+    that are parallel (within ``MAX_PARALLEL_DEG``) and more than ``min_width_px``
+    apart leave a gap, over the along-track stretch both cover. Edges are rounded
+    to 1/1024 px, so that sums in another order cannot move a pixel across one.
+    """
+    bands = line_bands(moments)
+    gaps: list[tuple[tuple[float, float], float, float, float, float]] = []
+    for a in bands:
+        (dr, dc), (ar, ac) = a.direction, a.centre
+        across_a = ac * dr - ar * dc
+        # the nearest parallel band on the positive side of a, across track
+        best: tuple[float, Band] | None = None
+        for b in bands:
+            if b is a or abs(dr * b.direction[0] + dc * b.direction[1]) < math.cos(math.radians(MAX_PARALLEL_DEG)):
+                continue
+            offset = (b.centre[1] * dr - b.centre[0] * dc) - across_a
+            if offset > 0 and (best is None or offset < best[0]):
+                best = (offset, b)
+        if best is None:
+            continue
+        offset, b = best
+        lo, hi = across_a + a.half_width, across_a + offset - b.half_width
+        if hi - lo < min_width_px:
+            continue
+        along_a = ar * dr + ac * dc
+        along_b = b.centre[0] * dr + b.centre[1] * dc
+        a_lo = max(along_a - a.half_length, along_b - b.half_length)
+        a_hi = min(along_a + a.half_length, along_b + b.half_length)
+        if a_hi - a_lo < min_width_px:
+            continue
+        lo, hi, a_lo, a_hi = (round(v * 1024.0) / 1024.0 for v in (lo, hi, a_lo, a_hi))
+        gaps.append(((dr, dc), lo, hi, a_lo, a_hi))
+    return CoverageGaps(tuple(gaps), tuple(bands))

@@ -1,0 +1,48 @@
+"""Coverage gaps between flight-line bands (pipeline.holes.coverage)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.grid import PixelWindow
+from pipeline.holes.coverage import IN_GAP, IN_SWATH, UNKNOWN, coverage_gaps
+from pipeline.holes.flight_lines import line_moments, merge_line_moments
+
+
+def _lines(width: int = 300, height: int = 200) -> np.ndarray:
+    """Three north-south bands of 80 columns; the middle one is missing (id -1)."""
+    ids = np.full((height, width), -1, np.int64)
+    ids[:, 0:80] = 0
+    ids[:, 160:240] = 2
+    return ids
+
+
+def test_a_missed_line_leaves_a_gap_between_its_neighbours():
+    ids = _lines()
+    gaps = coverage_gaps(line_moments(ids, row_off=0, col_off=0))
+    assert len(gaps.bands) == 2 and len(gaps.gaps) == 1
+    classes = gaps.classes(PixelWindow(0, 0, 200, 300), margin_px=0.0)
+    assert (classes[:, 80:160] == IN_GAP).all()
+    assert (classes[:, 0:80] == IN_SWATH).all() and (classes[:, 160:240] == IN_SWATH).all()
+    assert (classes[:, 240:] == UNKNOWN).all()
+
+
+def test_gaps_do_not_depend_on_how_the_moments_are_cut():
+    ids = _lines()
+    whole = coverage_gaps(line_moments(ids, row_off=0, col_off=0))
+    pieces = [
+        line_moments(ids[r : r + 50, c : c + 64], row_off=r, col_off=c)
+        for r in range(0, 200, 50)
+        for c in range(0, 300, 64)
+    ]
+    cut = coverage_gaps(merge_line_moments(pieces))
+    window = PixelWindow(0, 0, 200, 300)
+    assert np.array_equal(whole.classes(window), cut.classes(window))
+
+
+def test_touching_lines_leave_no_gap():
+    ids = np.zeros((200, 240), np.int64)
+    ids[:, 80:160] = 1
+    ids[:, 160:] = 2
+    gaps = coverage_gaps(line_moments(ids, row_off=0, col_off=0))
+    assert len(gaps.bands) == 3 and not gaps.gaps
