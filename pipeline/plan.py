@@ -235,13 +235,16 @@ def plan_sizing(density: Density, config: Config) -> Sizing:
 def hole_params(survey: Survey, config: Config, *, pixel_size_m: float, spacing_m: float) -> HoleParams:
     """The ``[holes]`` settings in the survey's units, "auto" resolved: computed once, in the plan.
 
-    ``spacing_m`` is the survey's nominal point spacing: it sets ``holes.min_area_m2 =
-    "auto"`` and the width under which a void is a sampling gap (:mod:`pipeline.density`).
+    ``spacing_m`` is the survey's nominal point spacing. With ``holes.min_area_m2 =
+    "auto"`` it sets the smallest listed area and the width under which a void is a
+    sampling gap (:mod:`pipeline.density`); a number set there is the only rule, as
+    it always was (synthetic surveys whose truth counts every one-pixel sliver).
     """
     holes = config.holes
     pixel_area_m2 = pixel_size_m**2
-    min_area_m2 = auto_min_area_m2(spacing_m) if holes.min_area_m2 == AUTO else float(holes.min_area_m2)
-    gap_m = sampling_gap_width_m(spacing_m) if math.isfinite(spacing_m) else 0.0
+    auto = holes.min_area_m2 == AUTO
+    min_area_m2 = auto_min_area_m2(spacing_m) if auto else float(holes.min_area_m2)
+    gap_m = sampling_gap_width_m(spacing_m) if auto and math.isfinite(spacing_m) else 0.0
     return HoleParams(
         jump_threshold=holes.jump_threshold_m / survey.vertical_unit_m,
         voxel_height=config.rasterize.voxel_height_m / survey.vertical_unit_m,

@@ -80,6 +80,9 @@ def test_auto_pixel_size_follows_the_first_return_density(caplog):
     # min_area_m2 "auto" scales with the spacing: (4 x 1/sqrt(0.05) m)^2 = 320 m2
     assert sparse.hole_params.min_area_m2 == pytest.approx(320.0)
     assert sparse.hole_params.sampling_gap_px == pytest.approx(4 / np.sqrt(0.05) / 10)
+    # a number set for min_area_m2 is the only rule: no sampling gaps
+    set_area = plan_survey(survey_of(bounds, 80_000, (50_000, 30_000)), load_config(overrides=["holes.min_area_m2=4"]))
+    assert set_area.hole_params.min_area_m2 == 4.0 and set_area.hole_params.sampling_gap_px == 0.0
     # per-return counts that do not add up: all points are used
     dense = plan_survey(survey_of(bounds, 20_000_000, (1, 2)), load_config())
     assert not dense.sizing.density.first_returns and dense.sizing.resolution_m == 0.5
