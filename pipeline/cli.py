@@ -157,6 +157,8 @@ def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
     click.echo(f"generating a synthetic survey ({size}) in {survey_dir} ...", err=True)
     synthetic = generate_survey(survey_dir / "tiles", preset(size))
     truth = write_truth(synthetic, survey_dir)
+    if config.grid.resolution_m == "auto":  # the truth rasters are on the synthetic survey's grid
+        config = config.replace("grid", source="demo", resolution_m=synthetic.spec.resolution)
     click.echo(f"{len(synthetic.tiles)} LAZ tiles, {synthetic.n_points:,} points; truth in {survey_dir}", err=True)
     summary = run_survey(
         [str(survey_dir / "tiles")],
@@ -168,7 +170,9 @@ def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
     )
     _report(summary)
     score = score_holes(
-        out / "holes.gpkg", truth["hole_cause"], min_area_px=_min_area_px(config, synthetic.spec.resolution)
+        out / "holes.gpkg",
+        truth["hole_cause"],
+        min_area_px=_min_area_px(summary.holes["min_area_m2"], synthetic.spec.resolution),
     )
     click.echo(
         f"against the truth: hole IoU {score.iou:.3f}, causes right for {score.cause_correct} of "
@@ -198,16 +202,20 @@ def evaluate(out_dir, truth_path, config_path, overrides):
     from .evaluate import score_holes
 
     config = load_config(config_path, list(overrides))
+    min_area_m2 = config.holes.min_area_m2
+    if min_area_m2 == "auto":  # as the run resolved it
+        manifest = json.loads((Path(out_dir) / "manifest.json").read_text())
+        min_area_m2 = manifest["holes"]["min_area_m2"]
     with rasterio.open(truth_path) as truth:
         resolution = abs(truth.transform.a)
-    score = score_holes(Path(out_dir) / "holes.gpkg", truth_path, min_area_px=_min_area_px(config, resolution))
+    score = score_holes(Path(out_dir) / "holes.gpkg", truth_path, min_area_px=_min_area_px(min_area_m2, resolution))
     click.echo(json.dumps(score.as_dict(), indent=2))
 
 
-def _min_area_px(config, resolution: float) -> int:
+def _min_area_px(min_area_m2: float, resolution: float) -> int:
     import math
 
-    return max(1, math.ceil(config.holes.min_area_m2 / resolution**2))
+    return max(1, math.ceil(min_area_m2 / resolution**2))
 
 
 @main.command("plan")
@@ -290,7 +298,7 @@ def _report(summary) -> None:
         types = ", ".join(f"{n} {kind}" for kind, n in holes["parts_by_type"].items())
         click.echo(
             f"{holes['listed']} holes ({holes['area_m2']:,.0f} m2): {causes or 'none'}; parts by type: {types or 'none'}; "
-            f"{holes['small_voids']} small voids under {holes['min_area_m2']:g} m2; "
+            f"{holes['small_voids']} small voids under {holes['min_area_m2']:g} m2 or sampling gaps; "
             f"{holes['vertical_hole_groups']} vertical holes, {holes['walls']} walls",
             err=True,
         )

@@ -13,11 +13,16 @@ from __future__ import annotations
 import dataclasses
 import math
 import tomllib
+import types
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, get_args, get_origin, get_type_hints
 
 from .errors import ConfigError
+
+#: The value of a key whose number is worked out from the survey (``grid.resolution_m``,
+#: ``holes.min_area_m2``).
+AUTO = "auto"
 
 #: Pixels of context hole detection needs around a cell core (its local radius):
 #: ``grid.halo_px`` must be at least this when holes are found.
@@ -29,7 +34,9 @@ def _opt(default: Any, doc: str, **rules: Any) -> Any:
 
     Rules: ``choices`` (allowed values), ``gt``/``ge`` (lower bounds), ``le``
     (upper bound), ``item_range`` (bounds of each list item), ``item_choices``
-    (allowed list items).
+    (allowed list items), ``auto`` (the string ``"auto"`` is allowed besides a
+    number: the field's type is ``float | str``, resolved once when the survey is
+    planned, see :mod:`pipeline.plan`).
     """
     if isinstance(default, list):
         return field(default_factory=lambda: list(default), metadata={"doc": doc, **rules})
@@ -40,9 +47,21 @@ def _opt(default: Any, doc: str, **rules: Any) -> Any:
 class GridConfig:
     """The global raster grid and the cells it is cut into."""
 
-    resolution_m: float = _opt(1.0, "DSM pixel size in metres (converted to the CRS unit).", gt=0)
-    cell_size_m: float = _opt(250.0, "Side of a square processing cell in metres; a multiple of resolution_m.", gt=0)
+    resolution_m: float | str = _opt(
+        "auto",
+        "DSM pixel size in metres, or 'auto': the finest standard size the point density supports.",
+        gt=0,
+        auto=True,
+    )
+    cell_size_m: float = _opt(
+        250.0, "Side of a square processing cell in metres; rounded to a whole multiple (>= 16) of the pixel.", gt=0
+    )
     halo_px: int = _opt(8, "Pixels of neighbouring cells read around each cell.", ge=0)
+    align: str = _opt(
+        "edge",
+        "Pixel edges ('edge') or pixel centres ('center') on multiples of the pixel size.",
+        choices=("edge", "center"),
+    )
 
 
 @dataclass(frozen=True)
@@ -69,7 +88,12 @@ class HolesConfig:
     """Hole detection, classification and outlines (docs/holes.md)."""
 
     enabled: bool = _opt(True, "Find, classify and outline holes (false: the DSM only).")
-    min_area_m2: float = _opt(4.0, "Holes smaller than this are small voids: counted in the report, not listed.", ge=0)
+    min_area_m2: float | str = _opt(
+        "auto",
+        "Holes smaller than this (m2) are small voids: counted, not listed; 'auto' scales it with the point spacing.",
+        ge=0,
+        auto=True,
+    )
     connectivity: int = _opt(4, "Pixel connectivity of hole pixels.", choices=(4, 8))
     jump_threshold_m: float = _opt(
         2.5, "Height jump (UAS eq. 1): max z - min z in a pixel, or between 4-neighbours.", gt=0
@@ -282,11 +306,6 @@ class Config:
     flightplan: FlightPlanConfig = field(default_factory=FlightPlanConfig)
     fill: FillConfig = field(default_factory=FillConfig)
 
-    @property
-    def cell_size_px(self) -> int:
-        """Cell side in pixels (validated to be a whole number)."""
-        return round(self.grid.cell_size_m / self.grid.resolution_m)
-
     def replace(self, section: str, *, source: str = "replace()", **values: Any) -> Config:
         """Return a copy with some keys of one section changed, validated like a file.
 
@@ -400,13 +419,6 @@ def _build(merged: dict[str, dict[str, Any]], sources: dict[str, str]) -> Config
 
 def _check_across_keys(config: Config, sources: dict[str, str]) -> None:
     """Rules that tie keys together, checked at load time so that no worker meets them later."""
-    ratio = config.grid.cell_size_m / config.grid.resolution_m
-    if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 16:
-        where = sources.get("grid.cell_size_m", sources.get("grid.resolution_m", "default"))
-        raise ConfigError(
-            f"{where}: grid.cell_size_m ({config.grid.cell_size_m}) must be a whole multiple "
-            f"(at least 16) of grid.resolution_m ({config.grid.resolution_m})"
-        )
     if config.holes.enabled and config.grid.halo_px < HOLE_CONTEXT_PX:
         where = sources.get("grid.halo_px", "default")
         raise ConfigError(
@@ -425,6 +437,12 @@ def _validate(key: str, value: Any, kind: Any, rules: dict[str, Any], where: str
     def fail(expected: str) -> ConfigError:
         return ConfigError(f"{where}: {key} = {value!r} is invalid; expected {expected}")
 
+    if get_origin(kind) is types.UnionType:  # float | str: a number, or "auto"
+        if rules.get("auto") and value == AUTO:
+            return AUTO
+        if isinstance(value, str):
+            raise fail(f"a number or {AUTO!r}")
+        return _validate(key, value, float, rules, where)
     if get_origin(kind) is list:
         item_kind = get_args(kind)[0]
         if not isinstance(value, list) or not all(_is(v, item_kind) for v in value):

@@ -1,9 +1,11 @@
 """The survey's global raster grid, its cells, halos and pixel windows.
 
 Every pixel of every output lives on one absolute lattice: pixel column
-``floor(x / resolution)`` and row ``floor(y / resolution)`` in the survey CRS,
-so a point always lands in the same pixel whatever the tiling of the inputs or
-the cell size. The survey grid is the part of that lattice covering the union of
+``floor(x / resolution + offset)`` and row ``floor(y / resolution + offset)`` in
+the survey CRS, so a point always lands in the same pixel whatever the tiling of
+the inputs or the cell size. ``offset`` is 0 when pixel edges lie on multiples of
+the resolution (``grid.align = "edge"``) and 0.5 when pixel centres do
+(``"center"``, the convention of national DSM products such as IGN's). The survey grid is the part of that lattice covering the union of
 the tile extents; cells are the squares of ``cell_px`` pixels aligned to
 multiples of the cell size in world coordinates (so cell names are stable), and
 clipped to the grid. Rows count downwards from the top (north-up rasters).
@@ -97,6 +99,8 @@ class Grid:
         Pixels read around each cell.
     crs_wkt : str
         The survey CRS.
+    offset : float
+        0.0: pixel edges on multiples of the resolution; 0.5: pixel centres (see the module).
     """
 
     resolution: float
@@ -107,6 +111,7 @@ class Grid:
     cell_px: int
     halo_px: int
     crs_wkt: str
+    offset: float = 0.0
 
     @classmethod
     def covering(
@@ -117,13 +122,14 @@ class Grid:
         cell_px: int,
         halo_px: int,
         crs_wkt: str,
+        offset: float = 0.0,
     ) -> Grid:
         """The smallest grid on the lattice that covers every (minx, miny, maxx, maxy) box."""
         b = np.asarray(bounds, dtype=np.float64).reshape(-1, 4)
-        col_min = math.floor(b[:, 0].min() / resolution)
-        col_max = math.floor(b[:, 2].max() / resolution)
-        row_bottom = math.floor(b[:, 1].min() / resolution)
-        row_top = math.floor(b[:, 3].max() / resolution)
+        col_min = _lattice_index(b[:, 0].min(), resolution, offset)
+        col_max = _lattice_index(b[:, 2].max(), resolution, offset)
+        row_bottom = _lattice_index(b[:, 1].min(), resolution, offset)
+        row_top = _lattice_index(b[:, 3].max(), resolution, offset)
         return cls(
             resolution=float(resolution),
             col_min=col_min,
@@ -133,6 +139,7 @@ class Grid:
             cell_px=int(cell_px),
             halo_px=int(halo_px),
             crs_wkt=crs_wkt,
+            offset=float(offset),
         )
 
     # -- geometry -----------------------------------------------------------------
@@ -142,11 +149,11 @@ class Grid:
 
     @property
     def x_left(self) -> float:
-        return self.col_min * self.resolution
+        return (self.col_min - self.offset) * self.resolution
 
     @property
     def y_top(self) -> float:
-        return (self.row_top + 1) * self.resolution
+        return (self.row_top + 1 - self.offset) * self.resolution
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
@@ -178,19 +185,20 @@ class Grid:
         """Grid row and column of world points (may fall outside the grid).
 
         This is the one formula that places points; the compiled kernel in
-        ``rasterize`` uses the same expression.
+        ``rasterize`` uses the same expression (``floor(x / resolution + offset)``).
         """
-        cols = np.floor(np.asarray(x) / self.resolution).astype(np.int64) - self.col_min
-        rows = self.row_top - np.floor(np.asarray(y) / self.resolution).astype(np.int64)
+        r, o = self.resolution, self.offset
+        cols = np.floor(np.asarray(x) / r + o).astype(np.int64) - self.col_min
+        rows = self.row_top - np.floor(np.asarray(y) / r + o).astype(np.int64)
         return rows, cols
 
     def window_of_bounds(self, minx: float, miny: float, maxx: float, maxy: float) -> PixelWindow:
         """The pixels touched by a world box (inclusive of its max edge), clipped to the grid."""
-        r = self.resolution
-        c0 = math.floor(minx / r) - self.col_min
-        c1 = math.floor(maxx / r) - self.col_min
-        r0 = self.row_top - math.floor(maxy / r)
-        r1 = self.row_top - math.floor(miny / r)
+        r, o = self.resolution, self.offset
+        c0 = _lattice_index(minx, r, o) - self.col_min
+        c1 = _lattice_index(maxx, r, o) - self.col_min
+        r0 = self.row_top - _lattice_index(maxy, r, o)
+        r1 = self.row_top - _lattice_index(miny, r, o)
         return PixelWindow(r0, c0, r1 - r0 + 1, c1 - c0 + 1).intersection(self.window)
 
     # -- cells --------------------------------------------------------------------
@@ -206,8 +214,8 @@ class Grid:
         col_off = index_x * n - self.col_min
         core = PixelWindow(row_off, col_off, n, n).intersection(self.window)
         halo = core.expand(self.halo_px).intersection(self.window)
-        x0 = index_x * n * self.resolution
-        y0 = index_y * n * self.resolution
+        x0 = (index_x * n - self.offset) * self.resolution
+        y0 = (index_y * n - self.offset) * self.resolution
         return Cell(
             id=f"{_coordinate_name(x0)}_{_coordinate_name(y0)}",
             index_x=index_x,
@@ -236,6 +244,11 @@ class Grid:
         for index_y in range(top_index, bottom_index - 1, -1):
             for index_x in range(left_index, right_index + 1):
                 yield index_y, index_x
+
+
+def _lattice_index(value: float, resolution: float, offset: float) -> int:
+    """``floor(value / resolution + offset)``: the formula of :meth:`Grid.pixel_rows_cols`, on a scalar."""
+    return math.floor(float(value) / resolution + offset)
 
 
 def _coordinate_name(value: float) -> str:

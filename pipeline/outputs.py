@@ -201,7 +201,11 @@ def write_hole_layers(
         "parts_by_type": dict(sorted(counts_by_type.items())),
         "small_voids": catalog.small_void_count,
         "small_void_area_m2": round(catalog.small_void_px * plan.pixel_area_m2, 2),
-        "min_area_m2": config.holes.min_area_m2,
+        "min_area_m2": plan.hole_params.min_area_m2,
+        "min_area_source": "auto" if config.holes.min_area_m2 == "auto" else "set",
+        "sampling_gap_width_m": round(plan.hole_params.sampling_gap_px * plan.pixel_size_m, 4),
+        "sampling_gaps": holes.sampling_gaps,
+        "sampling_gap_area_m2": round(holes.sampling_gap_px * plan.pixel_area_m2, 2),
         "vertical_hole_groups": len(vertical_records),
         "walls": len(wall_records),
         "height_jump_px": int(sum(d.jump_px for d in detected)),
@@ -387,6 +391,8 @@ def write_manifest(
             "bounds": grid.bounds,
             "cell_px": grid.cell_px,
             "halo_px": grid.halo_px,
+            "align": plan.sizing.align,
+            "sizing": plan.sizing.as_record(),
         },
         "inputs": [
             {"path": r.path, "points_read": r.points_read, "points_used": r.points_used, "seconds": round(r.seconds, 3)}

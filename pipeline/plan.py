@@ -12,6 +12,7 @@ Each stage builds its own task recipes from the plan (``pipeline.stages``).
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from collections import defaultdict
@@ -19,11 +20,24 @@ from dataclasses import dataclass
 
 import shapely
 
-from .config import Config
+from .config import AUTO, Config
+from .density import (
+    Density,
+    auto_min_area_m2,
+    auto_resolution_m,
+    round_cell_size,
+    sampling_gap_width_m,
+    supported_resolution_m,
+)
 from .footprint import block_size_px
 from .grid import Cell, Grid, PixelWindow
 from .io.vector import read_survey_area
 from .survey import Survey
+
+logger = logging.getLogger(__name__)
+
+#: ``grid.align`` -> the lattice offset of :class:`pipeline.grid.Grid`.
+ALIGN_OFFSETS = {"edge": 0.0, "center": 0.5}
 
 
 @dataclass(frozen=True)
@@ -36,6 +50,53 @@ class HoleParams:
     min_area_px: int
     vertical_min_px: int
     wall_min_length_px: float
+    min_area_m2: float = 4.0  # holes.min_area_m2, "auto" resolved
+    sampling_gap_px: float = 0.0  # holes no thicker than this (pixels) are sampling gaps; 0: none
+
+
+@dataclass(frozen=True)
+class Sizing:
+    """The pixel and cell sizes of a run, settled once from the settings and the survey's density.
+
+    Attributes
+    ----------
+    resolution_m, cell_size_m : float
+        The pixel and cell sides in metres, as used.
+    cell_px : int
+        Pixels per cell side.
+    resolution_source : str
+        ``"auto"`` (chosen from the density) or ``"set"`` (``grid.resolution_m``).
+    cell_size_requested_m : float
+        ``grid.cell_size_m`` as set; ``cell_size_m`` differs when it was rounded.
+    supported_resolution_m : float
+        The finest pixel size the density supports (not rounded to a standard size).
+    align : str
+        ``grid.align``.
+    density : Density
+        From the headers: points and first returns over the tile bounds.
+    """
+
+    resolution_m: float
+    cell_size_m: float
+    cell_px: int
+    resolution_source: str
+    cell_size_requested_m: float
+    supported_resolution_m: float
+    align: str
+    density: Density
+
+    def as_record(self) -> dict[str, object]:
+        """What the manifest records of the sizing."""
+        return {
+            "resolution_m": self.resolution_m,
+            "resolution_source": self.resolution_source,
+            "supported_resolution_m": round(self.supported_resolution_m, 4),
+            "cell_size_m": self.cell_size_m,
+            "cell_size_requested_m": self.cell_size_requested_m,
+            "cell_px": self.cell_px,
+            "align": self.align,
+            "density": self.density.as_record(),
+        }
 
 
 @dataclass(frozen=True)
@@ -65,6 +126,8 @@ class SurveyPlan:
     survey_area: shapely.Geometry
     aoi_given: bool
     block_px: int
+    sizing: Sizing
+    hole_params: HoleParams
 
     def cell_by_id(self) -> dict[str, Cell]:
         return {cell.id: cell for cell in self.cells}
@@ -81,13 +144,14 @@ class SurveyPlan:
 
 def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None = None) -> SurveyPlan:
     """Lay the global grid over the survey, cut it into cells and index tiles by cell."""
-    resolution = config.grid.resolution_m / survey.horizontal_unit_m
+    sizing = plan_sizing(survey.density, config)
     grid = Grid.covering(
         [t.bounds for t in survey.tiles],
-        resolution=resolution,
-        cell_px=config.cell_size_px,
+        resolution=sizing.resolution_m / survey.horizontal_unit_m,
+        cell_px=sizing.cell_px,
         halo_px=config.grid.halo_px,
         crs_wkt=survey.crs_wkt,
+        offset=ALIGN_OFFSETS[config.grid.align],
     )
     tile_windows = [grid.window_of_bounds(*t.bounds) for t in survey.tiles]
     if aoi is not None:
@@ -107,6 +171,7 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
         for cell in cells
     }
     block_px = block_size_px(grid, config.holes.footprint_block_m, survey.horizontal_unit_m)
+    pixel_size_m = grid.resolution * survey.horizontal_unit_m
     return SurveyPlan(
         survey=survey,
         grid=grid,
@@ -117,21 +182,78 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
         survey_area=survey_area,
         aoi_given=aoi is not None,
         block_px=block_px,
+        sizing=sizing,
+        hole_params=hole_params(survey, config, pixel_size_m=pixel_size_m, spacing_m=sizing.density.spacing_m),
     )
 
 
-def hole_params(plan: SurveyPlan, config: Config) -> HoleParams:
-    """The ``[holes]`` settings in the survey's units: computed once, for detection and linking alike."""
+def plan_sizing(density: Density, config: Config) -> Sizing:
+    """Settle ``grid.resolution_m`` ("auto" or a number) and round ``grid.cell_size_m`` to whole pixels.
+
+    Logs the choice, warns when a pixel size set explicitly is finer than the
+    density supports, and logs a cell size that had to be rounded.
+    """
+    grid = config.grid
+    supported = supported_resolution_m(density.pulses_per_m2)
+    what = "first returns" if density.first_returns else "points"
+    if grid.resolution_m == AUTO:
+        resolution, source = auto_resolution_m(density.pulses_per_m2), "auto"
+        logger.info(
+            "pixel size %g m chosen for %.3g %s/m2 (point spacing %.3g m)",
+            resolution,
+            density.pulses_per_m2,
+            what,
+            density.spacing_m,
+        )
+    else:
+        resolution, source = float(grid.resolution_m), "set"
+        if resolution < supported * (1 - 1e-9):
+            logger.warning(
+                "grid.resolution_m = %g m is finer than the survey supports: %.3g %s/m2 (point spacing %.3g m) "
+                "fill a %g m pixel with %.2g on average, so many pixels stay empty by chance; %g m or coarser "
+                '(or grid.resolution_m = "auto") gives a complete DSM',
+                resolution,
+                density.pulses_per_m2,
+                what,
+                density.spacing_m,
+                resolution,
+                resolution**2 * density.pulses_per_m2,
+                auto_resolution_m(density.pulses_per_m2),
+            )
+    cell_size, cell_px = round_cell_size(grid.cell_size_m, resolution)
+    if not math.isclose(cell_size, grid.cell_size_m, rel_tol=1e-9):
+        logger.info(
+            "grid.cell_size_m = %g m is not a whole multiple (at least 16) of the %g m pixel: cells are %g m (%d pixels)",
+            grid.cell_size_m,
+            resolution,
+            cell_size,
+            cell_px,
+        )
+    return Sizing(resolution, cell_size, cell_px, source, grid.cell_size_m, supported, grid.align, density)
+
+
+def hole_params(survey: Survey, config: Config, *, pixel_size_m: float, spacing_m: float) -> HoleParams:
+    """The ``[holes]`` settings in the survey's units, "auto" resolved: computed once, in the plan.
+
+    ``spacing_m`` is the survey's nominal point spacing. With ``holes.min_area_m2 =
+    "auto"`` it sets the smallest listed area and the width under which a void is a
+    sampling gap (:mod:`pipeline.density`); a number set there is the only rule, as
+    it always was (synthetic surveys whose truth counts every one-pixel sliver).
+    """
     holes = config.holes
-    unit = plan.survey.horizontal_unit_m
-    pixel_area_m2 = plan.pixel_area_m2
+    pixel_area_m2 = pixel_size_m**2
+    auto = holes.min_area_m2 == AUTO
+    min_area_m2 = auto_min_area_m2(spacing_m) if auto else float(holes.min_area_m2)
+    gap_m = sampling_gap_width_m(spacing_m) if auto and math.isfinite(spacing_m) else 0.0
     return HoleParams(
-        jump_threshold=holes.jump_threshold_m / plan.survey.vertical_unit_m,
-        voxel_height=config.rasterize.voxel_height_m / plan.survey.vertical_unit_m,
+        jump_threshold=holes.jump_threshold_m / survey.vertical_unit_m,
+        voxel_height=config.rasterize.voxel_height_m / survey.vertical_unit_m,
         connectivity=holes.connectivity,
-        min_area_px=math.ceil(holes.min_area_m2 / pixel_area_m2),
+        min_area_px=math.ceil(min_area_m2 / pixel_area_m2),
         vertical_min_px=math.ceil(holes.vertical_min_area_m2 / pixel_area_m2),
-        wall_min_length_px=holes.wall_min_length_m / unit / plan.grid.resolution,
+        wall_min_length_px=holes.wall_min_length_m / pixel_size_m,
+        min_area_m2=min_area_m2,
+        sampling_gap_px=gap_m / pixel_size_m,
     )
 
 

@@ -126,9 +126,10 @@ class HeightMapAccumulator:
     ----------
     window : PixelWindow
         The grid pixels the tile can touch.
-    resolution, col_min, row_top, grid_width
+    resolution, col_min, row_top, grid_width, offset
         The grid (see :class:`pipeline.grid.Grid`); a point goes to grid column
-        ``floor(x / resolution) - col_min`` and row ``row_top - floor(y / resolution)``.
+        ``floor(x / resolution + offset) - col_min`` and row
+        ``row_top - floor(y / resolution + offset)``.
     voxel_height : float
         In z units.
     """
@@ -142,12 +143,13 @@ class HeightMapAccumulator:
         row_top: int,
         grid_width: int,
         voxel_height: float,
+        offset: float = 0.0,
     ) -> None:
         self.statistics = PixelStatistics.empty(window)
         self.voxel_base = np.zeros(window.shape, np.int64)
         self.voxel_bits = np.zeros(window.shape, np.uint64)
         self.overflow = VoxelSet()
-        self._geometry = (float(resolution), int(col_min), int(row_top), int(grid_width))
+        self._geometry = (float(resolution), int(col_min), int(row_top), int(grid_width), float(offset))
         self.voxel_height = float(voxel_height)
 
     @property
@@ -370,7 +372,7 @@ def _rehash(old, new):
 def _bin_points_kernel(
     x, y, z, keep, water, source,
     scale_x, scale_y, scale_z, offset_x, offset_y, offset_z,
-    resolution, col_min, row_top, grid_width,
+    resolution, col_min, row_top, grid_width, lattice_offset,
     win_row_off, win_col_off, win_height, win_width,
     voxel_height,
     zmax, zmin, count, voxels, water_count, source_max, voxel_base, voxel_bits,
@@ -385,8 +387,8 @@ def _bin_points_kernel(
         px = np.float64(x[i]) * scale_x + offset_x
         py = np.float64(y[i]) * scale_y + offset_y
         pz = np.float64(z[i]) * scale_z + offset_z
-        col = np.int64(np.floor(px / resolution)) - col_min
-        row = row_top - np.int64(np.floor(py / resolution))
+        col = np.int64(np.floor(px / resolution + lattice_offset)) - col_min
+        row = row_top - np.int64(np.floor(py / resolution + lattice_offset))
         local_row = row - win_row_off
         local_col = col - win_col_off
         if local_row < 0 or local_row >= win_height or local_col < 0 or local_col >= win_width:

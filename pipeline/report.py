@@ -51,7 +51,8 @@ def write_report(path: str | Path, manifest: dict[str, Any], largest_holes: list
         parts += [
             "<h2>Holes</h2>",
             f"<p>{holes['listed']:,} holes of at least {holes['min_area_m2']:g} m², {holes['area_m2']:,.0f} m² in all; "
-            f"{holes['small_voids']:,} smaller voids ({holes['small_void_area_m2']:,.0f} m²) counted, not listed. "
+            f"{holes['small_voids']:,} smaller voids and sampling gaps ({holes['small_void_area_m2']:,.0f} m²) "
+            f"counted, not listed. "
             f"Survey area (AOI): {holes['aoi_area_m2']:,.0f} m².</p>",
             "<h3>By cause</h3>",
             _table(["cause", "holes"], [[cause, f"{n:,}"] for cause, n in holes["by_cause"].items()]),

@@ -39,7 +39,7 @@ from .outputs import (
     write_mosaics,
     write_survey_layers,
 )
-from .plan import SurveyPlan, hole_params, plan_survey
+from .plan import SurveyPlan, plan_survey
 from .report import write_report
 from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells, write_rasters
 from .stages.bin_tiles import TileFailure, TileResult
@@ -236,7 +236,7 @@ def _run_rasters(
 
 def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[CellResult], water, staging: Staging):
     """Detection (per cell) on the footprint gathered from stage 2, then linking on the client."""
-    params = hole_params(plan, config)
+    params = plan.hole_params
     blocks = merge_cells.footprint_blocks(cells, plan, config)
     gaps = merge_cells.survey_coverage_gaps(cells)
     tasks = detect_holes.detect_tasks(plan, params, cells, blocks, water, staging, gaps)
@@ -265,7 +265,7 @@ def _run_fill(
     runner: _Runner, plan: SurveyPlan, config: Config, holes: link_holes.HoleSet, rasters: _Rasters, staging: Staging
 ) -> list[fill_holes.HoleFill]:
     """Fill (per cell owning holes), then the writer (per cell) painting the fills into the rasters."""
-    params = fill_holes.fill_params(plan, config, hole_params(plan, config))
+    params = fill_holes.fill_params(plan, config, plan.hole_params)
     merged = [r.cell_id for r in rasters.cells]
     sources = fill_holes.cell_sources(plan, holes, staging, merged)
     tasks, fills = fill_holes.fill_tasks(plan, config, holes, sources, params, staging)

@@ -13,11 +13,14 @@ import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
+import shapely
 from pyproj import CRS, Transformer
 from pyproj.exceptions import CRSError as ProjCRSError
 
+from .density import Density, pulse_count
 from .errors import CRSError, InputDataError
 from .io.las import TileHeader, read_header
 
@@ -62,6 +65,28 @@ class Survey:
     @property
     def point_count(self) -> int:
         return sum(t.header.point_count for t in self.tiles)
+
+    def tile_density(self, tile: Tile) -> Density:
+        """A tile's density from its header counts over its bounds (in the survey CRS)."""
+        pulses, first = pulse_count(tile.header.point_count, tile.header.points_by_return)
+        minx, miny, maxx, maxy = tile.bounds
+        area = max(maxx - minx, 0.0) * max(maxy - miny, 0.0) * self.horizontal_unit_m**2
+        return Density(tile.header.point_count, pulses, area, first)
+
+    @cached_property
+    def density(self) -> Density:
+        """The survey's density: header counts over the union of the tile bounds (overlaps count once).
+
+        First returns only when every tile's header can tell them (see
+        :func:`pipeline.density.pulse_count`). The bounds are an upper bound of the
+        data footprint, so the density is a lower bound: the pixel size chosen from
+        it errs towards coarse pixels, never towards empty ones.
+        """
+        counts = [pulse_count(t.header.point_count, t.header.points_by_return) for t in self.tiles]
+        first = all(f for _, f in counts)
+        pulses = sum(c for c, _ in counts) if first else self.point_count
+        area = shapely.union_all([shapely.box(*t.bounds) for t in self.tiles]).area * self.horizontal_unit_m**2
+        return Density(self.point_count, pulses, area, first)
 
 
 def find_inputs(inputs: list[str] | tuple[str, ...]) -> list[Path]:
@@ -236,6 +261,7 @@ def _vertical_unit(crs: CRS, horizontal_unit_m: float) -> float:
 
 def tile_index_records(survey: Survey) -> list[dict[str, object]]:
     """Attributes of each tile for the ``tiles`` layer (geometry added by the writer)."""
+    densities = [survey.tile_density(t) for t in survey.tiles]
     return [
         {
             "tile_id": t.index,
@@ -247,10 +273,12 @@ def tile_index_records(survey: Survey) -> list[dict[str, object]]:
             "point_count": t.header.point_count,
             "z_min": t.header.z_range[0],
             "z_max": t.header.z_range[1],
+            "points_per_m2": round(d.points_per_m2, 4),
+            "first_returns_per_m2": round(d.pulses_per_m2, 4) if d.first_returns else None,
             "reprojected": not CRS.from_wkt(t.source_crs_wkt).equals(survey.crs, ignore_axis_order=True),
             "bounds": t.bounds,
         }
-        for t in survey.tiles
+        for t, d in zip(survey.tiles, densities)
     ]
 
 

@@ -28,7 +28,7 @@ def test_bad_override_exits_2_with_one_line(runner, tmp_path):
     assert result.exit_code == 2
     assert result.output.strip().splitlines() == [
         "holefill: error: --set grid.pixel=1: unknown key 'grid.pixel'; allowed keys in [grid]: "
-        "resolution_m, cell_size_m, halo_px"
+        "resolution_m, cell_size_m, halo_px, align"
     ]
     assert not (tmp_path / "o").exists()
 

@@ -35,7 +35,10 @@ def test_overrides_are_typed_and_validated():
     assert config.grid.resolution_m == 0.5
     assert config.filter.keep_classes == [2]
     assert config.survey.crs == "EPSG:28992"
-    assert config.cell_size_px == 500
+    assert load_config().grid.resolution_m == "auto" and load_config().holes.min_area_m2 == "auto"
+    assert load_config(overrides=["grid.resolution_m=auto"]).grid.resolution_m == "auto"
+    # a cell size that is no multiple of the pixel is rounded when the survey is planned, not refused
+    assert load_config(overrides=["grid.resolution_m=4", "grid.cell_size_m=250"]).grid.cell_size_m == 250.0
 
 
 @pytest.mark.parametrize(
@@ -47,7 +50,9 @@ def test_overrides_are_typed_and_validated():
         ("output.compress=jpeg", ["output.compress", "'deflate'", "'zstd'"]),
         ("filter.drop_classes=7", ["filter.drop_classes", "list of int"]),
         ("filter.drop_classes=[7, 300]", ["between 0 and 255"]),
-        ("grid.cell_size_m=100.25", ["whole multiple"]),
+        ("grid.resolution_m=fine", ["grid.resolution_m", "a number or 'auto'"]),
+        ("holes.min_area_m2=-1", ["holes.min_area_m2", ">= 0"]),
+        ("grid.align=corner", ["grid.align", "'edge'", "'center'"]),
         ("survey.on_error=ignore", ["'fail'", "'skip'"]),
         ("dask.workers=1.5", ["dask.workers", "int"]),
         ("noequals", ["section.key=value"]),

@@ -52,3 +52,38 @@ def test_cell_ids_are_lower_left_corners():
     grid = make_grid(resolution=1.0, cell_px=50)
     ids = {cell.id for cell in grid.cells()}
     assert "770500_6277500" in ids and "770600_6277550" in ids
+
+
+def test_center_alignment_puts_pixel_centres_on_the_lattice(rng):
+    grid = Grid.covering(
+        [(770500.0, 6277500.0, 770649.99, 6277599.99)], resolution=0.5, cell_px=100, halo_px=4, crs_wkt="", offset=0.5
+    )
+    # IGN's 50 cm products: pixel edges at 770499.75, ...; the first pixel is centred on 770500
+    assert grid.bounds == (770499.75, 6277499.75, 770650.25, 6277600.25)
+    assert (grid.width, grid.height) == (301, 201)
+    centre_x, centre_y = grid.transform @ (0.5, grid.height - 0.5)
+    assert (centre_x, centre_y) == (770500.0, 6277500.0)
+    # a point within a quarter pixel of a lattice node lands in the pixel centred on it
+    rows, cols = grid.pixel_rows_cols(np.array([770500.2, 770500.3]), np.array([6277599.8, 6277599.7]))
+    assert cols.tolist() == [0, 1] and rows.tolist() == [0, 1]
+    # the compiled kernel places points by the same formula
+    from pipeline.rasterize import HeightMapAccumulator
+
+    x = rng.uniform(770500, 770650, 5000)
+    y = rng.uniform(6277500, 6277600, 5000)
+    acc = HeightMapAccumulator(
+        grid.window,
+        resolution=grid.resolution,
+        col_min=grid.col_min,
+        row_top=grid.row_top,
+        grid_width=grid.width,
+        voxel_height=0.5,
+        offset=grid.offset,
+    )
+    acc.add(x, y, np.zeros_like(x), np.ones(len(x), bool))
+    rows, cols = grid.pixel_rows_cols(x, y)
+    expected = np.zeros(grid.window.shape, np.uint32)
+    np.add.at(expected, (rows, cols), 1)
+    assert np.array_equal(acc.statistics.count, expected)
+    # cells are still aligned to multiples of the cell size, shifted by half a pixel
+    assert {c.id for c in grid.cells()} >= {"770499p75_6277499p75"}

@@ -8,8 +8,20 @@ from pyproj import CRS
 
 from pipeline.config import load_config
 from pipeline.grid import Grid
+from pipeline.io.las import TileHeader
 from pipeline.plan import _shared_windows, _tiles_by_cell, plan_survey
 from pipeline.survey import Survey, Tile
+
+
+def header(bounds, points, by_return=()):
+    """A tile header as the scan reads it (no file behind it)."""
+    return TileHeader("t.laz", "LAZ", "1.4", 6, points, bounds, (0.0, 10.0), None, None, 1, tuple(by_return))
+
+
+def survey_of(bounds, points=10_000, by_return=()):
+    crs = CRS.from_epsg(2154).to_wkt()
+    tiles = [Tile(i, header(b, points, by_return), crs, b) for i, b in enumerate(bounds)]
+    return Survey(tiles=tiles, crs_wkt=crs, reproject=False, horizontal_unit_m=1.0, vertical_unit_m=1.0)
 
 
 def random_tiles(rng, n):
@@ -43,11 +55,9 @@ def test_lattice_index_matches_brute_force(rng, cell_px, halo_px):
 
 
 def test_plan_keeps_only_cells_holding_tiles_in_plan_order():
-    crs = CRS.from_epsg(2154).to_wkt()
     # two far-apart blocks of tiles: the cells between them are not planned
     bounds = [(0.0, 0.0, 100.0, 100.0), (100.0, 0.0, 200.0, 100.0), (5000.0, 3000.0, 5100.0, 3100.0)]
-    tiles = [Tile(i, None, crs, b) for i, b in enumerate(bounds)]  # type: ignore[arg-type]
-    survey = Survey(tiles=tiles, crs_wkt=crs, reproject=False, horizontal_unit_m=1.0, vertical_unit_m=1.0)
+    survey = survey_of(bounds)
     config = load_config(overrides=["grid.cell_size_m=50", "grid.resolution_m=1"])
     plan = plan_survey(survey, config)
     # 200 x 100 m and 100 x 100 m: max edges on the lattice add a row and a column of cells
@@ -56,3 +66,31 @@ def test_plan_keeps_only_cells_holding_tiles_in_plan_order():
     assert keys == sorted(keys)
     assert all(plan.tiles_of_cell[c.id] for c in plan.cells)
     assert np.isclose(plan.pixel_area_m2, 1.0)
+
+
+def test_auto_pixel_size_follows_the_first_return_density(caplog):
+    bounds = [(0.0, 0.0, 1000.0, 1000.0)]
+    # 1 km2, 50,000 first returns of 80,000 points: 0.05 first returns/m2 -> 10 m pixels (5 per pixel)
+    sparse = plan_survey(survey_of(bounds, 80_000, (50_000, 30_000)), load_config())
+    assert sparse.sizing.density.first_returns and sparse.sizing.density.pulses_per_m2 == pytest.approx(0.05)
+    assert sparse.sizing.resolution_m == 10.0 and sparse.sizing.resolution_source == "auto"
+    assert sparse.grid.resolution == 10.0
+    # the cell size is rounded to whole pixels (250 m is 25 pixels of 10 m), never refused
+    assert sparse.sizing.cell_size_m == 250.0 and sparse.grid.cell_px == 25
+    # min_area_m2 "auto" scales with the spacing: (4 x 1/sqrt(0.05) m)^2 = 320 m2
+    assert sparse.hole_params.min_area_m2 == pytest.approx(320.0)
+    assert sparse.hole_params.sampling_gap_px == pytest.approx(4 / np.sqrt(0.05) / 10)
+    # a number set for min_area_m2 is the only rule: no sampling gaps
+    set_area = plan_survey(survey_of(bounds, 80_000, (50_000, 30_000)), load_config(overrides=["holes.min_area_m2=4"]))
+    assert set_area.hole_params.min_area_m2 == 4.0 and set_area.hole_params.sampling_gap_px == 0.0
+    # per-return counts that do not add up: all points are used
+    dense = plan_survey(survey_of(bounds, 20_000_000, (1, 2)), load_config())
+    assert not dense.sizing.density.first_returns and dense.sizing.resolution_m == 0.5
+    assert dense.hole_params.min_area_m2 == 4.0  # the floor
+    with caplog.at_level("INFO", logger="pipeline.plan"):
+        fine = plan_survey(survey_of(bounds, 80_000, (50_000, 30_000)), load_config(overrides=["grid.resolution_m=4"]))
+    assert fine.sizing.resolution_source == "set" and fine.grid.resolution == 4.0
+    assert fine.sizing.cell_size_m == 248.0 and fine.grid.cell_px == 62
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "0.05 first returns/m2" in warnings[0] and "10 m or coarser" in warnings[0]
+    assert any("cells are 248 m (62 pixels)" in r.getMessage() for r in caplog.records)

@@ -48,6 +48,7 @@ class TileHeader:
     crs_wkt: str | None
     crs_problem: str | None  # why a CRS record could not be used, if there is one
     file_size: int
+    points_by_return: tuple[int, ...] = ()  # the header's per-return counts, as written
 
 
 @dataclass(frozen=True)
@@ -148,6 +149,7 @@ def read_header(path: str | os.PathLike) -> TileHeader:
         crs_wkt=crs_wkt,
         crs_problem=crs_problem,
         file_size=file_size,
+        points_by_return=tuple(int(c) for c in header.number_of_points_by_return),
     )
 
 

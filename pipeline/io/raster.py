@@ -68,8 +68,9 @@ def write_cog(
     if np.issubdtype(data.dtype, np.floating):
         data = np.where(np.isnan(data), np.float32(nodata), data).astype(np.float32)
     height, width = data.shape
-    # at least one overview level, down to about 64 pixels on the longer side
-    overview_count = max(1, math.ceil(math.log2(max(height, width, 128) / 64)))
+    # at least one overview level, down to about 64 pixels on the longer side; GDAL cannot
+    # reduce a single pixel (a cell core of 1 x 1 at a grid corner)
+    overview_count = max(1, math.ceil(math.log2(max(height, width, 128) / 64))) if max(height, width) > 1 else 0
     profile = {
         "driver": "GTiff",
         "height": height,
@@ -96,8 +97,8 @@ def write_cog(
                     driver="COG",
                     COMPRESS=options.compress.upper(),
                     BLOCKSIZE=options.blocksize,
-                    OVERVIEWS="IGNORE_EXISTING",
-                    OVERVIEW_COUNT=overview_count,
+                    OVERVIEWS="IGNORE_EXISTING" if overview_count else "NONE",
+                    **({"OVERVIEW_COUNT": overview_count} if overview_count else {}),
                     RESAMPLING=options.overview_resampling.upper(),
                     PREDICTOR="YES" if options.compress != "none" else "NO",
                     **({"LEVEL": options.compress_level} if options.compress in ("deflate", "zstd") else {}),

@@ -74,7 +74,15 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
     for tile, window in zip(plan.survey.tiles, plan.tile_windows):
         source_crs = source_crs_for_task(tile, plan.survey)
         fingerprint = input_fingerprint(
-            tile.path, window, grid.resolution, grid.col_min, grid.row_top, source_crs, point_filter, voxel_height
+            tile.path,
+            window,
+            grid.resolution,
+            grid.col_min,
+            grid.row_top,
+            grid.offset,
+            source_crs,
+            point_filter,
+            voxel_height,
         )
         tasks.append(
             TileTask(
@@ -104,6 +112,7 @@ def rasterize_tile(task: TileTask) -> TileResult:
         row_top=grid.row_top,
         grid_width=grid.width,
         voxel_height=task.voxel_height,
+        offset=grid.offset,
     )
     transformer = (
         Transformer.from_crs(task.source_crs_wkt, grid.crs_wkt, always_xy=True) if task.source_crs_wkt else None

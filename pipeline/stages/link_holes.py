@@ -9,12 +9,12 @@ its cause, and a resumed run reads it instead of linking again.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..config import Config
-from ..holes import CauseRules, HoleCatalog, classify_causes, link_holes, ring_metrics
+from ..holes import CauseRules, HoleCatalog, classify_causes, link_holes, ring_metrics, shape_metrics
 from ..holes.flight_lines import axial_mean, line_azimuths, merge_line_moments
 from ..io.intermediate import save_object
 from ..plan import HoleParams, SurveyPlan
@@ -32,11 +32,14 @@ class HoleSet:
     causes: np.ndarray
     ring: np.ndarray
     azimuth_deg: np.ndarray  # float64: for a missed strip, the direction of the flight lines beside it; else NaN
+    sampling_gaps: int = 0  # holes no thicker than HoleParams.sampling_gap_px (not listed, filled as small voids)
+    sampling_gap_px: int = 0  # their pixels
 
 
 def link_cells(detected: list[DetectResult], plan: SurveyPlan, config: Config, params: HoleParams) -> HoleSet:
     """Gather: link the detected parts of every cell (in plan order) and classify the holes."""
     catalog = link_holes([d.cell_holes for d in detected], min_area_px=params.min_area_px)
+    catalog, gaps = mark_sampling_gaps(catalog, params.sampling_gap_px)
     rules = CauseRules.from_config(
         config,
         pixel_size_m=plan.grid.resolution * plan.survey.horizontal_unit_m,
@@ -45,7 +48,33 @@ def link_cells(detected: list[DetectResult], plan: SurveyPlan, config: Config, p
     causes = classify_causes(catalog.stats, rules)
     directions = line_azimuths(merge_line_moments([d.line_moments for d in detected]))
     azimuths = strip_azimuths(catalog.stats.line_hist, causes["cause"] == "missed_coverage", directions)
-    return HoleSet(catalog=catalog, causes=causes, ring=ring_metrics(catalog.stats), azimuth_deg=azimuths)
+    return HoleSet(
+        catalog=catalog,
+        causes=causes,
+        ring=ring_metrics(catalog.stats),
+        azimuth_deg=azimuths,
+        sampling_gaps=int(gaps.sum()),
+        sampling_gap_px=int(catalog.holes["area_px"][gaps].sum()),
+    )
+
+
+def mark_sampling_gaps(catalog: HoleCatalog, gap_px: float) -> tuple[HoleCatalog, np.ndarray]:
+    """Holes no thicker than ``gap_px`` pixels are sampling gaps: not listed, filled like small voids.
+
+    Thickness is ``2 x area / edge length`` (:func:`pipeline.holes.shape_metrics`): the
+    width of a strip, half the width of a compact void. Merged statistics are
+    exact, so the decision does not depend on the cells. Returns the catalog with
+    those holes flagged ``is_small`` and which holes were flagged here (and were
+    not small already).
+    """
+    holes = catalog.holes
+    thin = shape_metrics(catalog.stats)["thickness_px"] <= gap_px if gap_px > 0 else np.zeros(len(holes), bool)
+    gaps = thin & ~holes["is_small"]
+    if not gaps.any():
+        return catalog, gaps
+    flagged = holes.copy()
+    flagged["is_small"] |= gaps
+    return replace(catalog, holes=flagged), gaps
 
 
 def strip_azimuths(line_hist: np.ndarray, is_strip: np.ndarray, directions: dict[int, float]) -> np.ndarray:
