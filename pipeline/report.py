@@ -845,17 +845,12 @@ def _zoom_bounds(hole: Bounds, limit: Bounds) -> Bounds:
 
 
 def _read_view(folder: Path, bounds: Bounds | None, max_px: int) -> MapRaster:
+    """``dsm.vrt`` (and ``fill_mask.vrt``) over ``bounds`` (default: all), at most ``max_px`` on the long side."""
     import rasterio
     from rasterio.enums import Resampling
-    from rasterio.windows import Window, from_bounds
 
     with rasterio.open(folder / "dsm.vrt") as src:
-        window = (
-            Window(0, 0, src.width, src.height)
-            if bounds is None
-            else from_bounds(*bounds, transform=src.transform).round_offsets().round_lengths()
-        )
-        window = window.intersection(Window(0, 0, src.width, src.height))
+        window = _pixel_window(src.transform, bounds, src.width, src.height)
         scale = max(window.width, window.height) / max_px
         shape = (
             (max(1, round(window.height / scale)), max(1, round(window.width / scale)))
@@ -864,14 +859,35 @@ def _read_view(folder: Path, bounds: Bounds | None, max_px: int) -> MapRaster:
         )
         data = src.read(1, window=window, out_shape=shape, masked=True, resampling=Resampling.average)
         dsm = np.ma.filled(data.astype(np.float32), np.nan)
-        view_bounds = rasterio.windows.bounds(window, src.transform)
+        t = src.transform
+        view_bounds = (
+            t.c + window.col_off * t.a,
+            t.f + (window.row_off + window.height) * t.e,
+            t.c + (window.col_off + window.width) * t.a,
+            t.f + window.row_off * t.e,
+        )
     filled = None
     if (folder / "fill_mask.vrt").exists():
         with rasterio.open(folder / "fill_mask.vrt") as src:
-            codes = src.read(1, window=from_bounds(*view_bounds, transform=src.transform), out_shape=shape)
+            window = _pixel_window(src.transform, view_bounds, src.width, src.height)
+            codes = src.read(1, window=window, out_shape=shape, boundless=False)
             nodata = 255 if src.nodata is None else int(src.nodata)
             filled = (codes > 0) & (codes != nodata)
     return MapRaster(dsm=dsm, bounds=tuple(float(v) for v in view_bounds), filled=filled)  # type: ignore[arg-type]
+
+
+def _pixel_window(transform, bounds: Bounds | None, width: int, height: int):
+    """The whole pixels of a north-up raster inside ``bounds`` (all of them without bounds)."""
+    from rasterio.windows import Window
+
+    if bounds is None:
+        return Window(0, 0, width, height)
+    t = transform
+    c0 = max(0, math.floor((bounds[0] - t.c) / t.a + 1e-6))
+    c1 = min(width, math.ceil((bounds[2] - t.c) / t.a - 1e-6))
+    r0 = max(0, math.floor((bounds[3] - t.f) / t.e + 1e-6))
+    r1 = min(height, math.ceil((bounds[1] - t.f) / t.e - 1e-6))
+    return Window(c0, r0, max(1, c1 - c0), max(1, r1 - r0))
 
 
 def _read_holes(gpkg: Path, pixel: float) -> tuple[MapHole, ...]:
