@@ -422,7 +422,7 @@ def _fill_section(fill: dict[str, Any], inputs: ReportInputs | None) -> list[str
     def rows(counts: dict[str, int], areas: dict[str, list[float]]) -> list[list[Any]]:
         return [[k, f"{n:,}"] + ([f"{sum(areas.get(k, [])):,.0f}"] if inputs else []) for k, n in counts.items()]
 
-    extra = ["area m²"] if inputs else []
+    extra = ["area m² (listed holes)"] if inputs else []
     parts += [
         "<h3>Holes by fill status and by method</h3>",
         "<div class='cards'>",
