@@ -31,9 +31,9 @@ YAML_FILES = sorted(WORKFLOWS.rglob("*.yaml"))
 PYTHON_FILES = sorted(WORKFLOWS.rglob("*.py"))
 READMES = sorted(WORKFLOWS.rglob("README.md"))
 
-#: Options that recipes may use before ``holefill run --help`` lists them (added on main in
-#: parallel); empty once merged.
-NOT_YET_MERGED: dict[str, set[str]] = {"run": {"--resume"}}
+#: Options that recipes may use before ``holefill <command> --help`` lists them (work merged
+#: in parallel); only ``run --resume`` may ever go here, and it is merged already.
+NOT_YET_MERGED: dict[str, set[str]] = {}
 
 _SHELL_END = {";", "&", "&&", "||", "|", ")", ">", ">>", "2>&1", "<", "<<<", "2>"}
 
