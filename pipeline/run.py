@@ -40,7 +40,7 @@ from .outputs import (
     write_survey_layers,
 )
 from .plan import SurveyPlan, plan_survey
-from .report import write_report
+from .report import ReportInputs, read_report_inputs, write_report
 from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells, write_rasters
 from .stages.bin_tiles import TileFailure, TileResult
 from .stages.merge_cells import CellResult
@@ -346,8 +346,20 @@ def _write_products(
     )
     timer.seconds["outputs"] = time.perf_counter() - t0
     manifest = write_manifest(staging.product("manifest.json"), summary, plan, config, rasters.tiles, rasters.cells)
-    write_report(staging.product("report.html"), manifest, summary.holes.get("largest", []))
+    write_report(
+        staging.product("report.html"), manifest, summary.holes.get("largest", []), inputs=_report_map(staging)
+    )
+    timer.lap("report")
     return summary
+
+
+def _report_map(staging: Staging) -> ReportInputs | None:
+    """What the report's map shows, read from the staged products; a map that cannot be made is left out."""
+    try:
+        return read_report_inputs(staging.root)
+    except Exception as e:  # the report is for reading; it must never cost the run
+        logger.warning("report.html without its map: %s", e)
+        return None
 
 
 # -- Dask -----------------------------------------------------------------------------
