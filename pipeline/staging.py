@@ -23,7 +23,8 @@ is replaced, so ``OUT/manifest.json`` exists exactly when OUT holds one complete
 result (its ``"complete": true`` says so too). A failed run's folder is deleted.
 
 **One run at a time.** ``OUT/.holefill.lock`` (pid and host) refuses a second run
-into the same folder; a lock whose process is gone is taken over.
+into the same folder; the holder touches it every 30 s, so a lock whose process is
+gone (same host) or that has been silent for 5 minutes (any host) is taken over.
 
 **Interrupted runs.** A run stopped by Ctrl-C or SIGTERM keeps its folder, and
 every finished task has left its result under ``work/done/``; ``--resume`` picks
@@ -33,6 +34,7 @@ what is missing. Other partial folders are reported and removed.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -40,6 +42,7 @@ import os
 import pickle
 import shutil
 import socket
+import threading
 import time
 import uuid
 from collections.abc import Callable
@@ -210,8 +213,10 @@ def _lock(out: Path) -> None:
             fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
             holder = _read_json(lock)
-            if holder.get("host") == me["host"] and not _alive(int(holder.get("pid", 0))):
-                lock.unlink(missing_ok=True)  # its run died without cleaning up: take over
+            dead = holder.get("host") == me["host"] and not _alive(int(holder.get("pid", 0)))
+            if dead or _silent_for(lock) > LOCK_STALE_S:
+                # its run died without cleaning up (here, or on a node that stopped beating): take over
+                lock.unlink(missing_ok=True)
                 continue
             raise OutputError(
                 f"{out}: another holefill run (pid {holder.get('pid', '?')} on {holder.get('host', '?')}) is writing "
@@ -219,8 +224,38 @@ def _lock(out: Path) -> None:
             ) from None
         with os.fdopen(fd, "w") as fh:
             json.dump(me, fh)
+        _Heartbeat(lock).start()
         return
     raise OutputError(f"{out}: cannot take the lock {lock}")
+
+
+#: A run touches its lock this often; a lock silent for ``LOCK_STALE_S`` belongs to a dead run,
+#: whatever host it came from (a requeued SLURM job, a new Kubernetes pod).
+LOCK_BEAT_S = 30.0
+LOCK_STALE_S = 300.0
+
+
+class _Heartbeat(threading.Thread):
+    """Touches the lock while this process holds it."""
+
+    def __init__(self, lock: Path) -> None:
+        super().__init__(name="holefill-lock", daemon=True)
+        self.lock = lock
+
+    def run(self) -> None:
+        while True:
+            time.sleep(LOCK_BEAT_S)
+            if _read_json(self.lock).get("pid") != os.getpid():
+                return  # released (or taken over)
+            with contextlib.suppress(OSError):
+                os.utime(self.lock)
+
+
+def _silent_for(lock: Path) -> float:
+    try:
+        return time.time() - lock.stat().st_mtime
+    except OSError:
+        return 0.0
 
 
 def _unlock(out: Path) -> None:

@@ -144,3 +144,20 @@ def test_manifest_is_written_last_and_replaced_first(survey, tmp_path):
         os.replace = original
     assert moved == [("dsm.vrt", False), ("manifest.json", False)]
     assert json.loads((out / "manifest.json").read_text())["complete"]
+
+
+def test_a_lock_silent_for_minutes_is_taken_over_from_another_host(tmp_path):
+    from pipeline.staging import LOCK_STALE_S, Staging
+
+    out = tmp_path / "out"
+    out.mkdir()
+    lock = out / ".holefill.lock"
+    lock.write_text(json.dumps({"pid": 1, "host": "another-node"}))
+    with pytest.raises(Exception, match="another holefill run"):
+        Staging.create(out)
+    old = time.time() - LOCK_STALE_S - 10
+    os.utime(lock, (old, old))
+    staging = Staging.create(out)
+    assert json.loads(lock.read_text())["pid"] == os.getpid()
+    staging.remove()
+    assert not lock.exists()
