@@ -194,6 +194,9 @@ class DaskConfig:
     """The Dask cluster a run uses when no --scheduler is given."""
 
     workers: int = _opt(0, "Worker processes; 0 means one per CPU core.", ge=0)
+    retries: int = _opt(
+        2, "Times a task is retried when its worker dies (preemptible clusters); tasks are idempotent.", ge=0
+    )
     memory_limit: str = _opt("auto", "Memory limit per worker, e.g. '2GB', or 'auto' to share the machine's memory.")
 
 

@@ -104,7 +104,7 @@ def run_survey(
     staging = Staging.create(out, run_key=run_key(plan, config, aoi, water), resume=resume)
     try:
         with _dask_client(client, scheduler, config) as dask_client, _Progress(progress) as bar:
-            runner = _Runner(dask_client, bar, staging)
+            runner = _Runner(dask_client, bar, staging, retries=config.dask.retries)
             filling = config.holes.enabled and config.fill.enabled
             rasters = _run_rasters(runner, plan, config, staging, timer, write=not filling)
             detected, holes, fills = None, None, None
@@ -374,8 +374,9 @@ class _Runner:
     :class:`~pipeline.errors.TaskError` line naming the task's tile or cell.
     """
 
-    def __init__(self, client: Any, bar: _Progress, staging: Staging | None = None) -> None:
+    def __init__(self, client: Any, bar: _Progress, staging: Staging | None = None, *, retries: int = 0) -> None:
         self.client = client
+        self.retries = retries
         self.bar = bar
         self.staging = staging
         self.resumed_tasks = 0
@@ -390,14 +391,23 @@ class _Runner:
         """
         args = tuple(a.value if isinstance(a, _Kept) else a for a in args)
         if self.staging is None:
-            future = self.client.submit(function, *args, pure=False, priority=priority, key=f"{key}-{self._run_id}")
+            future = self.client.submit(
+                function, *args, pure=False, priority=priority, retries=self.retries, key=f"{key}-{self._run_id}"
+            )
         else:
             kept = self.staging.task_result(key)
             if self.staging.resumed and (value := kept_result(kept)) is not None:
                 self.resumed_tasks += 1
                 return _Kept(value)
             future = self.client.submit(
-                run_and_keep, function, str(kept), *args, pure=False, priority=priority, key=f"{key}-{self._run_id}"
+                run_and_keep,
+                function,
+                str(kept),
+                *args,
+                pure=False,
+                priority=priority,
+                retries=self.retries,
+                key=f"{key}-{self._run_id}",
             )
         self._labels[future.key] = label
         return future
@@ -456,6 +466,10 @@ class _StageTimer:
         self._last = now
 
 
+#: One thread per worker process for BLAS and OpenMP (workers are single-threaded
+#: processes; oversubscription slows every kernel), and a bounded GDAL cache each.
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "GDAL_CACHEMAX": "256"}
+
 #: Seconds to wait for a ``--scheduler`` before giving up with one line.
 SCHEDULER_TIMEOUT_S = 10
 
@@ -487,6 +501,7 @@ def _dask_client(client, scheduler: str | None, config: Config) -> Iterator[Any]
             memory_limit=config.dask.memory_limit,
             dashboard_address=":0",  # any free port: never collide with another cluster
             silence_logs=logging.INFO if verbose else logging.CRITICAL,  # task errors reach the client anyway
+            env=WORKER_ENV,
         ) as cluster,
         Client(cluster) as local,
     ):
