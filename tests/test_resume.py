@@ -161,3 +161,64 @@ def test_a_lock_silent_for_minutes_is_taken_over_from_another_host(tmp_path):
     assert json.loads(lock.read_text())["pid"] == os.getpid()
     staging.remove()
     assert not lock.exists()
+
+
+@pytest.fixture
+def real_cluster(tmp_path):
+    """A `dask scheduler` and two `dask worker` processes on localhost, as a cluster runs them."""
+    bin_dir = Path(sys.executable).parent
+    scheduler_file = tmp_path / "scheduler.json"
+    scheduler = subprocess.Popen(
+        [str(bin_dir / "dask"), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+         "--scheduler-file", str(scheduler_file)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )  # fmt: skip
+    workers = []
+    try:
+        for _ in range(60):
+            if scheduler_file.exists() and scheduler_file.stat().st_size:
+                break
+            time.sleep(0.25)
+        address = json.loads(scheduler_file.read_text())["address"]
+        for _ in range(2):
+            workers.append(
+                subprocess.Popen(
+                    [str(bin_dir / "dask"), "worker", address, "--nthreads", "1", "--no-dashboard", "--no-nanny"],
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                    start_new_session=True,
+                )  # fmt: skip
+            )
+        yield address, workers
+    finally:
+        for process in [*workers, scheduler]:
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGKILL)
+            process.wait(timeout=30)
+
+
+def test_distributed_run_survives_a_worker_killed_mid_run(survey, tmp_path, real_cluster):
+    address, workers = real_cluster
+    tiles = str(survey / "tiles")
+    reference = tmp_path / "reference"
+    done = holefill(tiles, "--out", str(reference))
+    assert done.wait(timeout=300) == 0
+    out = tmp_path / "out"
+    command = [
+        sys.executable,
+        "-m",
+        "pipeline.cli",
+        "run",
+        tiles,
+        "--out",
+        str(out),
+        "--scheduler",
+        address,
+        "--no-progress",
+    ]
+    run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    wait_for_kept_tiles(out, 3, run)
+    os.killpg(workers[0].pid, signal.SIGKILL)  # a preempted node: its tasks go to the other worker
+    _, err = run.communicate(timeout=300)
+    assert run.returncode == 0, err
+    same_outputs(reference, out)
