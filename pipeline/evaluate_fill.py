@@ -263,6 +263,7 @@ def place_holes(
     min_size_m: float = 2.0,
     max_size_m: float = 50.0,
     margin_px: int = 4,
+    edge_px: int = 0,
     tries_per_hole: int = 40,
 ) -> tuple[np.ndarray, list[CutHole]]:
     """Place seeded artificial holes where the reference is measured.
@@ -283,6 +284,12 @@ def place_holes(
     rng : numpy.random.Generator
     pixel_size_m : float
         Pixel size in metres (hole sizes are in metres).
+    margin_px : int
+        Measured pixels kept around each hole (and between holes).
+    edge_px : int
+        Pixels kept clear of the raster's edge: the pipeline takes the data's
+        border blocks (``holes.footprint_block_m``) as outside the survey where
+        they are empty, so a hole there would be partly exterior, not filled.
 
     Returns
     -------
@@ -294,6 +301,9 @@ def place_holes(
         raise ValueError(f"the reference must be a 2-dimensional array, got shape {reference.shape}")
     labels = np.zeros(reference.shape, np.int32)
     free = np.isfinite(reference)
+    if edge_px > 0:
+        free[:edge_px] = free[-edge_px:] = False
+        free[:, :edge_px] = free[:, -edge_px:] = False
     holes: list[CutHole] = []
     if n_holes <= 0 or not free.any():
         return labels, holes
@@ -563,7 +573,7 @@ def cut_points(source: str | os.PathLike, target: str | os.PathLike, labels: np.
 def align(array: np.ndarray, transform: Any, to_transform: Any, to_shape: tuple[int, int]) -> np.ndarray:
     """A raster on the same lattice put onto another window of it (NaN where it has no pixel)."""
     resolution = to_transform.a
-    dr = round((to_transform.f - transform.f) / resolution)  # rows of `array` above the target's first row
+    dr = round((transform.f - to_transform.f) / resolution)  # rows of `array` above the target's first row
     dc = round((transform.c - to_transform.c) / resolution)
     out = np.full(to_shape, np.nan, np.float64)
     r0, c0 = max(0, dr), max(0, -dc)  # first source row / column inside the target
@@ -874,7 +884,11 @@ def _evaluate_survey(
         area_m2 = area * survey.horizontal_unit_m**2
         resolution_m = choose_resolution(sum(t.header.point_count for t in survey.tiles), area_m2)
     result.resolution_m = resolution_m
-    config = config.replace("grid", source="fill benchmark", resolution_m=resolution_m)
+    if resolution_m != config.grid.resolution_m:  # the cell stays about as large, on the new lattice
+        cell_px = max(16, round(config.grid.cell_size_m / resolution_m))
+        config = config.replace(
+            "grid", source="fill benchmark", resolution_m=resolution_m, cell_size_m=cell_px * resolution_m
+        )
     reference_config = config.replace("holes", source="fill benchmark", enabled=False)
     try:
         run_survey(inputs, folder / "reference", reference_config, client=client)
@@ -890,6 +904,7 @@ def _evaluate_survey(
         min_size_m=size_range_m[0],
         max_size_m=size_range_m[1],
         margin_px=margin_px,
+        edge_px=math.ceil(2 * config.holes.footprint_block_m / resolution_m),
     )
     result.holes = holes
     if not holes:
