@@ -841,6 +841,10 @@ def evaluate_fill(
                     client=dask_client,
                 )
                 benchmark.surveys.append(result)
+                benchmark.seconds = time.perf_counter() - started
+                write_json(
+                    out / "fill_eval.json", benchmark.as_dict()
+                )  # so far: a long benchmark can be read while it runs
                 if on_survey is not None:
                     on_survey(result)
     benchmark.seconds = time.perf_counter() - started
