@@ -1,6 +1,6 @@
 """The fill benchmark on every real survey of ../shared/data, DSM and DTM.
 
-    .venv/bin/python bench/bench_fill_eval.py OUT [--holes 20] [--seed 0] [--model both] [--only NAME ...]
+    .venv/bin/python bench/bench_fill_eval.py OUT [--holes 20] [--seed 0] [--model both] [--only NAME ...] [--methods default,mls,...]
 
 Same as ``holefill evaluate --fill FILE... --out OUT --model both`` with the CRS
 that some files lack (``MISSING_CRS`` of compare_outputs.py) and one local Dask
@@ -25,6 +25,7 @@ def main() -> None:
     parser.add_argument("--model", choices=["dsm", "dtm", "both"], default="both")
     parser.add_argument("--only", nargs="*", default=[])
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--methods", default="", help="pipeline runs, comma-separated (default: all)")
     args = parser.parse_args()
 
     from pipeline.config import load_config
@@ -47,6 +48,7 @@ def main() -> None:
         seed=args.seed,
         models=("dsm", "dtm") if args.model == "both" else (args.model,),
         crs=dict(MISSING_CRS),
+        **({"methods": tuple(args.methods.split(","))} if args.methods else {}),
         on_survey=progress,
     )
     table = format_table(benchmark)
