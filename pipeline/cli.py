@@ -276,16 +276,17 @@ def evaluate(
 def _fill_benchmark(
     paths, out_dir, config, *, n_holes, seed, model, methods, alternatives, resolution_m, crs_items, scheduler
 ):
-    from .evaluate_fill import evaluate_fill, format_table
+    from .evaluate_fill import evaluate_fill, format_table, survey_name
 
     def names(text: str) -> tuple[str, ...]:
         return tuple(item.strip() for item in text.split(",") if item.strip())
 
-    crs = {}
-    for item in crs_items:
-        survey, _, value = item.rpartition("=") if "=" in item else ("*", "", item)
-        crs[survey] = value
     surveys = [[path] for path in paths]
+    known = {survey_name(inputs) for inputs in surveys}
+    crs = {}
+    for item in crs_items:  # NAME=CRS when NAME is a survey's name; else (a PROJ string too) for every survey
+        head, _, value = item.partition("=")
+        crs.update({head: value} if head in known else {"*": item})
 
     def progress(result) -> None:
         state = f"skipped: {result.skipped}" if result.skipped else f"{len(result.holes)} holes, {result.cut_px} px"

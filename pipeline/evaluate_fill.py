@@ -794,7 +794,7 @@ def evaluate_fill(
     if config.survey.target_crs:
         raise ConfigError("the fill benchmark cuts points in their own CRS: survey.target_crs must be empty")
     methods = ("default", *(m for m in methods if m != "default"))
-    names = names or [_survey_name(inputs) for inputs in surveys]
+    names = names or [survey_name(inputs) for inputs in surveys]
     if len(set(names)) != len(names):
         raise ConfigError(f"survey names must be unique, got {names}")
     crs = crs or {}
@@ -852,7 +852,8 @@ def evaluate_fill(
     return benchmark
 
 
-def _survey_name(inputs: list[str]) -> str:
+def survey_name(inputs: list[str]) -> str:
+    """A survey's name: its file or folder name (the first one's, + the number of others)."""
     first = Path(inputs[0].rstrip("/"))
     return first.name if len(inputs) == 1 else f"{first.stem}+{len(inputs) - 1}"
 

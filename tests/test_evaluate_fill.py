@@ -215,7 +215,7 @@ def test_fill_benchmark_end_to_end_on_a_plane(tmp_path, rng, dask_client):
     out = tmp_path / "bench"
     args = ["evaluate", "--fill", str(survey), "--out", str(out), "--holes", "6", "--seed", "3"]
     args += ["--methods", "default,mls,idw", "--alternatives", "tin_linear,gdal_fillnodata,grass_fillnulls"]
-    args += ["--scheduler", dask_client.scheduler.address, "--set", "grid.cell_size_m=32"]
+    args += ["--scheduler", dask_client.scheduler.address, "--set", "grid.cell_size_m=32", "--crs", "plane=EPSG:2154"]
     result = CliRunner().invoke(main, args)
     assert result.exit_code == 0, result.output
     report = _strict_json((out / "fill_eval.json").read_text())
