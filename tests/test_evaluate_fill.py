@@ -214,7 +214,7 @@ def test_fill_benchmark_end_to_end_on_a_plane(tmp_path, rng, dask_client):
     survey = _plane_survey(tmp_path / "plane", rng)
     out = tmp_path / "bench"
     args = ["evaluate", "--fill", str(survey), "--out", str(out), "--holes", "6", "--seed", "3"]
-    args += ["--methods", "default,mls,idw", "--alternatives", "tin_linear,gdal_fillnodata,grass_fillnulls"]
+    args += ["--methods", "default,mls", "--alternatives", "tin_linear,gdal_fillnodata,grass_fillnulls"]
     args += ["--scheduler", dask_client.scheduler.address, "--set", "grid.cell_size_m=32", "--crs", "plane=EPSG:2154"]
     result = CliRunner().invoke(main, args)
     assert result.exit_code == 0, result.output
@@ -291,7 +291,7 @@ def test_fill_benchmark_on_a_real_tile(shared_data, tmp_path, dask_client):
         client=dask_client,
     )
     (survey,) = benchmark.surveys
-    assert not survey.skipped and len(survey.holes) == 5
+    assert not survey.skipped and 1 <= len(survey.holes) <= 5  # a 50 m tile has room for a few
     assert survey.cut_check == {"cut_px_with_data": 0, "other_px_changed": 0}
     for result in (survey.methods["default"], survey.alternatives["tin_linear"]):
         assert result.errors is not None and result.errors.n_px == survey.common_px > 0
