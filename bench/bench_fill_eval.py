@@ -22,17 +22,17 @@ ALTERNATIVE_COLUMNS = ("gdal_fillnodata", "tin_linear", "nni", "laplace")
 
 
 def markdown(paths: list[Path]) -> str:
-    """RMSE tables per model from fill_eval.json reports (surveys of several reports together)."""
+    """RMSE tables per model from fill_eval.json reports, pooled again over the surveys of all of them."""
     import json
+    import math
 
-    surveys, summaries = [], {}
+    surveys = []
     for path in paths:
-        report = json.loads(path.read_text())
-        surveys += report["surveys"]
-        summaries.update(report["summary"])
+        surveys += json.loads(path.read_text())["surveys"]
     lines = []
     for model in dict.fromkeys(s["model"] for s in surveys):
         rows = [s for s in surveys if s["model"] == model]
+        done = [s for s in rows if not s["skipped"]]
         methods = list(dict.fromkeys(m for s in rows for m in s["methods"]))
         columns = methods + [a for a in ALTERNATIVE_COLUMNS if any(a in s["alternatives"] for s in rows)]
         lines += [f"### {model.upper()}: RMSE per survey (z units), scored pixels", ""]
@@ -46,44 +46,48 @@ def markdown(paths: list[Path]) -> str:
                     f"| {s['survey']} | {s['resolution_m'] or '-'} | {s['n_holes']} | skipped: {s['skipped']} |"
                 )
                 continue
+            alternatives = [s["alternatives"][a]["rmse"] for a in columns if s["alternatives"].get(a, {}).get("rmse")]
+            best = min(alternatives, default=None)
             values = []
-            best = min(
-                (
-                    s["alternatives"][a]["rmse"]
-                    for a in columns
-                    if a in s["alternatives"] and s["alternatives"][a].get("rmse") is not None
-                ),
-                default=None,
-            )
             for c in columns:
                 r = (s["methods"].get(c) or s["alternatives"].get(c) or {}).get("rmse")
                 text = "-" if r is None else f"{r:.3f}"
                 values.append(f"**{text}**" if r is not None and r == best else text)
-            ratio = s["default_vs_best_alternative"]
-            mls = s["mls_vs_idw"]
+            ratio, mls = s["default_vs_best_alternative"], s["mls_vs_idw"]
             lines.append(
                 f"| {s['survey']} | {s['resolution_m']:g} | {s['n_holes']} | {s['scored_px']} | "
                 + " | ".join(values)
                 + f" | {'-' if ratio is None else f'{ratio:.2f}'} | {'-' if mls is None else f'{mls:.2f}'} |"
             )
-        summary = summaries[model]
-        lines += ["", f"### {model.upper()}: pooled over {summary['surveys']} surveys ({summary['holes']} holes)", ""]
-        lines.append("| method | RMSE | MAE | max | bias | scored px | unfilled px |")
-        lines.append("|---|---|---|---|---|---|---|")
-        for name, e in summary["pooled"].items():
-            lines.append(
-                f"| {name} | {e['rmse']} | {e['mae']} | {e['max_abs']} | {e['bias']} | {e['n_px']} | {e['n_unfilled']} |"
-            )
-        t, m, d = (
-            summary["target_default_vs_best_alternative"],
-            summary["target_mls_vs_idw"],
-            summary["default_run_seconds"],
-        )
         lines += [
             "",
-            f"default RMSE <= 0.85 x best alternative's: {t['met']} of {t['of']} surveys; "
-            f"MLS RMSE <= 0.5 x IDW's: {m['met']} of {m['of']}; default runs: rasterize {d['rasterize']} s, "
-            f"fill {d['fill']} s in all (fill / rasterize {d['fill_over_rasterize']})",
+            f"### {model.upper()}: pooled over {len(done)} surveys ({sum(s['n_holes'] for s in done)} holes)",
+            "",
+        ]
+        lines.append("| method | RMSE | MAE | max | bias | scored px | unfilled px |")
+        lines.append("|---|---|---|---|---|---|---|")
+        for name in columns:
+            scores = [r for s in done if (r := s["methods"].get(name) or s["alternatives"].get(name)) and r.get("n_px")]
+            n = sum(r["n_px"] for r in scores)
+            if not n:
+                continue
+            rmse = math.sqrt(sum(r["rmse"] ** 2 * r["n_px"] for r in scores) / n)
+            mae = sum(r["mae"] * r["n_px"] for r in scores) / n
+            bias = sum(r["bias"] * r["n_px"] for r in scores) / n
+            top = max(r["max_abs"] for r in scores)
+            unfilled = sum(r["n_unfilled"] for r in scores)
+            lines.append(f"| {name} | {rmse:.3f} | {mae:.3f} | {top:.2f} | {bias:+.3f} | {n} | {unfilled} |")
+        ratios = [s["default_vs_best_alternative"] for s in done if s["default_vs_best_alternative"] is not None]
+        mls = [s["mls_vs_idw"] for s in done if s["mls_vs_idw"] is not None]
+        stages = [s["methods"]["default"].get("stage_seconds", {}) for s in done if "default" in s["methods"]]
+        rasterize = sum(t.get("rasterize") or 0 for t in stages)
+        fill = sum(t.get("fill") or 0 for t in stages)
+        lines += [
+            "",
+            f"default RMSE <= 0.85 x best alternative's: {sum(r <= 0.85 for r in ratios)} of {len(ratios)} surveys "
+            f"(median ratio {sorted(ratios)[len(ratios) // 2]:.2f}); MLS RMSE <= 0.5 x IDW's: "
+            f"{sum(r <= 0.5 for r in mls)} of {len(mls)} (median {sorted(mls)[len(mls) // 2]:.2f}); "
+            f"default runs: rasterize {rasterize:.1f} s, fill {fill:.1f} s in all (fill / rasterize {fill / rasterize:.2f})",
             "",
         ]
     return "\n".join(lines)

@@ -180,7 +180,7 @@ def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
     "--methods",
     default=",".join(["default", "auto-nocause", "tin", "mls", "idw", "nearest"]),
     show_default=True,
-    help="Pipeline runs, comma-separated (default is always run).",
+    help="Pipeline runs, comma-separated (default is always run); also mls-nocause, idw-nocause.",
 )
 @click.option(
     "--alternatives",
