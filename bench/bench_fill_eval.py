@@ -37,9 +37,11 @@ def markdown(paths: list[Path]) -> str:
         columns = methods + [a for a in ALTERNATIVE_COLUMNS if any(a in s["alternatives"] for s in rows)]
         lines += [f"### {model.upper()}: RMSE per survey (z units), scored pixels", ""]
         lines.append(
-            "| survey | px (m) | holes | scored px | " + " | ".join(columns) + " | default / best alt. | MLS / IDW |"
+            "| survey | px (m) | holes | scored px | "
+            + " | ".join(columns)
+            + " | default / best alt. | MLS / IDW | MLS / IDW, no cause |"
         )
-        lines.append("|---" * (len(columns) + 6) + "|")
+        lines.append("|---" * (len(columns) + 7) + "|")
         for s in rows:
             if s["skipped"]:
                 lines.append(
@@ -53,11 +55,11 @@ def markdown(paths: list[Path]) -> str:
                 r = (s["methods"].get(c) or s["alternatives"].get(c) or {}).get("rmse")
                 text = "-" if r is None else f"{r:.3f}"
                 values.append(f"**{text}**" if r is not None and r == best else text)
-            ratio, mls = s["default_vs_best_alternative"], s["mls_vs_idw"]
+            ratios = [s["default_vs_best_alternative"], s["mls_vs_idw"], s.get("mls_vs_idw_nocause")]
             lines.append(
                 f"| {s['survey']} | {s['resolution_m']:g} | {s['n_holes']} | {s['scored_px']} | "
-                + " | ".join(values)
-                + f" | {'-' if ratio is None else f'{ratio:.2f}'} | {'-' if mls is None else f'{mls:.2f}'} |"
+                + " | ".join(values + ["-" if r is None else f"{r:.2f}" for r in ratios])
+                + " |"
             )
         lines += [
             "",
@@ -79,6 +81,7 @@ def markdown(paths: list[Path]) -> str:
             lines.append(f"| {name} | {rmse:.3f} | {mae:.3f} | {top:.2f} | {bias:+.3f} | {n} | {unfilled} |")
         ratios = [s["default_vs_best_alternative"] for s in done if s["default_vs_best_alternative"] is not None]
         mls = [s["mls_vs_idw"] for s in done if s["mls_vs_idw"] is not None]
+        nocause = [s["mls_vs_idw_nocause"] for s in done if s.get("mls_vs_idw_nocause") is not None]
         stages = [s["methods"]["default"].get("stage_seconds", {}) for s in done if "default" in s["methods"]]
         rasterize = sum(t.get("rasterize") or 0 for t in stages)
         fill = sum(t.get("fill") or 0 for t in stages)
@@ -86,8 +89,14 @@ def markdown(paths: list[Path]) -> str:
             "",
             f"default RMSE <= 0.85 x best alternative's: {sum(r <= 0.85 for r in ratios)} of {len(ratios)} surveys "
             f"(median ratio {sorted(ratios)[len(ratios) // 2]:.2f}); MLS RMSE <= 0.5 x IDW's: "
-            f"{sum(r <= 0.5 for r in mls)} of {len(mls)} (median {sorted(mls)[len(mls) // 2]:.2f}); "
-            f"default runs: rasterize {rasterize:.1f} s, fill {fill:.1f} s in all (fill / rasterize {fill / rasterize:.2f})",
+            f"{sum(r <= 0.5 for r in mls)} of {len(mls)} (median {sorted(mls)[len(mls) // 2]:.2f})"
+            + (
+                f", both by_cause = false: {sum(r <= 0.5 for r in nocause)} of {len(nocause)} "
+                f"(median {sorted(nocause)[len(nocause) // 2]:.2f}); "
+                if nocause
+                else "; "
+            )
+            + f"default runs: rasterize {rasterize:.1f} s, fill {fill:.1f} s in all (fill / rasterize {fill / rasterize:.2f})",
             "",
         ]
     return "\n".join(lines)
