@@ -79,6 +79,17 @@ def markdown(paths: list[Path]) -> str:
             top = max(r["max_abs"] for r in scores)
             unfilled = sum(r["n_unfilled"] for r in scores)
             lines.append(f"| {name} | {rmse:.3f} | {mae:.3f} | {top:.2f} | {bias:+.3f} | {n} | {unfilled} |")
+        lines += ["", "RMSE pooled over holes by the relief of the reference under them (max - min):", ""]
+        lines.append("| relief | holes | px | " + " | ".join(columns) + " |")
+        lines.append("|---" * (len(columns) + 3) + "|")
+        for label, test in (("< 2.5", lambda r: r < 2.5), (">= 2.5 (buildings, trees)", lambda r: r >= 2.5)):
+            holes = [h for s in done for h in s["holes"] if h["relief"] is not None and test(h["relief"])]
+            cells = []
+            for c in columns:
+                scored = [(h["rmse"][c], h["n_px"]) for h in holes if h["rmse"].get(c) is not None]
+                n = sum(w for _, w in scored)
+                cells.append(f"{math.sqrt(sum(r * r * w for r, w in scored) / n):.3f}" if n else "-")
+            lines.append(f"| {label} | {len(holes)} | {sum(h['n_px'] for h in holes)} | " + " | ".join(cells) + " |")
         ratios = [s["default_vs_best_alternative"] for s in done if s["default_vs_best_alternative"] is not None]
         mls = [s["mls_vs_idw"] for s in done if s["mls_vs_idw"] is not None]
         nocause = [s["mls_vs_idw_nocause"] for s in done if s.get("mls_vs_idw_nocause") is not None]

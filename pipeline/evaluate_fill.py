@@ -619,6 +619,7 @@ class SurveyResult:
     model: str
     inputs: list[str]
     resolution_m: float = math.nan
+    z_unit_m: float = 1.0  # metres per z unit: errors are in z units (feet on a survey in feet)
     skipped: str = ""
     holes: list[CutHole] = field(default_factory=list)
     points_removed: int = 0
@@ -659,6 +660,7 @@ class SurveyResult:
             "model": self.model,
             "inputs": self.inputs,
             "resolution_m": _finite(self.resolution_m),
+            "z_unit_m": self.z_unit_m,
             "skipped": self.skipped or None,
             "n_holes": len(self.holes),
             "cut_px": self.cut_px,
@@ -899,6 +901,7 @@ def _evaluate_survey(
     except HolefillError as e:
         result.skipped = f"cannot be read: {e}"
         return result
+    result.z_unit_m = survey.vertical_unit_m
     if resolution_m is None:
         area = sum((t.bounds[2] - t.bounds[0]) * (t.bounds[3] - t.bounds[1]) for t in survey.tiles)
         area_m2 = area * survey.horizontal_unit_m**2
