@@ -26,9 +26,19 @@ def markdown(paths: list[Path]) -> str:
     import json
     import math
 
+    from pipeline.survey import scan_survey
+
     surveys = []
     for path in paths:
         surveys += json.loads(path.read_text())["surveys"]
+    for s in surveys:  # reports written before z_unit_m was recorded: read it from the headers
+        if "z_unit_m" not in s:
+            s["z_unit_m"] = scan_survey(s["inputs"], crs=MISSING_CRS.get(s["survey"], "")).vertical_unit_m
+        factor = s["z_unit_m"]  # pooled errors are in metres
+        for r in [*s["methods"].values(), *s["alternatives"].values()]:
+            r["m"] = {k: r[k] * factor for k in ("rmse", "mae", "bias", "max_abs") if r.get(k) is not None}
+        for h in s["holes"]:
+            h["rmse_m"] = {k: v * factor for k, v in h["rmse"].items() if v is not None}
     lines = []
     for model in dict.fromkeys(s["model"] for s in surveys):
         rows = [s for s in surveys if s["model"] == model]
@@ -66,27 +76,29 @@ def markdown(paths: list[Path]) -> str:
             f"### {model.upper()}: pooled over {len(done)} surveys ({sum(s['n_holes'] for s in done)} holes)",
             "",
         ]
-        lines.append("| method | RMSE | MAE | max | bias | scored px | unfilled px |")
+        lines.append("| method | RMSE (m) | MAE (m) | max (m) | bias (m) | scored px | unfilled px |")
         lines.append("|---|---|---|---|---|---|---|")
         for name in columns:
             scores = [r for s in done if (r := s["methods"].get(name) or s["alternatives"].get(name)) and r.get("n_px")]
             n = sum(r["n_px"] for r in scores)
             if not n:
                 continue
-            rmse = math.sqrt(sum(r["rmse"] ** 2 * r["n_px"] for r in scores) / n)
-            mae = sum(r["mae"] * r["n_px"] for r in scores) / n
-            bias = sum(r["bias"] * r["n_px"] for r in scores) / n
-            top = max(r["max_abs"] for r in scores)
+            rmse = math.sqrt(sum(r["m"]["rmse"] ** 2 * r["n_px"] for r in scores) / n)
+            mae = sum(r["m"]["mae"] * r["n_px"] for r in scores) / n
+            bias = sum(r["m"]["bias"] * r["n_px"] for r in scores) / n
+            top = max(r["m"]["max_abs"] for r in scores)
             unfilled = sum(r["n_unfilled"] for r in scores)
             lines.append(f"| {name} | {rmse:.3f} | {mae:.3f} | {top:.2f} | {bias:+.3f} | {n} | {unfilled} |")
-        lines += ["", "RMSE pooled over holes by the relief of the reference under them (max - min):", ""]
+        lines += ["", "RMSE (m) pooled over holes by the relief (m) of the reference under them (max - min):", ""]
         lines.append("| relief | holes | px | " + " | ".join(columns) + " |")
         lines.append("|---" * (len(columns) + 3) + "|")
         for label, test in (("< 2.5", lambda r: r < 2.5), (">= 2.5 (buildings, trees)", lambda r: r >= 2.5)):
-            holes = [h for s in done for h in s["holes"] if h["relief"] is not None and test(h["relief"])]
+            holes = [
+                h for s in done for h in s["holes"] if h["relief"] is not None and test(h["relief"] * s["z_unit_m"])
+            ]
             cells = []
             for c in columns:
-                scored = [(h["rmse"][c], h["n_px"]) for h in holes if h["rmse"].get(c) is not None]
+                scored = [(h["rmse_m"][c], h["n_px"]) for h in holes if c in h["rmse_m"]]
                 n = sum(w for _, w in scored)
                 cells.append(f"{math.sqrt(sum(r * r * w for r, w in scored) / n):.3f}" if n else "-")
             lines.append(f"| {label} | {len(holes)} | {sum(h['n_px'] for h in holes)} | " + " | ".join(cells) + " |")
