@@ -918,6 +918,9 @@ def _evaluate_survey(
     except HolefillError as e:
         result.skipped = f"reference run failed: {e}"
         return result
+    if not (folder / "reference" / "dsm.vrt").exists():
+        result.skipped = "the reference run wrote no raster (no point of the kept classes)"
+        return result
     reference, transform, crs_wkt = read_raster(folder / "reference" / "dsm.vrt")
     labels, holes = place_holes(
         reference,
