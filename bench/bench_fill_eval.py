@@ -21,6 +21,10 @@ from compare_outputs import MISSING_CRS, SHARED_DATA
 ALTERNATIVE_COLUMNS = ("gdal_fillnodata", "tin_linear", "nni", "laplace")
 
 
+def _median(values: list[float]) -> str:
+    return f"{sorted(values)[len(values) // 2]:.2f}" if values else "-"
+
+
 def markdown(paths: list[Path]) -> str:
     """RMSE tables per model from fill_eval.json reports, pooled again over the surveys of all of them."""
     import json
@@ -111,15 +115,15 @@ def markdown(paths: list[Path]) -> str:
         lines += [
             "",
             f"default RMSE <= 0.85 x best alternative's: {sum(r <= 0.85 for r in ratios)} of {len(ratios)} surveys "
-            f"(median ratio {sorted(ratios)[len(ratios) // 2]:.2f}); MLS RMSE <= 0.5 x IDW's: "
-            f"{sum(r <= 0.5 for r in mls)} of {len(mls)} (median {sorted(mls)[len(mls) // 2]:.2f})"
+            f"(median ratio {_median(ratios)}); MLS RMSE <= 0.5 x IDW's: "
+            f"{sum(r <= 0.5 for r in mls)} of {len(mls)} (median {_median(mls)})"
             + (
                 f", both by_cause = false: {sum(r <= 0.5 for r in nocause)} of {len(nocause)} "
-                f"(median {sorted(nocause)[len(nocause) // 2]:.2f}); "
+                f"(median {_median(nocause)}); "
                 if nocause
                 else "; "
             )
-            + f"default runs: rasterize {rasterize:.1f} s, fill {fill:.1f} s in all (fill / rasterize {fill / rasterize:.2f})",
+            + f"default runs: rasterize {rasterize:.1f} s, fill {fill:.1f} s in all (fill / rasterize {fill / rasterize if rasterize else math.nan:.2f})",
             "",
         ]
     return "\n".join(lines)
