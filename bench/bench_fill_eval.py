@@ -96,7 +96,7 @@ def markdown(paths: list[Path]) -> str:
         lines += ["", "RMSE (m) pooled over holes by the relief (m) of the reference under them (max - min):", ""]
         lines.append("| relief | holes | px | " + " | ".join(columns) + " |")
         lines.append("|---" * (len(columns) + 3) + "|")
-        for label, test in (("< 2.5", lambda r: r < 2.5), (">= 2.5 (buildings, trees)", lambda r: r >= 2.5)):
+        for label, test in (("< 2.5", lambda r: r < 2.5), (">= 2.5", lambda r: r >= 2.5)):
             holes = [
                 h for s in done for h in s["holes"] if h["relief"] is not None and test(h["relief"] * s["z_unit_m"])
             ]
