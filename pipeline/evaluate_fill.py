@@ -76,7 +76,8 @@ RESOLUTIONS_M = (1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
 class ErrorStats:
     """Errors of a fill on the removed pixels (filled minus reference, z units).
 
-    ``n_px`` counts the scored pixels (filled, and measured in the reference);
+    ``n_px`` counts the scored pixels (filled, and measured in the reference; in the
+    benchmark, the removed pixels that every method filled);
     ``n_unfilled`` the removed pixels the method left empty (not scored).
     """
 
