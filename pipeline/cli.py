@@ -182,34 +182,172 @@ def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
 
 
 @main.command()
-@click.argument("out_dir", type=click.Path(exists=True, file_okay=False))
+@click.argument("paths", nargs=-1, metavar="OUT | SURVEY...")
 @click.option(
     "--truth",
     "truth_path",
-    required=True,
     type=click.Path(exists=True, dir_okay=False),
-    help="Raster of true hole causes (0 none, 1 occlusion, 2 water, 3 missed coverage) on the run's grid.",
+    help="Score the holes of the finished run OUT: raster of true hole causes (0 none, 1 occlusion, "
+    "2 water, 3 missed coverage) on the run's grid.",
 )
+@click.option(
+    "--fill",
+    "fill_benchmark",
+    is_flag=True,
+    help="Fill benchmark: cut artificial holes into each SURVEY (a file, a folder of tiles or a quoted glob), "
+    "fill them with every method and the usual alternatives, and score the fills.",
+)
+@click.option("--out", "out_dir", type=click.Path(file_okay=False), help="Fill benchmark: output folder.")
+@click.option("--holes", "n_holes", type=click.IntRange(min=1), default=20, show_default=True, help="Holes per survey.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the hole placement.")
+@click.option(
+    "--model",
+    type=click.Choice(["dsm", "dtm", "both"]),
+    default="dsm",
+    show_default=True,
+    help="Surface: DSM (all classes), DTM (filter.keep_classes = [2]) or both.",
+)
+@click.option(
+    "--methods",
+    default=",".join(["default", "auto-nocause", "tin", "mls", "idw", "nearest"]),
+    show_default=True,
+    help="Pipeline runs, comma-separated (default is always run); also mls-nocause, idw-nocause.",
+)
+@click.option(
+    "--alternatives",
+    default="gdal_fillnodata,tin_linear,nni,laplace,grass_fillnulls",
+    show_default=True,
+    help="Alternatives, comma-separated; empty for none.",
+)
+@click.option(
+    "--resolution",
+    "resolution_m",
+    type=click.FloatRange(min=0, min_open=True),
+    help="Pixel size (m) for every survey; default: 1 m, coarser for surveys under 1 point/m2.",
+)
+@click.option(
+    "--crs",
+    "crs_items",
+    multiple=True,
+    metavar="[SURVEY=]CRS",
+    help="CRS of files that have none, for every survey or for one by name (repeatable).",
+)
+@click.option("--workers", type=int, help="Local worker processes (dask.workers).")
+@click.option("--scheduler", help="Address of a running Dask scheduler (default: one local cluster for all runs).")
 @config_option
 @set_option
-def evaluate(out_dir, truth_path, config_path, overrides):
-    """Score the holes of a finished run against a truth raster (IoU, cause accuracy)."""
+def evaluate(
+    paths,
+    truth_path,
+    fill_benchmark,
+    out_dir,
+    n_holes,
+    seed,
+    model,
+    methods,
+    alternatives,
+    resolution_m,
+    crs_items,
+    workers,
+    scheduler,
+    config_path,
+    overrides,
+):
+    """Score a run against truth, or benchmark the hole filling.
+
+    \b
+    holefill evaluate OUT --truth RASTER
+        Score the holes of the finished run OUT (IoU, cause accuracy) as JSON.
+    holefill evaluate --fill SURVEY... --out DIR [--holes N] [--seed S] [--model dsm|dtm|both]
+        Cut seeded holes (2-50 m) into copies of each survey, run the pipeline once per
+        fill method, fill the same holes with GDAL fillnodata, a linear TIN, natural
+        neighbours and Laplace (startinpy), GRASS r.fillnulls where installed, and report
+        RMSE, MAE, max error and bias on the removed pixels: a table on stdout and
+        DIR/fill_eval.json.
+    """
     import json
+
+    from .config import load_config
+
+    config = load_config(config_path, list(overrides))
+    if fill_benchmark:
+        if truth_path:
+            raise click.UsageError("--fill and --truth are two different evaluations: give one")
+        if not paths or not out_dir:
+            raise click.UsageError("the fill benchmark needs SURVEY... and --out DIR")
+        _fill_benchmark(
+            paths,
+            out_dir,
+            _with_options(config, workers=workers),
+            n_holes=n_holes,
+            seed=seed,
+            model=model,
+            methods=methods,
+            alternatives=alternatives,
+            resolution_m=resolution_m,
+            crs_items=crs_items,
+            scheduler=scheduler,
+        )
+        return
+    if len(paths) != 1 or not truth_path:
+        raise click.UsageError("give a finished run OUT and --truth RASTER (or --fill SURVEY... --out DIR)")
+    if not Path(paths[0]).is_dir():
+        raise click.BadParameter(f"{paths[0]!r} is not a folder", param_hint="OUT")
 
     import rasterio
 
-    from .config import load_config
     from .evaluate import score_holes
 
-    config = load_config(config_path, list(overrides))
+    out = Path(paths[0])
+    if not (out / "holes.gpkg").exists() or not (out / "manifest.json").exists():
+        raise InputDataError(out, "holds no finished holefill run (no holes.gpkg and manifest.json)")
     min_area_m2 = config.holes.min_area_m2
     if min_area_m2 == "auto":  # as the run resolved it
-        manifest = json.loads((Path(out_dir) / "manifest.json").read_text())
+        manifest = json.loads((out / "manifest.json").read_text())
         min_area_m2 = manifest["holes"]["min_area_m2"]
     with rasterio.open(truth_path) as truth:
         resolution = abs(truth.transform.a)
-    score = score_holes(Path(out_dir) / "holes.gpkg", truth_path, min_area_px=_min_area_px(min_area_m2, resolution))
+    score = score_holes(out / "holes.gpkg", truth_path, min_area_px=_min_area_px(min_area_m2, resolution))
     click.echo(json.dumps(score.as_dict(), indent=2))
+
+
+def _fill_benchmark(
+    paths, out_dir, config, *, n_holes, seed, model, methods, alternatives, resolution_m, crs_items, scheduler
+):
+    from .evaluate_fill import evaluate_fill, format_table, survey_name
+
+    def names(text: str) -> tuple[str, ...]:
+        return tuple(item.strip() for item in text.split(",") if item.strip())
+
+    surveys = [[path] for path in paths]
+    known = {survey_name(inputs) for inputs in surveys}
+    crs = {}
+    for item in crs_items:  # NAME=CRS when NAME is a survey's name; else (a PROJ string too) for every survey
+        head, _, value = item.partition("=")
+        crs.update({head: value} if head in known else {"*": item})
+
+    def progress(result) -> None:
+        state = f"skipped: {result.skipped}" if result.skipped else f"{len(result.holes)} holes, {result.cut_px} px"
+        click.echo(f"{result.model} {result.survey}: {state}", err=True)
+
+    benchmark = evaluate_fill(
+        surveys,
+        out_dir,
+        config,
+        n_holes=n_holes,
+        seed=seed,
+        models=("dsm", "dtm") if model == "both" else (model,),
+        methods=names(methods),
+        alternatives=names(alternatives),
+        resolution_m=resolution_m,
+        crs=crs,
+        scheduler=scheduler,
+        on_survey=progress,
+    )
+    table = format_table(benchmark)
+    (Path(out_dir) / "fill_eval.txt").write_text(table + "\n")
+    click.echo(table)
+    click.echo(f"fill benchmark: {benchmark.seconds:.0f} s -> {Path(out_dir) / 'fill_eval.json'}", err=True)
 
 
 def _min_area_px(min_area_m2: float, resolution: float) -> int:

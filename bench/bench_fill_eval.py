@@ -1,0 +1,176 @@
+"""The fill benchmark on every real survey of ../shared/data, DSM and DTM.
+
+    .venv/bin/python bench/bench_fill_eval.py OUT [--holes 20] [--seed 0] [--model both] [--only NAME ...] [--methods default,mls,...]
+    .venv/bin/python bench/bench_fill_eval.py --markdown OUT/fill_eval.json [MORE.json ...]
+
+Same as ``holefill evaluate --fill FILE... --out OUT --model both`` with the CRS
+that some files lack (``MISSING_CRS`` of compare_outputs.py) and one local Dask
+cluster of two workers. Prints the table and writes OUT/fill_eval.json and
+OUT/fill_eval.txt; ``--markdown`` turns reports into the tables of
+docs/performance.md (RMSE per survey and method, pooled errors, targets). No assertions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from compare_outputs import MISSING_CRS, SHARED_DATA
+
+ALTERNATIVE_COLUMNS = ("gdal_fillnodata", "tin_linear", "nni", "laplace")
+
+
+def _median(values: list[float]) -> str:
+    return f"{sorted(values)[len(values) // 2]:.2f}" if values else "-"
+
+
+def markdown(paths: list[Path]) -> str:
+    """RMSE tables per model from fill_eval.json reports, pooled again over the surveys of all of them."""
+    import json
+    import math
+
+    from pipeline.survey import scan_survey
+
+    surveys = []
+    for path in paths:
+        surveys += json.loads(path.read_text())["surveys"]
+    for s in surveys:  # reports written before z_unit_m was recorded: read it from the headers
+        if "z_unit_m" not in s:
+            s["z_unit_m"] = scan_survey(s["inputs"], crs=MISSING_CRS.get(s["survey"], "")).vertical_unit_m
+        factor = s["z_unit_m"]  # pooled errors are in metres
+        for r in [*s["methods"].values(), *s["alternatives"].values()]:
+            r["m"] = {k: r[k] * factor for k in ("rmse", "mae", "bias", "max_abs") if r.get(k) is not None}
+        for h in s["holes"]:
+            h["rmse_m"] = {k: v * factor for k, v in h["rmse"].items() if v is not None}
+    lines = []
+    for model in dict.fromkeys(s["model"] for s in surveys):
+        rows = [s for s in surveys if s["model"] == model]
+        done = [s for s in rows if not s["skipped"]]
+        methods = list(dict.fromkeys(m for s in rows for m in s["methods"]))
+        columns = methods + [a for a in ALTERNATIVE_COLUMNS if any(a in s["alternatives"] for s in rows)]
+        lines += [f"### {model.upper()}: RMSE per survey (z units), scored pixels", ""]
+        lines.append(
+            "| survey | px (m) | holes | scored px | "
+            + " | ".join(columns)
+            + " | default / best alt. | MLS / IDW | MLS / IDW, no cause |"
+        )
+        lines.append("|---" * (len(columns) + 7) + "|")
+        for s in rows:
+            if s["skipped"]:
+                lines.append(
+                    f"| {s['survey']} | {s['resolution_m'] or '-'} | {s['n_holes']} | skipped: {s['skipped']} |"
+                )
+                continue
+            alternatives = [s["alternatives"][a]["rmse"] for a in columns if s["alternatives"].get(a, {}).get("rmse")]
+            best = min(alternatives, default=None)
+            values = []
+            for c in columns:
+                r = (s["methods"].get(c) or s["alternatives"].get(c) or {}).get("rmse")
+                text = "-" if r is None else f"{r:.3f}"
+                values.append(f"**{text}**" if r is not None and r == best else text)
+            ratios = [s["default_vs_best_alternative"], s["mls_vs_idw"], s.get("mls_vs_idw_nocause")]
+            lines.append(
+                f"| {s['survey']} | {s['resolution_m']:g} | {s['n_holes']} | {s['scored_px']} | "
+                + " | ".join(values + ["-" if r is None else f"{r:.2f}" for r in ratios])
+                + " |"
+            )
+        lines += [
+            "",
+            f"### {model.upper()}: pooled over {len(done)} surveys ({sum(s['n_holes'] for s in done)} holes)",
+            "",
+        ]
+        lines.append("| method | RMSE (m) | MAE (m) | max (m) | bias (m) | scored px | unfilled px |")
+        lines.append("|---|---|---|---|---|---|---|")
+        for name in columns:
+            scores = [r for s in done if (r := s["methods"].get(name) or s["alternatives"].get(name)) and r.get("n_px")]
+            n = sum(r["n_px"] for r in scores)
+            if not n:
+                continue
+            rmse = math.sqrt(sum(r["m"]["rmse"] ** 2 * r["n_px"] for r in scores) / n)
+            mae = sum(r["m"]["mae"] * r["n_px"] for r in scores) / n
+            bias = sum(r["m"]["bias"] * r["n_px"] for r in scores) / n
+            top = max(r["m"]["max_abs"] for r in scores)
+            unfilled = sum(r["n_unfilled"] for r in scores)
+            lines.append(f"| {name} | {rmse:.3f} | {mae:.3f} | {top:.2f} | {bias:+.3f} | {n} | {unfilled} |")
+        lines += ["", "RMSE (m) pooled over holes by the relief (m) of the reference under them (max - min):", ""]
+        lines.append("| relief | holes | px | " + " | ".join(columns) + " |")
+        lines.append("|---" * (len(columns) + 3) + "|")
+        for label, test in (("< 2.5", lambda r: r < 2.5), (">= 2.5", lambda r: r >= 2.5)):
+            holes = [
+                h for s in done for h in s["holes"] if h["relief"] is not None and test(h["relief"] * s["z_unit_m"])
+            ]
+            cells = []
+            for c in columns:
+                scored = [(h["rmse_m"][c], h["n_px"]) for h in holes if c in h["rmse_m"]]
+                n = sum(w for _, w in scored)
+                cells.append(f"{math.sqrt(sum(r * r * w for r, w in scored) / n):.3f}" if n else "-")
+            lines.append(f"| {label} | {len(holes)} | {sum(h['n_px'] for h in holes)} | " + " | ".join(cells) + " |")
+        ratios = [s["default_vs_best_alternative"] for s in done if s["default_vs_best_alternative"] is not None]
+        mls = [s["mls_vs_idw"] for s in done if s["mls_vs_idw"] is not None]
+        nocause = [s["mls_vs_idw_nocause"] for s in done if s.get("mls_vs_idw_nocause") is not None]
+        stages = [s["methods"]["default"].get("stage_seconds", {}) for s in done if "default" in s["methods"]]
+        rasterize = sum(t.get("rasterize") or 0 for t in stages)
+        fill = sum(t.get("fill") or 0 for t in stages)
+        lines += [
+            "",
+            f"default RMSE <= 0.85 x best alternative's: {sum(r <= 0.85 for r in ratios)} of {len(ratios)} surveys "
+            f"(median ratio {_median(ratios)}); MLS RMSE <= 0.5 x IDW's: "
+            f"{sum(r <= 0.5 for r in mls)} of {len(mls)} (median {_median(mls)})"
+            + (
+                f", both by_cause = false: {sum(r <= 0.5 for r in nocause)} of {len(nocause)} "
+                f"(median {_median(nocause)}); "
+                if nocause
+                else "; "
+            )
+            + f"default runs: rasterize {rasterize:.1f} s, fill {fill:.1f} s in all (fill / rasterize {fill / rasterize if rasterize else math.nan:.2f})",
+            "",
+        ]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--markdown":
+        print(markdown([Path(p) for p in sys.argv[2:]]))
+        return
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--holes", type=int, default=20)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--model", choices=["dsm", "dtm", "both"], default="both")
+    parser.add_argument("--only", nargs="*", default=[])
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--methods", default="", help="pipeline runs, comma-separated (default: all)")
+    args = parser.parse_args()
+
+    from pipeline.config import load_config
+    from pipeline.evaluate_fill import evaluate_fill, format_table
+
+    files = [p for p in sorted(SHARED_DATA.glob("*.la[sz]")) if not args.only or p.name in args.only]
+    if not files:
+        sys.exit(f"no survey found in {SHARED_DATA}")
+    config = load_config(overrides=[f"dask.workers={args.workers}"])
+
+    def progress(result) -> None:
+        state = f"skipped: {result.skipped}" if result.skipped else f"{len(result.holes)} holes, {result.cut_px} px"
+        print(f"{result.model} {result.survey} ({result.resolution_m:g} m): {state}", file=sys.stderr, flush=True)
+
+    benchmark = evaluate_fill(
+        [[str(p)] for p in files],
+        args.out,
+        config,
+        n_holes=args.holes,
+        seed=args.seed,
+        models=("dsm", "dtm") if args.model == "both" else (args.model,),
+        crs=dict(MISSING_CRS),
+        **({"methods": tuple(args.methods.split(","))} if args.methods else {}),
+        on_survey=progress,
+    )
+    table = format_table(benchmark)
+    (args.out / "fill_eval.txt").write_text(table + "\n")
+    print(table)
+    print(f"{benchmark.seconds:.0f} s", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
