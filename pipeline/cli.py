@@ -299,10 +299,12 @@ def evaluate(
     from .evaluate import score_holes
 
     out = Path(paths[0])
-    if not (out / "holes.gpkg").exists() or not (out / "manifest.json").exists():
-        raise InputDataError(out, "holds no finished holefill run (no holes.gpkg and manifest.json)")
+    if not (out / "holes.gpkg").exists():
+        raise InputDataError(out, "holds no finished holefill run (no holes.gpkg)")
     min_area_m2 = config.holes.min_area_m2
     if min_area_m2 == "auto":  # as the run resolved it
+        if not (out / "manifest.json").exists():
+            raise InputDataError(out, "has no manifest.json to tell holes.min_area_m2: give --set holes.min_area_m2=")
         manifest = json.loads((out / "manifest.json").read_text())
         min_area_m2 = manifest["holes"]["min_area_m2"]
     with rasterio.open(truth_path) as truth:

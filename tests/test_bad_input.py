@@ -103,3 +103,10 @@ def test_relative_output_folder_on_a_running_scheduler(runner, tmp_path, rng, da
                  "--set", "grid.cell_size_m=50")  # fmt: skip
     assert result.exit_code == 0, result.output
     assert (tmp_path / "relative" / "out" / "manifest.json").exists()
+
+
+def test_evaluate_a_folder_without_a_run(runner, tmp_path):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "truth.tif").write_bytes(b"")
+    result = runner.invoke(main, ["evaluate", str(tmp_path / "empty"), "--truth", str(tmp_path / "truth.tif")])
+    assert result.exit_code == 3 and "holds no finished holefill run" in one_error_line(result)

@@ -271,7 +271,8 @@ def test_evaluate_truth_mode_still_scores_a_run(tmp_path):
         crs_wkt="EPSG:2154",
         geometry_type="MultiPolygon",
     )
-    result = CliRunner().invoke(main, ["evaluate", str(run), "--truth", str(tmp_path / "truth.tif")])
+    args = ["evaluate", str(run), "--truth", str(tmp_path / "truth.tif"), "--set", "holes.min_area_m2=1"]
+    result = CliRunner().invoke(main, args)
     assert result.exit_code == 0, result.output
     score = json.loads(result.output)
     assert score["iou"] == 1.0 and score["cause_accuracy"] == 1.0
