@@ -286,6 +286,12 @@ class FillConfig:
         10_000.0, "Holes larger than this (m2) stay nodata (skipped: too large) and go to the flight plan.", gt=0
     )
     margin_px: int = _opt(8, "Pixels of measured data read around each hole for its support.", ge=1)
+    tin_order: int = _opt(
+        2, "Fairing of tin fills: 1 harmonic (umbrella operator), 2 biharmonic (second order).", choices=(1, 2)
+    )
+    clamp_to_rim: bool = _opt(
+        True, "Keep interpolated heights within the range of the hole's rim (no overshoot at steps)."
+    )
     water_percentile: float = _opt(
         10.0, "Water is filled flat at this percentile of its rim heights (the water's edge).", ge=0, le=100
     )

@@ -324,3 +324,25 @@ def test_fill_package_imports_no_io_or_dask():
     )
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == ""
+
+
+def test_clamp_to_rim_keeps_fills_within_each_components_rim():
+    from pipeline.fill import clamp_to_rim
+
+    heights = np.array(
+        [
+            [1.0, 1.0, 1.0, 1.0, 7.0, 7.0, 7.0],
+            [1.0, np.nan, np.nan, 5.0, 7.0, np.nan, 9.0],
+            [1.0, 1.0, 1.0, 1.0, 7.0, 8.0, 7.0],
+        ]
+    )
+    region = np.isnan(heights)
+    filled = np.where(region, np.array([[0, 9.0, -3.0, 0, 0, 20.0, 0]] * 3), heights)
+    out = clamp_to_rim(filled, heights, region)
+    assert out[1, 1] == 5.0 and out[1, 2] == 1.0  # left hole: rim 1..5
+    assert out[1, 5] == 9.0  # right hole: rim 7..9
+    np.testing.assert_array_equal(out[~region], heights[~region])  # measured pixels untouched
+    low_side = np.zeros_like(region)
+    low_side[0, 1:3] = low_side[2, 1:3] = low_side[1, 0] = True  # only the 1 m rim supports the left hole
+    out = clamp_to_rim(filled, heights, region, support=low_side)
+    assert out[1, 1] == 1.0 and out[1, 2] == 1.0

@@ -10,7 +10,7 @@ References (files under ``shared/seeds``):
 See docs/filling.md for the methods, the ``auto`` rule and measured figures.
 """
 
-from .causes import lower_side_support, rim_level
+from .causes import clamp_to_rim, lower_side_support, rim_level
 from .provenance import fill_distance, leave_boundary_out_error
 from .region import FILL_METHODS, choose_methods, fill_region
 from .seams import smooth_seams
@@ -34,6 +34,7 @@ __all__ = [
     "FillOutcome",
     "FillSettings",
     "choose_methods",
+    "clamp_to_rim",
     "fill_distance",
     "fill_region",
     "leave_boundary_out_error",

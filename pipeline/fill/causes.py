@@ -12,7 +12,7 @@ import scipy.ndimage as ndi
 
 from ._problem import CROSS
 
-__all__ = ["lower_side_support", "rim_level"]
+__all__ = ["clamp_to_rim", "lower_side_support", "rim_level"]
 
 
 def _components(region: np.ndarray, labels: np.ndarray | None) -> tuple[np.ndarray, int]:
@@ -128,3 +128,40 @@ def rim_level(
     for k in np.unique(pl):
         levels[k] = np.percentile(z[bounds[k] : bounds[k + 1]], percentile)
     return levels
+
+
+def clamp_to_rim(
+    filled: np.ndarray,
+    heights: np.ndarray,
+    region: np.ndarray,
+    *,
+    support: np.ndarray | None = None,
+    labels: np.ndarray | None = None,
+) -> np.ndarray:
+    """Keep every filled height within the range of its component's rim (pure).
+
+    A smooth surface fitted to a rim with steps (a roof edge, the flank of a crown)
+    carries the rim's slopes into the hole and overshoots above the highest or below
+    the lowest rim height; a void in a surface has no reason to leave that range.
+    The rim is the finite pixels 4-adjacent to a component, limited to ``support``
+    when given (the low side of an occlusion).
+    """
+    out = np.array(filled, dtype=np.float64, copy=True)
+    lab, n = _components(region, labels)
+    if n == 0:
+        return out
+    rim_heights = np.where(support, heights, np.nan) if support is not None else heights
+    rim_l, rim_i = _rim_pairs(rim_heights, lab)
+    if len(rim_l) == 0:
+        return out
+    values = rim_heights.ravel()[rim_i]
+    low = np.full(n + 1, np.inf)
+    high = np.full(n + 1, -np.inf)
+    np.minimum.at(low, rim_l, values)
+    np.maximum.at(high, rim_l, values)
+    has_rim = np.isfinite(low) & np.isfinite(high)
+    low = np.where(has_rim, low, -np.inf)
+    high = np.where(has_rim, high, np.inf)
+    inside = lab > 0
+    out[inside] = np.clip(out[inside], low[lab[inside]], high[lab[inside]])
+    return out

@@ -27,6 +27,7 @@ from ..fill import (
     METHOD_NAMES,
     FillOutcome,
     FillSettings,
+    clamp_to_rim,
     fill_distance,
     fill_region,
     lower_side_support,
@@ -59,6 +60,7 @@ class FillParams:
     water_percentile: float
     jump_threshold: float  # z units
     settings: FillSettings
+    clamp_to_rim: bool = True
 
 
 @dataclass(frozen=True)
@@ -114,7 +116,8 @@ def fill_params(plan: SurveyPlan, config: Config, params: HoleParams) -> FillPar
         max_distance=fill.max_distance_m / plan.survey.horizontal_unit_m,
         water_percentile=fill.water_percentile,
         jump_threshold=params.jump_threshold,
-        settings=FillSettings(estimate_error=fill.estimate_error),
+        settings=FillSettings(estimate_error=fill.estimate_error, tin_order=fill.tin_order),
+        clamp_to_rim=fill.clamp_to_rim,
     )
 
 
@@ -247,7 +250,7 @@ def fill_hole(
         # a small void at a step (a building's edge) is hidden ground like an occlusion; with
         # no step on its rim every rim pixel is on the low side and nothing changes
         support = lower_side_support(heights, region, jump_threshold=params.jump_threshold)
-    return fill_region(
+    outcome = fill_region(
         heights,
         region,
         method=params.method,
@@ -256,6 +259,10 @@ def fill_hole(
         pixel_size=params.pixel_size,
         labels=labels,
     )
+    if not params.clamp_to_rim:
+        return outcome
+    clamped = clamp_to_rim(outcome.heights, heights, region, support=support, labels=labels)
+    return replace(outcome, heights=np.where(np.isfinite(outcome.heights), clamped, np.nan))
 
 
 def _summary(outcome: FillOutcome, filled: np.ndarray, distance: np.ndarray) -> dict:
