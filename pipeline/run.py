@@ -144,6 +144,27 @@ class _Rasters:
     cells: list[CellResult]
     written: list[WriteResult]
 
+    def add(self, result: Any) -> str:
+        """File one task's result; returns its kind (``tile``, ``cell`` or ``written``)."""
+        if isinstance(result, TileResult):
+            self.tiles.append(result)
+            if result.points_outside:
+                logger.warning(
+                    "%s: %d points lie outside the bounds its header declares; they were not used",
+                    result.path,
+                    result.points_outside,
+                )
+            return "tile"
+        if isinstance(result, TileFailure):
+            logger.warning("skipping %s: %s", result.path, result.reason)
+            self.failed.append({"path": result.path, "reason": result.reason})
+            return "tile"
+        if isinstance(result, CellResult):
+            self.cells.append(result)
+            return "cell"
+        self.written.append(result)
+        return "written"
+
 
 def _run_rasters(
     runner: _Runner, plan: SurveyPlan, config: Config, staging: Staging, timer: _StageTimer, *, write: bool
@@ -187,33 +208,16 @@ def _run_rasters(
         for task in (write_rasters.write_tasks(plan, config, list(merge_futures), staging) if write else [])
     ]
     results = _Rasters([], [], [], [])
-    tiles_bar = runner.bar.add("decode + bin tiles", total=len(tile_futures))
-    cells_bar = runner.bar.add("merge cells", total=len(merge_futures))
-    write_bar = runner.bar.add("write rasters", total=len(write_futures))
+    bars = {
+        "tile": runner.bar.add("decode + bin tiles", total=len(tile_futures)),
+        "cell": runner.bar.add("merge cells", total=len(merge_futures)),
+        "written": runner.bar.add("write rasters", total=len(write_futures)),
+    }
 
     def collect(result: Any) -> None:
-        if isinstance(result, TileResult):
-            results.tiles.append(result)
-            if result.points_outside:
-                logger.warning(
-                    "%s: %d points lie outside the bounds its header declares; they were not used",
-                    result.path,
-                    result.points_outside,
-                )
-            runner.bar.advance(tiles_bar, points=result.points_read)
-        elif isinstance(result, TileFailure):
-            logger.warning("skipping %s: %s", result.path, result.reason)
-            results.failed.append({"path": result.path, "reason": result.reason})
-            runner.bar.advance(tiles_bar)
-        elif isinstance(result, CellResult):
-            results.cells.append(result)
-            runner.bar.advance(cells_bar)
-        else:
-            results.written.append(result)
-            runner.bar.advance(write_bar)
-        if isinstance(result, (TileResult, TileFailure)) and len(results.tiles) + len(results.failed) == len(
-            tile_futures
-        ):
+        kind = results.add(result)
+        runner.bar.advance(bars[kind], points=result.points_read if isinstance(result, TileResult) else 0)
+        if kind == "tile" and len(results.tiles) + len(results.failed) == len(tile_futures):
             timer.lap("rasterize")
 
     runner.gather([*tile_futures.values(), *merge_futures.values(), *write_futures], collect)

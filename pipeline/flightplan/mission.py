@@ -179,11 +179,7 @@ def plan_mission(
         raise ValueError("altitude_reference 'ellipsoid' needs a checked to_ellipsoid conversion")
     selected, decisions = _select(holes, params)
     patterns = _patterns(selected, params.coverage)
-    if home is None:
-        home = _default_home(patterns, holes)
-    if snap_home and not math.isfinite(height_at(dsm, transform, home)):
-        # a home nobody chose, in a hole or off the data: the nearest point with a surface height
-        home = nearest_data_point(dsm, transform, home) or home
+    home = _choose_home(home, patterns, holes, dsm, transform, snap=snap_home)
     units, unit_ends, unflyable = _flyable_units(patterns, home, params)
     decisions = _mark_unflyable(decisions, unflyable, patterns)
     greedy, improved, sortie_visits = _routes(unit_ends, home, params)
@@ -303,6 +299,18 @@ def _patterns(selected: list[HoleInput], coverage: CoverageParams) -> list[Cover
             )
         )
     return patterns
+
+
+def _choose_home(
+    home: Point2 | None, patterns: list[CoveragePattern], holes: list[HoleInput], dsm, transform, *, snap: bool
+) -> Point2:
+    """The given home, or the centre of the holes; with ``snap``, moved onto the nearest surface with data."""
+    if home is None:
+        home = _default_home(patterns, holes)
+    if snap and not math.isfinite(height_at(dsm, transform, home)):
+        # a home nobody chose, in a hole or off the data: the nearest point with a surface height
+        home = nearest_data_point(dsm, transform, home) or home
+    return home
 
 
 def _default_home(patterns: list[CoveragePattern], holes: list[HoleInput]) -> Point2:
