@@ -110,6 +110,10 @@ class CellHoles:
         return replace(self, labels=None)
 
 
+#: The arrays of :func:`detect_cell_holes`, in the order of its parameters.
+_INPUTS = ("count", "zmax", "zmin", "aoi", "water_points", "water_mask", "flight_line", "coverage")
+
+
 def detect_cell_holes(
     count: np.ndarray,
     zmax: np.ndarray,
@@ -131,55 +135,41 @@ def detect_cell_holes(
 ) -> CellHoles:
     """Find, classify and measure the hole parts of one cell.
 
-    A part is a connected set of empty AOI pixels of the cell core. Parts are
-    classified per [OPEN] section 3.1 (closed / open type I / open type II,
-    shapes A-D, see ``docs/holes.md``) and measured with statistics that merge
-    exactly across cells (:func:`merge_hole_stats`, :func:`link_holes`): the
-    results do not depend on the cell size.
+    A part is a connected set of empty AOI pixels of the cell core. Parts are classified per
+    [OPEN] section 3.1 (closed / open type I / open type II, shapes A-D, see ``docs/holes.md``)
+    and measured with statistics that merge exactly across cells (:func:`merge_hole_stats`,
+    :func:`link_holes`): the results do not depend on the cell size.
 
     Parameters
     ----------
-    count : ndarray of shape ``cell.halo_window.shape``
-        Points per pixel over the cell's halo window.
-    zmax, zmin : ndarray of float, same shape
-        Highest and lowest point per pixel, NaN where empty.
+    count, zmax, zmin : ndarray of shape ``cell.halo_window.shape``
+        Points per pixel over the cell's halo window; highest and lowest point per pixel (float, NaN where empty).
     aoi : ndarray of bool, same shape, optional
         True inside the area of interest; None: the whole grid.
     cell : Cell
         The cell; the arrays cover ``cell.halo_window``.
     grid_window : PixelWindow
         The survey grid (``Grid.window``): beyond it is outside the AOI.
-    jump_threshold : float
-        Height-jump threshold in z units ([UAS] eq. 1).
+    jump_threshold, height_bin : float
+        Height-jump threshold ([UAS] eq. 1) and bin width of the ring-height histogram, in z units.
     connectivity : {4, 8}
-        Connectivity of hole pixels. 4 (default) follows [UAS] section 3.2 and
-        gives outlines whose polygons are always valid; see ``docs/holes.md``.
-    local_radius_px : int
-        A ring pixel is "low" when its height (``zmin``) is within ``low_tolerance``
-        of the lowest ``zmin`` within this many pixels (square window; 0 disables).
-        The halo must reach this far (and at least 1 pixel) on every side that is
-        not the grid's edge.
-    low_tolerance : float
-        In z units.
-    height_bin : float
-        Bin width (z units) of the ring-height histogram.
-    water_points : ndarray, same shape, optional
-        Water-class points per pixel (e.g. ASPRS class 9).
-    water_mask : ndarray of bool, same shape, optional
-        True inside known water polygons.
+        Of hole pixels: 4 (default, [UAS] section 3.2) gives outlines whose polygons are always valid.
+    local_radius_px, low_tolerance : int, float
+        A ring pixel is "low" when its ``zmin`` is within ``low_tolerance`` (z units) of the
+        lowest ``zmin`` within ``local_radius_px`` pixels (square window; 0 disables). The
+        halo must reach this far (and at least 1 pixel) on every side that is not the grid's edge.
+    water_points, water_mask : ndarray, same shape, optional
+        Water-class points per pixel (e.g. ASPRS class 9); True inside known water polygons.
     flight_line : ndarray of int, same shape, optional
         An id of a flight line covering each pixel (e.g. a point_source_id), < 0: unknown.
     coverage : ndarray of int, same shape, optional
-        Per pixel: 2 in a coverage gap (no flight line's swath reaches), 1 inside a
-        flight line's swath, 0 unknown (:meth:`pipeline.holes.coverage.CoverageGaps.classes`).
-        Hole pixels inside and outside a gap are labelled apart: no part straddles a
-        gap's edge, so a river crossing a missed strip gives two holes.
+        Per pixel: 2 in a coverage gap (no flight line's swath reaches), 1 inside a flight line's swath,
+        0 unknown (:meth:`pipeline.holes.coverage.CoverageGaps.classes`). Hole pixels inside and outside
+        a gap are labelled apart: no part straddles a gap's edge (a river crossing a missed strip gives two holes).
     min_area_px : int
-        Closed parts (complete holes: they touch neither the core edge nor the AOI
-        boundary) smaller than this are settled here as small voids: counted in
-        ``small_void_count``/``small_void_px``, labelled -1, and not listed. Open
-        parts are always kept, whatever their size: their hole's area is only
-        known after linking. 0 (default) keeps every part.
+        Closed parts (touching neither the core edge nor the AOI boundary) smaller than this are settled
+        here as small voids: counted in ``small_void_count``/``small_void_px``, labelled -1, not listed.
+        Open parts are always kept (their hole's area is only known after linking). 0 (default) keeps all.
 
     Returns
     -------
@@ -190,20 +180,10 @@ def detect_cell_holes(
     ValueError
         On arrays of the wrong shape, a bad parameter, or a halo narrower than needed.
     """
-    arrays = {
-        "count": count,
-        "zmax": zmax,
-        "zmin": zmin,
-        "aoi": aoi,
-        "water_points": water_points,
-        "water_mask": water_mask,
-        "flight_line": flight_line,
-        "coverage": coverage,
-    }
-    R = _check_inputs(
+    arrays = dict(zip(_INPUTS, (count, zmax, zmin, aoi, water_points, water_mask, flight_line, coverage)))
+    work = _checked_work(
         arrays, cell, grid_window, connectivity=connectivity, local_radius_px=local_radius_px, height_bin=height_bin
     )
-    work = _work_arrays(arrays, cell, R)
     return _find_parts(
         work,
         cell,
@@ -334,6 +314,22 @@ class _Work(NamedTuple):
         """The view of a work-window array over the core."""
         R = self.R
         return arr[R : arr.shape[0] - R, R : arr.shape[1] - R]
+
+
+def _checked_work(
+    arrays: dict[str, np.ndarray | None],
+    cell: Cell,
+    grid_window: PixelWindow,
+    *,
+    connectivity: int,
+    local_radius_px: int,
+    height_bin: float,
+) -> _Work:
+    """:func:`_check_inputs`, then :func:`_work_arrays`: the checked arrays over the work window."""
+    R = _check_inputs(
+        arrays, cell, grid_window, connectivity=connectivity, local_radius_px=local_radius_px, height_bin=height_bin
+    )
+    return _work_arrays(arrays, cell, R)
 
 
 def _work_arrays(arrays: dict[str, np.ndarray | None], cell: Cell, R: int) -> _Work:

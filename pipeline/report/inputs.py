@@ -1,0 +1,235 @@
+"""Reading a finished run's output folder into :class:`ReportInputs` for the maps.
+
+The only module of the report that reads files: ``dsm.vrt`` and ``fill_mask.vrt``
+through rasterio, ``holes.gpkg`` and ``flightplan.gpkg`` through pyogrio (via
+:mod:`pipeline.io.vector`). Both are imported inside the functions, so importing the
+report stays light.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from .model import MAX_HOLE_VERTICES, MAX_MAP_PX, ZOOM_PX, Bounds, MapHole, MapRaster, ReportInputs
+from .text import _float, _text
+
+
+def read_report_inputs(
+    folder: str | os.PathLike,
+    *,
+    max_px: int = MAX_MAP_PX,
+    zooms: int = 4,
+    zoom_px: int = ZOOM_PX,
+) -> ReportInputs | None:
+    """The report's map inputs, read from a run's output (or staging) folder.
+
+    Reads ``dsm.vrt`` and ``fill_mask.vrt`` downsampled to at most ``max_px`` pixels on
+    the long side (GDAL picks the tiles' overviews), the ``holes``, ``hole_parts`` and
+    ``survey_area`` layers of ``holes.gpkg`` and, when present, the ``route`` layer of
+    ``flightplan.gpkg``; and a closer window (at most ``zoom_px``) around each of the
+    ``zooms`` largest holes that do not span most of the survey.
+
+    Parameters
+    ----------
+    folder : path-like
+        A folder holding ``dsm.vrt`` (``OUT``, or the run's staging folder before commit).
+
+    Returns
+    -------
+    ReportInputs or None
+        None when the folder holds no ``dsm.vrt``.
+    """
+    folder = Path(folder)
+    if not (folder / "dsm.vrt").exists():
+        return None
+    overview = _read_view(folder, None, max_px)
+    pixel = max(
+        (overview.bounds[2] - overview.bounds[0]) / overview.dsm.shape[1],
+        (overview.bounds[3] - overview.bounds[1]) / overview.dsm.shape[0],
+    )
+    holes = _read_holes(folder / "holes.gpkg", pixel)
+    survey = (overview.bounds[2] - overview.bounds[0], overview.bounds[3] - overview.bounds[1])
+    zoom_views: list[tuple[int, MapRaster]] = []
+    for hole in sorted(holes, key=lambda h: -h.area_m2):
+        if len(zoom_views) >= zooms:
+            break
+        if hole.bounds is None or not hole.rings:
+            continue
+        w, h = hole.bounds[2] - hole.bounds[0], hole.bounds[3] - hole.bounds[1]
+        if w > 0.5 * survey[0] and h > 0.5 * survey[1]:
+            continue  # the overview shows it whole
+        zoom_views.append((hole.hole_id, _read_view(folder, _zoom_bounds(hole.bounds, overview.bounds), zoom_px)))
+    return ReportInputs(
+        overview=overview,
+        holes=holes,
+        zooms=tuple(zoom_views),
+        route=_read_lines(folder / "flightplan.gpkg", "route", pixel),
+        survey_area=_read_rings(folder / "holes.gpkg", "survey_area", pixel),
+        part_area_by_type=_read_part_areas(folder / "holes.gpkg"),
+    )
+
+
+def _zoom_bounds(hole: Bounds, limit: Bounds) -> Bounds:
+    """A square window around a hole with a margin, moved (not cut) to stay inside the survey grid."""
+    cx, cy = (hole[0] + hole[2]) / 2, (hole[1] + hole[3]) / 2
+    half = max(hole[2] - hole[0], hole[3] - hole[1]) * 0.8 + 15.0
+    half = min(half, (limit[2] - limit[0]) / 2, (limit[3] - limit[1]) / 2)
+    cx = min(max(cx, limit[0] + half), limit[2] - half)
+    cy = min(max(cy, limit[1] + half), limit[3] - half)
+    return (cx - half, cy - half, cx + half, cy + half)
+
+
+def _read_view(folder: Path, bounds: Bounds | None, max_px: int) -> MapRaster:
+    """``dsm.vrt`` (and ``fill_mask.vrt``) over ``bounds`` (default: all), at most ``max_px`` on the long side."""
+    import rasterio
+    from rasterio.enums import Resampling
+
+    with rasterio.open(folder / "dsm.vrt") as src:
+        window = _pixel_window(src.transform, bounds, src.width, src.height)
+        scale = max(window.width, window.height) / max_px
+        shape = (
+            (max(1, round(window.height / scale)), max(1, round(window.width / scale)))
+            if scale > 1
+            else (int(window.height), int(window.width))
+        )
+        data = src.read(1, window=window, out_shape=shape, masked=True, resampling=Resampling.average)
+        dsm = np.ma.filled(data.astype(np.float32), np.nan)
+        t = src.transform
+        view_bounds = (
+            t.c + window.col_off * t.a,
+            t.f + (window.row_off + window.height) * t.e,
+            t.c + (window.col_off + window.width) * t.a,
+            t.f + window.row_off * t.e,
+        )
+    filled = None
+    if (folder / "fill_mask.vrt").exists():
+        with rasterio.open(folder / "fill_mask.vrt") as src:
+            window = _pixel_window(src.transform, view_bounds, src.width, src.height)
+            codes = src.read(1, window=window, out_shape=shape, boundless=False)
+            nodata = 255 if src.nodata is None else int(src.nodata)
+            filled = (codes > 0) & (codes != nodata)
+    return MapRaster(dsm=dsm, bounds=tuple(float(v) for v in view_bounds), filled=filled)  # type: ignore[arg-type]
+
+
+def _pixel_window(transform, bounds: Bounds | None, width: int, height: int):
+    """The whole pixels of a north-up raster inside ``bounds`` (all of them without bounds)."""
+    from rasterio.windows import Window
+
+    if bounds is None:
+        return Window(0, 0, width, height)
+    t = transform
+    c0 = max(0, math.floor((bounds[0] - t.c) / t.a + 1e-6))
+    c1 = min(width, math.ceil((bounds[2] - t.c) / t.a - 1e-6))
+    r0 = max(0, math.floor((bounds[3] - t.f) / t.e + 1e-6))
+    r1 = min(height, math.ceil((bounds[1] - t.f) / t.e - 1e-6))
+    return Window(c0, r0, max(1, c1 - c0), max(1, r1 - r0))
+
+
+def _read_holes(gpkg: Path, pixel: float) -> tuple[MapHole, ...]:
+    if not gpkg.exists():
+        return ()
+    import shapely
+
+    from ..io.vector import list_layers, read_layer
+
+    if "holes" not in list_layers(gpkg):
+        return ()
+    frame = read_layer(gpkg, "holes").sort_values("area_m2", ascending=False)
+    budget = MAX_HOLE_VERTICES
+    holes = []
+    for record, geometry in zip(frame.drop(columns="geometry").to_dict("records"), frame.geometry):
+        rings: tuple[np.ndarray, ...] = ()
+        bounds = label = None
+        if geometry is not None and not geometry.is_empty:
+            xmin, ymin, xmax, ymax = geometry.bounds
+            bounds = (xmin, ymin, xmax, ymax)
+            point = geometry.representative_point()
+            label = (point.x, point.y)
+            if budget > 0 and max(xmax - xmin, ymax - ymin) >= pixel:
+                rings = tuple(_rings(shapely.simplify(geometry, pixel / 2)))
+                budget -= sum(len(r) for r in rings)
+        holes.append(
+            MapHole(
+                hole_id=int(record["hole_id"]),
+                cause=str(record.get("cause") or "unknown"),
+                area_m2=float(record.get("area_m2") or 0.0),
+                fill_status=str(record.get("fill_status") or ""),
+                fill_method=_text(record.get("fill_method")),
+                cause_rule=str(record.get("cause_rule") or ""),
+                fill_error_m=_float(record.get("fill_error_m")),
+                bounds=bounds,
+                label_xy=label,
+                rings=rings,
+            )
+        )
+    return tuple(holes)
+
+
+def _read_part_areas(gpkg: Path) -> dict[str, float]:
+    if not gpkg.exists():
+        return {}
+    import pyogrio
+
+    from ..io.vector import list_layers
+
+    if "hole_parts" not in list_layers(gpkg):
+        return {}
+    frame = pyogrio.read_dataframe(
+        gpkg, layer="hole_parts", columns=["category", "shape", "area_m2"], read_geometry=False
+    )
+    areas: dict[str, float] = collections.defaultdict(float)
+    for category, shape, area in zip(frame["category"], frame["shape"], frame["area_m2"]):
+        shape = _text(shape) if category != "closed" else None
+        areas[f"{category}{shape}" if shape else str(category)] += float(area)
+    return dict(sorted(areas.items()))
+
+
+def _read_lines(gpkg: Path, layer: str, pixel: float) -> tuple[np.ndarray, ...]:
+    if not gpkg.exists():
+        return ()
+    import shapely
+
+    from ..io.vector import list_layers, read_layer
+
+    if layer not in list_layers(gpkg):
+        return ()
+    lines = []
+    for geometry in read_layer(gpkg, layer).geometry:
+        if geometry is None or geometry.is_empty:
+            continue
+        simple = shapely.simplify(geometry, pixel / 4)
+        parts = getattr(simple, "geoms", [simple])
+        lines += [np.asarray(part.coords)[:, :2] for part in parts if len(part.coords) >= 2]
+    return tuple(lines)
+
+
+def _read_rings(gpkg: Path, layer: str, pixel: float) -> tuple[np.ndarray, ...]:
+    if not gpkg.exists():
+        return ()
+    import shapely
+
+    from ..io.vector import list_layers, read_layer
+
+    if layer not in list_layers(gpkg):
+        return ()
+    return tuple(
+        ring
+        for geometry in read_layer(gpkg, layer).geometry
+        if geometry is not None and not geometry.is_empty
+        for ring in _rings(shapely.simplify(geometry, pixel / 2))
+    )
+
+
+def _rings(geometry) -> Iterable[np.ndarray]:
+    for polygon in getattr(geometry, "geoms", [geometry]):
+        if polygon.geom_type != "Polygon" or polygon.is_empty:
+            continue
+        yield np.asarray(polygon.exterior.coords)[:, :2]
+        for interior in polygon.interiors:
+            yield np.asarray(interior.coords)[:, :2]
