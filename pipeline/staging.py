@@ -7,7 +7,7 @@ Everything a run writes goes into ``OUT/.holefill-partial-<id>/`` first::
         work/cells/<cell id>.npz   stage 2: merged statistics of a cell and its halo
         work/holes/<cell id>.npz   detection: part labels of a cell core
         work/holes/catalog.pkl     linking: the survey's hole catalog with causes
-        work/fill/hole_<id>.npz    filling: one hole's heights, method codes, distances
+        work/fill/fill_<cell id>.npz  filling: the holes a cell owns: ids, heights, method codes, distances
         dsm/dsm_<cell id>.tif      the writer stage's rasters (also fill_mask/, fill_distance/,
                                    dsm_unfilled/)
         dsm.vrt, holes.gpkg, manifest.json, report.html
@@ -123,8 +123,9 @@ class Staging:
     def hole_catalog(self) -> Path:
         return self.work / "holes" / "catalog.pkl"
 
-    def hole_fill(self, hole_id: int) -> Path:
-        return self.work / "fill" / f"hole_{hole_id}.npz"
+    def cell_fill(self, cell_id: str) -> Path:
+        """The filled holes a cell owns (their first pixel lies in its core)."""
+        return self.work / "fill" / f"fill_{cell_id}.npz"
 
     def task_result(self, key: str) -> Path:
         """Where a finished task keeps its (small) result, for a resumed run."""

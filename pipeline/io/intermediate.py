@@ -12,8 +12,8 @@ knows how each kind of result is stored:
 - stage 2, per cell: the merged statistics of the cell and its halo (``.npz``);
 - detection, per cell: the part-label raster of the cell core (``.npz``);
 - linking, per survey: the hole catalog (a pickle of plain numpy structures);
-- filling, per hole: the filled heights, method codes and distances over the
-  hole's window (``.npz``).
+- filling, per fill task: the filled holes' ids, heights, method codes and
+  distances over the task's window (``.npz``).
 """
 
 from __future__ import annotations
@@ -83,30 +83,30 @@ def load_labels(path: str | os.PathLike) -> tuple[np.ndarray, PixelWindow]:
         return data["labels"], PixelWindow(*(int(v) for v in data["window"]))
 
 
-def save_hole_fill(
+def save_task_fill(
     path: str | os.PathLike,
     window: PixelWindow,
-    mask: np.ndarray,
+    hole_ids: np.ndarray,
     heights: np.ndarray,
     codes: np.ndarray,
     distance: np.ndarray,
 ) -> None:
-    """Store one hole's fill over its window: which pixels, their heights, method codes, distances."""
+    """Store a fill task's holes over its window: which hole each pixel filled, heights, method codes, distances."""
     _save_npz(
         path,
         window=_window_array(window),
-        mask=mask.astype(bool),
+        hole_ids=hole_ids.astype(np.int64),
         heights=heights.astype(np.float32),
         codes=codes.astype(np.uint8),
         distance=distance.astype(np.float32),
     )
 
 
-def load_hole_fill(path: str | os.PathLike) -> tuple[PixelWindow, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(window, mask, heights, codes, distance)`` as :func:`save_hole_fill` stored them."""
+def load_task_fill(path: str | os.PathLike) -> tuple[PixelWindow, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(window, hole_ids, heights, codes, distance)`` as :func:`save_task_fill` stored them."""
     with np.load(path) as data:
         window = PixelWindow(*(int(v) for v in data["window"]))
-        return window, data["mask"], data["heights"], data["codes"], data["distance"]
+        return window, data["hole_ids"], data["heights"], data["codes"], data["distance"]
 
 
 def save_object(path: str | os.PathLike, value: Any) -> None:

@@ -21,6 +21,7 @@ from collections import defaultdict
 from dataclasses import dataclass, replace
 
 import numpy as np
+import scipy.ndimage as ndi
 
 from ..config import Config
 from ..fill import (
@@ -33,7 +34,7 @@ from ..fill import (
     lower_side_support,
 )
 from ..grid import Grid, PixelWindow
-from ..io.intermediate import load_cell_statistics, load_labels, save_hole_fill
+from ..io.intermediate import load_cell_statistics, load_labels, save_task_fill
 from ..plan import HoleParams, SurveyPlan
 from ..staging import Staging
 from .link_holes import HoleSet
@@ -44,6 +45,9 @@ OCCLUSION = "occlusion"
 
 #: Largest window (pixels) a hole is filled over; a hole spread wider is a strip for the flight plan.
 MAX_WINDOW_PX = 4096 * 4096
+
+#: How a hole is filled (:func:`fill_kind`).
+WATER, LOW_SIDE, RIM = "water", "low", "rim"
 
 #: ``fill_status`` values of the ``holes`` layer.
 FILLED, TOO_LARGE, NO_SUPPORT, NOT_FILLED = "filled", "skipped: too large", "skipped: no support", "unfilled"
@@ -79,7 +83,6 @@ class HoleToFill:
     hole_id: int
     cause: str
     window: PixelWindow  # the hole's bounding box grown by the margin, clipped to the grid
-    result_path: str
 
 
 @dataclass(frozen=True)
@@ -90,6 +93,7 @@ class FillTask:
     holes: tuple[HoleToFill, ...]
     sources: tuple[CellSource, ...]  # every cell whose core meets one of the holes' windows
     params: FillParams
+    result_path: str  # the filled holes of the task, kept for the writer stage
 
 
 @dataclass(frozen=True)
@@ -180,7 +184,6 @@ def fill_tasks(
                 # a small void is filled alike whether a cell settled it or it crossed cells
                 cause=SMALL_VOID if hole["is_small"] else str(holes.causes["cause"][i]),
                 window=box.expand(margin).intersection(grid.window),
-                result_path=str(staging.hole_fill(hole_id)),
             )
         )
     tasks = []
@@ -191,65 +194,111 @@ def fill_tasks(
                 cell_id = grid.cell(ix, iy).id
                 if cell_id in sources:
                     needed[cell_id] = sources[cell_id]
-        tasks.append(FillTask(owner, tuple(to_fill), tuple(needed.values()), params))
+        tasks.append(FillTask(owner, tuple(to_fill), tuple(needed.values()), params, str(staging.cell_fill(owner))))
     return tasks, skipped
 
 
 def fill_cell_holes(task: FillTask) -> list[HoleFill]:
-    """Fill every hole a cell owns, each over its own window, and keep the results."""
-    reader = _WindowReader(task.sources)
-    return [_fill_one(hole, reader, task.params) for hole in task.holes]
+    """Fill every hole a cell owns and keep the result in one file.
 
-
-def _fill_one(hole: HoleToFill, reader: _WindowReader, params: FillParams) -> HoleFill:
-    zmax, zmin, measured, hole_ids = reader.read(hole.window)
-    region = hole_ids == hole.hole_id
+    The holes are read over the union of their windows and filled in one call per
+    kind of fill (flat water, from the low side, from the whole rim): every hole is
+    its own component of that call, solved as if it were alone (the kernels keep
+    components independent), so batching changes no height, only the cost.
+    """
+    window = _union([hole.window for hole in task.holes])
+    zmax, zmin, measured, hole_ids = _WindowReader(task.sources).read(window)
+    params = task.params
     distance = fill_distance(measured, pixel_size=params.pixel_size)
-    farthest = float(distance[region].max()) if region.any() else 0.0
-    if farthest > params.max_distance:
-        return HoleFill(
-            hole.hole_id, TOO_LARGE, max_distance=farthest, detail="farther from data than fill.max_distance_m"
-        )
-    outcome = fill_hole(zmax, zmin, measured, region, hole.cause, params)
-    filled = region & np.isfinite(outcome.heights)
+    ids = np.array([hole.hole_id for hole in task.holes], dtype=np.int64)
+    farthest = ndi.maximum(distance, labels=hole_ids, index=ids) if len(ids) else np.empty(0)
+    results: dict[int, HoleFill] = {}
+    groups: dict[str, list[HoleToFill]] = defaultdict(list)
+    for hole, far in zip(task.holes, farthest):
+        if far > params.max_distance:
+            detail = "farther from data than fill.max_distance_m"
+            results[hole.hole_id] = HoleFill(hole.hole_id, TOO_LARGE, max_distance=float(far), detail=detail)
+        else:
+            groups[fill_kind(hole.cause, params)].append(hole)
+    heights = np.full(window.shape, np.nan)
+    codes = np.zeros(window.shape, np.uint8)
+    filled_ids = np.zeros(window.shape, np.int64)
+    for kind, group in groups.items():
+        labels = _group_labels(hole_ids, [hole.hole_id for hole in group])
+        outcome = fill_hole(zmax, zmin, measured, labels, kind, params)
+        for k, hole in enumerate(group, start=1):
+            results[hole.hole_id] = _record(hole.hole_id, k, labels, outcome, distance, task.result_path)
+        done = (labels > 0) & np.isfinite(outcome.heights)
+        heights[done], codes[done] = outcome.heights[done], outcome.method_code[done]
+        filled_ids[done] = hole_ids[done]
+    if filled_ids.any():
+        save_task_fill(task.result_path, window, filled_ids, heights, codes, distance)
+    return [results[hole.hole_id] for hole in task.holes]
+
+
+def fill_kind(cause: str, params: FillParams) -> str:
+    """How a hole of this cause is filled: ``water`` flat, ``low`` from the low side, ``rim`` from all of it."""
+    if not params.by_cause:
+        return RIM
+    if cause == "water":
+        return WATER
+    return LOW_SIDE if cause in (OCCLUSION, SMALL_VOID) else RIM
+
+
+def _group_labels(hole_ids: np.ndarray, group: list[int]) -> np.ndarray:
+    """Component labels 1..n for the holes of a group, 0 elsewhere."""
+    lookup = np.zeros(max(int(hole_ids.max(initial=0)), max(group)) + 2, np.int32)
+    lookup[group] = np.arange(1, len(group) + 1, dtype=np.int32)
+    return np.where(hole_ids > 0, lookup[np.maximum(hole_ids, 0)], 0)
+
+
+def _record(
+    hole_id: int, label: int, labels: np.ndarray, outcome: FillOutcome, distance: np.ndarray, path: str
+) -> HoleFill:
+    filled = (labels == label) & np.isfinite(outcome.heights)
     if not filled.any():
-        return HoleFill(hole.hole_id, NO_SUPPORT, detail="no measured rim to fill from")
-    save_hole_fill(hole.result_path, hole.window, filled, outcome.heights, outcome.method_code, distance)
-    return HoleFill(hole.hole_id, FILLED, result_path=hole.result_path, **_summary(outcome, filled, distance))
+        return HoleFill(hole_id, NO_SUPPORT, detail="no measured rim to fill from")
+    components = [c for c in outcome.components if c.label == label]
+    return HoleFill(hole_id, FILLED, result_path=path, **_summary(outcome, components, filled, distance))
+
+
+def _union(windows: list[PixelWindow]) -> PixelWindow:
+    r0 = min(w.row_off for w in windows)
+    c0 = min(w.col_off for w in windows)
+    r1 = max(w.row_end for w in windows)
+    c1 = max(w.col_end for w in windows)
+    return PixelWindow(r0, c0, r1 - r0, c1 - c0)
 
 
 def fill_hole(
     zmax: np.ndarray,
     zmin: np.ndarray,
     measured: np.ndarray,
-    region: np.ndarray,
-    cause: str,
+    labels: np.ndarray,
+    kind: str,
     params: FillParams,
-    *,
-    one_piece: bool = True,
 ) -> FillOutcome:
-    """Fill one region by its cause (pure; docs/filling.md "Fill by cause").
+    """Fill labelled holes (each label one hole, 0 elsewhere) one way (pure; docs/filling.md).
 
-    Water is flat at a low percentile of its rim's lowest returns (hydro-flattening);
-    an occlusion hole (and a small void at a step) is ground hidden by a building or
-    a tree, filled from the low side of its rim only, so no ramp runs from the roof
-    to the street; anything else
-    with the configured method from its whole rim. ``one_piece``: the region is one
-    hole (even if only 8-connected); otherwise each 4-connected piece is filled alone.
+    ``kind`` (:func:`fill_kind`): ``water`` is flat at a low percentile of its rim's
+    lowest returns (hydro-flattening); ``low`` (an occlusion, a small void at a step)
+    is ground hidden by a building or a tree, filled from the low side of its rim
+    only, so no ramp runs from the roof to the street; ``rim`` with the configured
+    method from the whole rim.
     """
     heights = np.where(measured, zmax, np.nan)
-    labels = region.astype(np.int32) if one_piece else None
-    if params.by_cause and cause == "water":
+    region = labels > 0
+    if kind == WATER:
         settings = replace(params.settings, flat_percentile=params.water_percentile)
         water_rim = np.where(measured, zmin, np.nan)
         return fill_region(
             water_rim, region, method="flat", settings=settings, pixel_size=params.pixel_size, labels=labels
         )
     support = None
-    if params.by_cause and cause in (OCCLUSION, SMALL_VOID):
+    if kind == LOW_SIDE:
         # a small void at a step (a building's edge) is hidden ground like an occlusion; with
         # no step on its rim every rim pixel is on the low side and nothing changes
-        support = lower_side_support(heights, region, jump_threshold=params.jump_threshold)
+        support = lower_side_support(heights, region, jump_threshold=params.jump_threshold, labels=labels)
     outcome = fill_region(
         heights,
         region,
@@ -265,17 +314,17 @@ def fill_hole(
     return replace(outcome, heights=np.where(np.isfinite(outcome.heights), clamped, np.nan))
 
 
-def _summary(outcome: FillOutcome, filled: np.ndarray, distance: np.ndarray) -> dict:
-    """The method that filled most pixels, the worst error estimate, degradation notes."""
+def _summary(outcome: FillOutcome, components: list, filled: np.ndarray, distance: np.ndarray) -> dict:
+    """The method that filled most of a hole's pixels, the worst error estimate, degradation notes."""
     counts = np.bincount(outcome.method_code[filled], minlength=256)
-    errors = [c.error_estimate for c in outcome.components if np.isfinite(c.error_estimate)]
+    errors = [c.error_estimate for c in components if np.isfinite(c.error_estimate)]
     return {
         "method": METHOD_NAMES.get(int(counts.argmax()), "unknown"),
         "pixels": int(filled.sum()),
         "max_distance": float(distance[filled].max()),
         "error_estimate": max(errors) if errors else math.nan,
-        "degraded": any(c.degraded for c in outcome.components),
-        "detail": "; ".join(c.detail for c in outcome.components if c.detail),
+        "degraded": any(c.degraded for c in components),
+        "detail": "; ".join(c.detail for c in components if c.detail),
     }
 
 

@@ -20,16 +20,26 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.ndimage as ndi
 
 from ..config import Config
 from ..fill import NOT_FILLED, fill_distance
 from ..grid import Cell, Grid
-from ..io.intermediate import load_cell_statistics, load_hole_fill, load_labels
+from ..io.intermediate import load_cell_statistics, load_labels, load_task_fill
 from ..io.raster import RasterOptions, write_cog
 from ..plan import SurveyPlan
 from ..rasterize import PixelStatistics
 from ..staging import Staging
-from .fill_holes import FILLED, SMALL_VOID, CellSource, FillParams, HoleFill, fill_hole, hole_ids_of_labels
+from .fill_holes import (
+    FILLED,
+    SMALL_VOID,
+    CellSource,
+    FillParams,
+    HoleFill,
+    fill_hole,
+    fill_kind,
+    hole_ids_of_labels,
+)
 from .link_holes import HoleSet
 
 #: Descriptions of the raster products, also used for their mosaics.
@@ -96,7 +106,7 @@ def cell_fills(
         cell_id: CellFill(
             labels_path=source.labels_path,
             hole_of_label=source.hole_of_label,
-            hole_results=tuple(result_of[h] for h in sorted(touching[cell_id])),
+            hole_results=tuple(sorted({result_of[h] for h in touching[cell_id]})),
             params=params,
             unit_m=plan.survey.horizontal_unit_m,
         )
@@ -172,12 +182,12 @@ def _paint_fills(task: WriteTask, stats: PixelStatistics, core: PixelStatistics)
     codes = np.where(measured, 0, NOT_FILLED).astype(np.uint8)
     distance = np.where(measured, 0.0, np.nan).astype(np.float32)
     for path in fill.hole_results:
-        hole_window, mask, heights, hole_codes, hole_distance = load_hole_fill(path)
+        hole_window, hole_ids, heights, hole_codes, hole_distance = load_task_fill(path)
         overlap = hole_window.intersection(window)
         if overlap.is_empty:
             continue
         here, there = overlap.slices_within(window), overlap.slices_within(hole_window)
-        paint = mask[there]
+        paint = hole_ids[there] > 0
         dsm[here] = np.where(paint, heights[there], dsm[here])
         codes[here] = np.where(paint, hole_codes[there], codes[here])
         distance[here] = np.where(paint, hole_distance[there] * fill.unit_m, distance[here])
@@ -195,7 +205,8 @@ def _fill_settled_voids(fill: CellFill, stats: PixelStatistics, window, settled,
     region = np.zeros(halo.shape, bool)
     region[rows, cols] = settled
     measured = stats.count > 0
-    outcome = fill_hole(stats.zmax, stats.zmin, measured, region, SMALL_VOID, fill.params, one_piece=False)
+    labels, _ = ndi.label(region, structure=[[0, 1, 0], [1, 1, 1], [0, 1, 0]])
+    outcome = fill_hole(stats.zmax, stats.zmin, measured, labels, fill_kind(SMALL_VOID, fill.params), fill.params)
     near = fill_distance(measured, pixel_size=fill.params.pixel_size)[rows, cols]
     done = settled & np.isfinite(outcome.heights[rows, cols])
     dsm[done] = outcome.heights[rows, cols][done]
