@@ -65,11 +65,18 @@ def save_cell_statistics(path: str | os.PathLike, statistics: PixelStatistics) -
     )
 
 
-def load_cell_statistics(path: str | os.PathLike) -> PixelStatistics:
-    """A cell's merged statistics as :func:`save_cell_statistics` stored them."""
+def load_cell_statistics(path: str | os.PathLike, names: tuple[str, ...] = STATISTIC_NAMES) -> PixelStatistics:
+    """A cell's merged statistics as :func:`save_cell_statistics` stored them.
+
+    ``names``: the statistics to read (the others come back empty, shape (0, 0)): the
+    DSM writer needs only ``zmax`` and ``count``, and reading is most of its work.
+    """
     with np.load(path) as data:
         window = PixelWindow(*(int(v) for v in data["window"]))
-        return PixelStatistics(window=window, **{name: data[name] for name in STATISTIC_NAMES})
+        empty = np.empty((0, 0), np.float32)
+        return PixelStatistics(
+            window=window, **{name: data[name] if name in names else empty for name in STATISTIC_NAMES}
+        )
 
 
 def save_labels(path: str | os.PathLike, labels: np.ndarray, window: PixelWindow) -> None:

@@ -147,7 +147,8 @@ def write_cell_rasters(task: WriteTask, *after: object) -> WriteResult:
     fills touching it); they are passed only so that Dask orders the tasks.
     """
     cell = task.cell
-    stats = load_cell_statistics(task.statistics_path)
+    needed = ("zmax", "count") if task.fill is None else ("zmax", "zmin", "count")
+    stats = load_cell_statistics(task.statistics_path, needed)
     core = stats.crop(cell.window)
     if not core.count.any():
         return WriteResult(cell.id, {})
