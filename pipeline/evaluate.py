@@ -45,7 +45,7 @@ class HoleScore:
             "true_hole_px": self.true_hole_px,
             "detected_px": self.detected_px,
             "holes": self.holes,
-            "cause_accuracy": round(self.cause_accuracy, 4),
+            "cause_accuracy": round(self.cause_accuracy, 4) if self.holes else None,  # JSON has no NaN
             "confusion": self.confusion,
             "missed_true_holes": self.missed_true_holes,
         }

@@ -110,3 +110,12 @@ def test_evaluate_a_folder_without_a_run(runner, tmp_path):
     (tmp_path / "truth.tif").write_bytes(b"")
     result = runner.invoke(main, ["evaluate", str(tmp_path / "empty"), "--truth", str(tmp_path / "truth.tif")])
     assert result.exit_code == 3 and "holds no finished holefill run" in one_error_line(result)
+
+
+def test_scores_are_valid_json_when_no_hole_is_scored():
+    from pipeline.evaluate import HoleScore
+
+    text = json.dumps(
+        HoleScore(iou=1.0, true_hole_px=0, detected_px=0, holes=0, cause_correct=0).as_dict(), allow_nan=False
+    )
+    assert json.loads(text)["cause_accuracy"] is None
