@@ -287,7 +287,7 @@ class FillConfig:
     )
     margin_px: int = _opt(8, "Pixels of measured data read around each hole for its support.", ge=1)
     tin_order: int = _opt(
-        2, "Fairing of tin fills: 1 harmonic (umbrella operator), 2 biharmonic (second order).", choices=(1, 2)
+        1, "Fairing of tin fills: 1 harmonic (umbrella operator), 2 biharmonic (second order).", choices=(1, 2)
     )
     clamp_to_rim: bool = _opt(
         True, "Keep interpolated heights within the range of the hole's rim (no overshoot at steps)."
