@@ -106,8 +106,22 @@ def main(verbose: int, quiet: int) -> None:
 @click.option("--on-error", type=click.Choice(["fail", "skip"]), help="What a bad tile does (survey.on_error).")
 @click.option("--progress/--no-progress", default=None, help="Progress bar (default: when stderr is a terminal).")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run of the same inputs and configuration.")
+@click.option("--overwrite", is_flag=True, help="Replace a result of another configuration in --out.")
 def run(
-    inputs, out_dir, config_path, overrides, scheduler, workers, crs, target_crs, aoi, water, on_error, progress, resume
+    inputs,
+    out_dir,
+    config_path,
+    overrides,
+    scheduler,
+    workers,
+    crs,
+    target_crs,
+    aoi,
+    water,
+    on_error,
+    progress,
+    resume,
+    overwrite,
 ):
     """Build the DSM of a survey. INPUT may be files, folders or globs of LAS/LAZ/COPC."""
     from .config import load_config
@@ -128,6 +142,7 @@ def run(
         water=water,
         progress=sys.stderr.isatty() if progress is None else progress,
         resume=resume,
+        overwrite=overwrite,
     )
     _report(summary)
     if summary.skipped:  # outputs written, but some tiles are missing from them
@@ -166,6 +181,7 @@ def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
         config,
         scheduler=scheduler,
         aoi=truth["survey_area"],
+        overwrite=True,  # the demo makes its survey anew each time: its folder is its own
         progress=sys.stderr.isatty() if progress is None else progress,
     )
     _report(summary)

@@ -348,6 +348,17 @@ def to_dict(config: Config) -> dict[str, dict[str, Any]]:
     return {name: dataclasses.asdict(getattr(config, name)) for name in SECTIONS}
 
 
+def config_key(config: Config) -> str:
+    """The configuration a result was made with (the ``[dask]`` settings aside), as a short hash."""
+    import hashlib
+    import json
+
+    from . import __version__
+
+    settings = {k: v for k, v in to_dict(config).items() if k != "dask"}
+    return hashlib.sha1(json.dumps([__version__, settings], sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
     """Read, merge and validate the configuration.
 

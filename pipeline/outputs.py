@@ -20,7 +20,7 @@ import shapely
 from pyproj import CRS
 
 from . import __version__
-from .config import Config, to_dict
+from .config import Config, config_key, to_dict
 from .fill import NOT_FILLED
 from .holes import CAUSES
 from .holes.outlines import hole_outline, merge_outlines, to_world
@@ -378,6 +378,7 @@ def write_manifest(
     grid = plan.grid
     manifest = {
         "complete": True,  # written last: a manifest in OUT means one complete result (pipeline.staging)
+        "config_key": config_key(config),  # a later run with another configuration is refused unless --overwrite
         "holefill_version": __version__,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "host": socket.gethostname(),

@@ -26,8 +26,8 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .config import Config, to_dict
-from .errors import ClusterError, HolefillError, InputDataError, TaskError
+from .config import Config, config_key, to_dict
+from .errors import ClusterError, HolefillError, InputDataError, OutputError, TaskError
 from .io.flightplan_files import plan_flights
 from .io.vector import read_survey_area
 from .outputs import (
@@ -62,6 +62,7 @@ def run_survey(
     water: str | os.PathLike | None = None,
     progress: bool = False,
     resume: bool = False,
+    overwrite: bool = False,
 ) -> RunSummary:
     """Run the pipeline on a survey and write the products into ``out_dir``.
 
@@ -87,9 +88,12 @@ def run_survey(
     resume : bool
         Continue an interrupted run of the same inputs and configuration into the same
         folder: tasks that finished then are not run again.
+    overwrite : bool
+        Replace a result of another configuration in ``out_dir`` (refused otherwise).
     """
     started = time.perf_counter()
     out = Path(out_dir).absolute()  # workers of a remote cluster resolve paths on their own machines
+    _refuse_other_configuration(out, config, overwrite=overwrite)
     survey = scan_survey(
         inputs, crs=config.survey.crs, target_crs=config.survey.target_crs, on_error=config.survey.on_error
     )
@@ -444,6 +448,22 @@ class _Kept:
     """The result of a task that an interrupted run finished: stands in for its future."""
 
     value: Any
+
+
+def _refuse_other_configuration(out: Path, config: Config, *, overwrite: bool) -> None:
+    """An output folder holding a result of another configuration is not replaced unless asked."""
+    manifest = out / "manifest.json"
+    if overwrite or not manifest.exists():
+        return
+    try:
+        previous = json.loads(manifest.read_text()).get("config_key")
+    except (OSError, ValueError):
+        previous = None
+    if previous is not None and previous != config_key(config):
+        raise OutputError(
+            f"{out}: holds the result of another configuration (manifest.json); "
+            "use --overwrite to replace it, or another --out"
+        )
 
 
 def run_key(plan: SurveyPlan, config: Config, aoi: Any, water: Any) -> str:

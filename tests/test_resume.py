@@ -222,3 +222,23 @@ def test_distributed_run_survives_a_worker_killed_mid_run(survey, tmp_path, real
     _, err = run.communicate(timeout=300)
     assert run.returncode == 0, err
     same_outputs(reference, out)
+
+
+def test_a_result_of_another_configuration_is_not_replaced_unless_asked(tmp_path, rng):
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    from .lasfiles import random_points, write_points
+
+    path = write_points(tmp_path / "a.laz", *random_points(rng, 3000))
+    out = tmp_path / "out"
+    runner = CliRunner()
+    base = ["run", str(path), "--out", str(out), "--no-progress", "--set", "grid.cell_size_m=50"]
+    assert runner.invoke(main, base).exit_code == 0
+    assert runner.invoke(main, [*base, "--workers", "1"]).exit_code == 0  # the Dask settings do not count
+    before = (out / "manifest.json").read_text()
+    result = runner.invoke(main, [*base, "--set", "fill.enabled=false"])
+    assert result.exit_code == 4 and "holds the result of another configuration" in result.output
+    assert (out / "manifest.json").read_text() == before
+    assert runner.invoke(main, [*base, "--set", "fill.enabled=false", "--overwrite"]).exit_code == 0
