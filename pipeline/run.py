@@ -71,7 +71,7 @@ def run_survey(
     inputs : list of str
         Files, folders or globs of LAS/LAZ/COPC tiles.
     out_dir : path-like
-        Output folder (created if needed); existing products are replaced.
+        Output folder (created if needed); older products of the same configuration are replaced.
     config : Config
         The validated configuration.
     scheduler : str, optional
@@ -94,14 +94,9 @@ def run_survey(
     started = time.perf_counter()
     out = Path(out_dir).absolute()  # workers of a remote cluster resolve paths on their own machines
     _refuse_other_configuration(out, config, overwrite=overwrite)
-    survey = scan_survey(
-        inputs, crs=config.survey.crs, target_crs=config.survey.target_crs, on_error=config.survey.on_error
-    )
-    plan = plan_survey(survey, config, aoi=aoi)
-    if not plan.cells:
-        raise InputDataError(aoi or "INPUT", "the survey area does not overlap the data of any tile")
+    plan = _plan(inputs, config, aoi)
     water = water or config.holes.water or None
-    water_area = read_survey_area(water, survey.crs, what="water") if water else None
+    water_area = read_survey_area(water, plan.survey.crs, what="water") if water else None
     timer = _StageTimer(started)
     timer.lap("scan")
     created_out = not out.exists()
@@ -137,6 +132,17 @@ def run_survey(
 
 
 # -- stages ---------------------------------------------------------------------------
+
+
+def _plan(inputs: list[str] | tuple[str, ...], config: Config, aoi: str | os.PathLike | None) -> SurveyPlan:
+    """Scan the headers and plan the survey; an AOI off every tile's data stops here."""
+    survey = scan_survey(
+        inputs, crs=config.survey.crs, target_crs=config.survey.target_crs, on_error=config.survey.on_error
+    )
+    plan = plan_survey(survey, config, aoi=aoi)
+    if not plan.cells:
+        raise InputDataError(aoi or "INPUT", "the survey area does not overlap the data of any tile")
+    return plan
 
 
 @dataclass
@@ -246,7 +252,8 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
     """Detection (per cell) on the footprint gathered from stage 2, then linking on the client."""
     params = plan.hole_params
     blocks = merge_cells.footprint_blocks(cells, plan, config)
-    gaps = merge_cells.survey_coverage_gaps(cells)
+    line_moments = merge_cells.survey_line_moments(cells)
+    gaps = merge_cells.survey_coverage_gaps(line_moments)
     tasks = detect_holes.detect_tasks(plan, params, cells, blocks, water, staging, gaps)
     futures = [
         runner.submit(
@@ -264,7 +271,7 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
     runner.gather(futures, collect)
     order = {r.cell_id: i for i, r in enumerate(cells)}
     detected.sort(key=lambda d: order[d.cell_holes.cell.id])
-    holes = link_holes.link_cells(detected, plan, config, params)
+    holes = link_holes.link_cells(detected, plan, config, params, line_moments)
     link_holes.keep_hole_set(holes, str(staging.hole_catalog))
     return detected, holes
 
