@@ -16,7 +16,6 @@ from ..footprint import BlockMap, aoi_mask, window_union_mask
 from ..grid import Cell, Grid, PixelWindow
 from ..holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
 from ..holes.coverage import CoverageGaps
-from ..holes.flight_lines import line_moments
 from ..holes.outlines import label_outlines
 from ..holes.walls import Wall, find_walls
 from ..io.intermediate import load_cell_statistics, save_labels
@@ -52,7 +51,6 @@ class DetectResult:
     walls: list[Wall]
     jump_px: int
     aoi_px: int
-    line_moments: np.ndarray  # LINE_MOMENT_DTYPE: pixel moments of each flight line in the core
 
 
 def detect_tasks(
@@ -122,11 +120,6 @@ def detect_cell(task: DetectTask) -> DetectResult:
         walls=walls,
         jump_px=int(jumps[core_rows, core_cols].sum()),
         aoi_px=int(aoi[core_rows, core_cols].sum()),
-        line_moments=line_moments(
-            stats.source[core_rows, core_cols].astype(np.int64) - 1,
-            row_off=cell.window.row_off,
-            col_off=cell.window.col_off,
-        ),
     )
 
 

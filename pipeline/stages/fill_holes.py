@@ -349,7 +349,7 @@ class _WindowReader:
 
     def _cell(self, source: CellSource) -> tuple:
         if source.cell_id not in self._loaded:
-            core = load_cell_statistics(source.statistics_path).crop(source.core)
+            core = load_cell_statistics(source.statistics_path, ("zmax", "zmin", "count")).crop(source.core)
             labels, _ = load_labels(source.labels_path)
             hole_ids = hole_ids_of_labels(labels, source.hole_of_label)
             self._loaded[source.cell_id] = (core.zmax, core.zmin, core.count > 0, hole_ids)

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..config import Config
 from ..holes import CauseRules, HoleCatalog, classify_causes, link_holes, ring_metrics, shape_metrics
-from ..holes.flight_lines import axial_mean, line_azimuths, merge_line_moments
+from ..holes.flight_lines import axial_mean, line_azimuths
 from ..io.intermediate import save_object
 from ..plan import HoleParams, SurveyPlan
 from .detect_holes import DetectResult
@@ -36,8 +36,14 @@ class HoleSet:
     sampling_gap_px: int = 0  # their pixels
 
 
-def link_cells(detected: list[DetectResult], plan: SurveyPlan, config: Config, params: HoleParams) -> HoleSet:
-    """Gather: link the detected parts of every cell (in plan order) and classify the holes."""
+def link_cells(
+    detected: list[DetectResult], plan: SurveyPlan, config: Config, params: HoleParams, line_moments: np.ndarray
+) -> HoleSet:
+    """Gather: link the detected parts of every cell (in plan order) and classify the holes.
+
+    ``line_moments``: the survey's flight-line pixel moments (gathered from stage 2),
+    for the direction of the flight lines beside a missed strip.
+    """
     catalog = link_holes([d.cell_holes for d in detected], min_area_px=params.min_area_px)
     catalog, gaps = mark_sampling_gaps(catalog, params.sampling_gap_px)
     rules = CauseRules.from_config(
@@ -46,7 +52,7 @@ def link_cells(detected: list[DetectResult], plan: SurveyPlan, config: Config, p
         vertical_unit_m=plan.survey.vertical_unit_m,
     )
     causes = classify_causes(catalog.stats, rules)
-    directions = line_azimuths(merge_line_moments([d.line_moments for d in detected]))
+    directions = line_azimuths(line_moments)
     azimuths = strip_azimuths(catalog.stats.line_hist, causes["cause"] == "missed_coverage", directions)
     return HoleSet(
         catalog=catalog,

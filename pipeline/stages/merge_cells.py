@@ -118,6 +118,11 @@ def footprint_blocks(results: list[CellResult], plan: SurveyPlan, config: Config
     )
 
 
-def survey_coverage_gaps(results: list[CellResult]) -> CoverageGaps:
-    """Gather: the gaps between the flight lines' swaths, from the cells' line moments (exact sums)."""
-    return coverage_gaps(merge_line_moments([r.line_moments for r in results]))
+def survey_line_moments(results: list[CellResult]) -> np.ndarray:
+    """Gather: every flight line's pixel moments over the survey (exact sums of the cells')."""
+    return merge_line_moments([r.line_moments for r in results])
+
+
+def survey_coverage_gaps(moments: np.ndarray) -> CoverageGaps:
+    """The gaps between the flight lines' swaths, from the survey's line moments."""
+    return coverage_gaps(moments)
