@@ -3,9 +3,9 @@
 A hole belongs to the cell holding its first pixel (raster order). Its task reads
 the hole's window (bounding box grown by ``fill.margin_px``) from the kept cell
 statistics and part labels of every cell under it, fills the hole in one piece
-with the method its cause calls for, and keeps the result under
-``work/fill/hole_<id>.npz``; the writer stage paints it into every cell it
-covers. Filling a hole whole, never cell by cell, makes the fill independent of
+with the method its cause calls for, and keeps the results of all its holes in
+``work/fill/fill_<cell id>.npz``; the writer stage paints them into every cell
+they cover. Filling a hole whole, never cell by cell, makes the fill independent of
 the cell size: the same hole gives the same heights with 64-pixel or 1000-pixel
 cells (docs/filling.md, "Cells and layers").
 
