@@ -212,6 +212,10 @@ class OutputConfig:
     )
     keep_unfilled: bool = _opt(False, "Also write the DSM before filling (dsm_unfilled/ and dsm_unfilled.vrt).")
     keep_intermediate: bool = _opt(False, "Keep the per-tile and per-cell statistic rasters under OUT/work/.")
+    points: bool = _opt(
+        False, "Also write each tile as LAZ with one synthetic point per filled pixel (points/; needs fill.enabled)."
+    )
+    points_class: int = _opt(1, "LAS class of the added fill points (1: unclassified).", ge=0, le=31)
 
 
 @dataclass(frozen=True)
@@ -444,6 +448,12 @@ def _check_across_keys(config: Config, sources: dict[str, str]) -> None:
         raise ConfigError(
             f"{where}: grid.halo_px = {config.grid.halo_px} is too small; hole detection reads "
             f"{HOLE_CONTEXT_PX} pixels around each cell (set holes.enabled = false to build the DSM only)"
+        )
+    if config.output.points and not (config.holes.enabled and config.fill.enabled):
+        where = sources.get("output.points", "default")
+        raise ConfigError(
+            f"{where}: output.points = true adds the filled pixels to the point clouds; "
+            "it needs holes.enabled = true and fill.enabled = true"
         )
     if not config.causes.low_quantile < config.causes.high_quantile:
         where = sources.get("causes.low_quantile", sources.get("causes.high_quantile", "default"))

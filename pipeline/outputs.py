@@ -48,6 +48,7 @@ PRODUCTS = (
     "dsm_unfilled",
     "dsm_unfilled.vrt",
     "holes.gpkg",
+    "points",
     "manifest.json",
     "report.html",
 )
@@ -81,6 +82,7 @@ class RunSummary:
     holes: dict[str, Any] = field(default_factory=dict)
     flightplan: dict[str, Any] = field(default_factory=dict)
     resumed_tasks: int = 0  # tasks an interrupted run had finished, not run again
+    point_files: list[str] = field(default_factory=list)  # points/*.laz (output.points)
 
     @property
     def points_per_second(self) -> float:
@@ -404,6 +406,7 @@ def write_manifest(
             "dsm_vrt": "dsm.vrt" if summary.dsm_tiles else None,
             "dsm_tiles": summary.dsm_tiles,
             "holes_gpkg": "holes.gpkg",
+            "points": summary.point_files,
             "flightplan": [os.path.basename(f) for f in summary.flightplan.get("files", [])],
         },
         "summary": {

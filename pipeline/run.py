@@ -41,7 +41,7 @@ from .outputs import (
 )
 from .plan import SurveyPlan, plan_survey
 from .report import ReportInputs, read_report_inputs, write_report
-from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells, write_rasters
+from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells, write_points, write_rasters
 from .stages.bin_tiles import TileFailure, TileResult
 from .stages.merge_cells import CellResult
 from .stages.write_rasters import WriteResult
@@ -106,15 +106,18 @@ def run_survey(
             runner = _Runner(dask_client, bar, staging, retries=config.dask.retries)
             filling = config.holes.enabled and config.fill.enabled
             rasters = _run_rasters(runner, plan, config, staging, timer, write=not filling)
-            detected, holes, fills = None, None, None
+            detected, holes, fills, point_files = None, None, None, []
             if config.holes.enabled:
                 detected, holes = _run_holes(runner, plan, config, rasters.cells, water_area, staging)
                 timer.lap("holes")
             if holes is not None and filling:
                 fills = _run_fill(runner, plan, config, holes, rasters, staging)
                 timer.lap("fill")
+            if fills is not None and config.output.points:
+                point_files = _run_points(runner, plan, config, rasters, staging)
+                timer.lap("points")
         summary = _write_products(
-            staging, plan, config, rasters, detected, holes, fills, started, timer, runner.resumed_tasks
+            staging, plan, config, rasters, detected, holes, fills, started, timer, runner.resumed_tasks, point_files
         )
         flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
         staging.commit(PRODUCTS + flight_files, keep_work=config.output.keep_intermediate, replaces=FLIGHTPLAN_PRODUCTS)
@@ -320,6 +323,28 @@ def _run_fill(
     return fills
 
 
+def _run_points(runner: _Runner, plan: SurveyPlan, config: Config, rasters: _Rasters, staging: Staging) -> list[str]:
+    """The repaired point clouds (per tile read), after the writer: the fill points come from its rasters."""
+    futures = [
+        runner.submit(
+            write_points.write_tile_points,
+            task,
+            label=f"tile {task.path} (write points)",
+            key=f"points-{Path(task.target).stem}",
+        )
+        for task in write_points.points_tasks(plan, config, rasters.tiles, rasters.written, staging)
+    ]
+    handle = runner.bar.add("write point clouds", total=len(futures))
+    results: list[write_points.PointsResult] = []
+
+    def collect(result: write_points.PointsResult) -> None:
+        results.append(result)
+        runner.bar.advance(handle)
+
+    runner.gather(futures, collect)
+    return write_points.gather_points(results, rasters.written, staging.root)
+
+
 def _write_products(
     staging: Staging,
     plan: SurveyPlan,
@@ -331,6 +356,7 @@ def _write_products(
     started,
     timer,
     resumed_tasks: int = 0,
+    point_files: list[str] | None = None,
 ) -> RunSummary:
     """The mosaic, the layers, the manifest and the report, from the stages' kept results."""
     t0 = time.perf_counter()
@@ -358,6 +384,7 @@ def _write_products(
         stage_seconds=timer.seconds,
         skipped=skipped,
         dsm_tiles=sorted(os.path.relpath(r.paths["dsm"], staging.root) for r in rasters.written if r.paths),
+        point_files=point_files or [],
     )
     timer.seconds["outputs"] = time.perf_counter() - t0
     manifest = write_manifest(staging.product("manifest.json"), summary, plan, config, rasters.tiles, rasters.cells)

@@ -10,6 +10,7 @@ Everything a run writes goes into ``OUT/.holefill-partial-<id>/`` first::
         work/fill/fill_<cell id>.npz  filling: the holes a cell owns: ids, heights, method codes, distances
         dsm/dsm_<cell id>.tif      the writer stage's rasters (also fill_mask/, fill_distance/,
                                    dsm_unfilled/)
+        points/<tile stem>.laz     repaired point clouds (output.points)
         dsm.vrt, holes.gpkg, manifest.json, report.html
 
 Names depend on what a result is made of (a cell's position on the absolute
@@ -66,6 +67,7 @@ WORK_FOLDERS = (
     "fill_mask",
     "fill_distance",
     "dsm_unfilled",
+    "points",
 )
 
 
@@ -134,6 +136,10 @@ class Staging:
     def raster_tile(self, product: str, cell_id: str) -> Path:
         """One cell's tile of a raster product (``dsm``, ``fill_mask``, ``fill_distance``, ``dsm_unfilled``)."""
         return self.root / product / f"{product}_{cell_id}.tif"
+
+    def points_file(self, name: str) -> Path:
+        """One repaired point cloud (``output.points``): ``points/<name>.laz``."""
+        return self.root / "points" / f"{name}.laz"
 
     def dsm_tile(self, cell_id: str) -> Path:
         return self.raster_tile("dsm", cell_id)
