@@ -126,6 +126,27 @@ def test_repaired_clouds_of_adjacent_real_tiles(shared_data, tmp_path, dask_clie
     check_rerun(out, tmp_path, dask_client, *overrides)
 
 
+def test_fill_points_go_back_to_the_tile_crs(shared_data, tmp_path, dask_client):
+    """With --target-crs the DSM is in the target CRS; the added points are in the tile's own CRS."""
+    from pyproj import Transformer
+
+    path = shared_data / "lasr_bcts_1.laz"  # NAD83 / BC Albers, LAS 1.2, point format 1
+    out = tmp_path / "utm"
+    config = load_config(overrides=["output.points=true", 'survey.target_crs="EPSG:26909"'])
+    run_survey([str(path)], out, config, client=dask_client)
+    rows, cols, heights, transform = filled_pixels(out)
+    original, repaired = laspy.open(path).header, laspy.read(out / "points" / path.name)
+    assert repaired.header.parse_crs() == original.parse_crs()
+    new = repaired.points[original.point_count :]
+    assert len(new) == len(rows) > 100
+    x, y = Transformer.from_crs(original.parse_crs(), "EPSG:26909", always_xy=True).transform(new.x, new.y)
+    r, c = rasterio.transform.rowcol(transform, x, y)
+    assert set(zip(np.asarray(r).tolist(), np.asarray(c).tolist())) == set(zip(rows.tolist(), cols.tolist()))
+    heights_at = dict(zip(zip(rows.tolist(), cols.tolist()), heights.tolist()))
+    expected = np.array([heights_at[key] for key in zip(np.asarray(r).tolist(), np.asarray(c).tolist())])
+    assert np.abs(np.asarray(new.z) - expected).max() <= 0.006
+
+
 def test_points_need_filling():
     with pytest.raises(ConfigError, match="output.points"):
         load_config(overrides=["output.points=true", "fill.enabled=false"])
