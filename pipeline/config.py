@@ -299,6 +299,12 @@ class FillConfig:
     water_percentile: float = _opt(
         10.0, "Water is filled flat at this percentile of its rim heights (the water's edge).", ge=0, le=100
     )
+    river_min_drop_m: float = _opt(
+        0.25, "A water hole is a river (surface stepping down its course) when it falls at least this (m).", ge=0
+    )
+    river_min_elongation: float = _opt(
+        4.0, "... and its course is at least this many times as long as its mean width (length^2 / area).", ge=0
+    )
     estimate_error: bool = _opt(
         True, "Estimate each hole's fill error by refilling it with part of its rim withheld (costs a second fill)."
     )

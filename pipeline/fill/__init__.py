@@ -11,6 +11,7 @@ See docs/filling.md for the methods, the ``auto`` rule and measured figures.
 """
 
 from .causes import clamp_to_rim, lower_side_support, rim_level
+from .hydro import RiverFit, river_surfaces
 from .provenance import fill_distance, leave_boundary_out_error
 from .region import FILL_METHODS, choose_methods, fill_region
 from .seams import smooth_seams
@@ -29,6 +30,7 @@ __all__ = [
     "METHOD_CODES",
     "METHOD_NAMES",
     "NOT_FILLED",
+    "RiverFit",
     "UNTOUCHED",
     "ComponentFill",
     "FillOutcome",
@@ -40,5 +42,6 @@ __all__ = [
     "leave_boundary_out_error",
     "lower_side_support",
     "rim_level",
+    "river_surfaces",
     "smooth_seams",
 ]

@@ -34,10 +34,12 @@ METHOD_CODES: dict[str, int] = {
     "tin": 4,
     "flat": 5,
     "barrier": 6,
+    "river": 7,
 }
 """``method_code`` per method. ``barrier`` marks region pixels lying on a barrier
 (a wall line): they take the highest adjacent filled or measured height, since a
-DSM pixel on a wall holds the top of the wall."""
+DSM pixel on a wall holds the top of the wall. ``river`` marks water holes filled
+with a surface stepping down along their course (:mod:`pipeline.fill.hydro`)."""
 
 METHOD_NAMES: dict[int, str] = {v: k for k, v in METHOD_CODES.items()} | {
     UNTOUCHED: "untouched",

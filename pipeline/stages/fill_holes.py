@@ -25,6 +25,7 @@ import scipy.ndimage as ndi
 
 from ..config import Config
 from ..fill import (
+    METHOD_CODES,
     METHOD_NAMES,
     FillOutcome,
     FillSettings,
@@ -32,6 +33,7 @@ from ..fill import (
     fill_distance,
     fill_region,
     lower_side_support,
+    river_surfaces,
 )
 from ..grid import Grid, PixelWindow
 from ..io.intermediate import load_cell_statistics, load_labels, save_task_fill
@@ -65,6 +67,8 @@ class FillParams:
     jump_threshold: float  # z units
     settings: FillSettings
     clamp_to_rim: bool = True
+    river_min_drop: float = math.inf  # z units; inf: every water hole one level
+    river_min_elongation: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -122,6 +126,8 @@ def fill_params(plan: SurveyPlan, config: Config, params: HoleParams) -> FillPar
         jump_threshold=params.jump_threshold,
         settings=FillSettings(estimate_error=fill.estimate_error, tin_order=fill.tin_order),
         clamp_to_rim=fill.clamp_to_rim,
+        river_min_drop=fill.river_min_drop_m / plan.survey.vertical_unit_m,
+        river_min_elongation=fill.river_min_elongation,
     )
 
 
@@ -289,11 +295,7 @@ def fill_hole(
     heights = np.where(measured, zmax, np.nan)
     region = labels > 0
     if kind == WATER:
-        settings = replace(params.settings, flat_percentile=params.water_percentile)
-        water_rim = np.where(measured, zmin, np.nan)
-        return fill_region(
-            water_rim, region, method="flat", settings=settings, pixel_size=params.pixel_size, labels=labels
-        )
+        return fill_water(np.where(measured, zmin, np.nan), heights, labels, params)
     support = None
     if kind == LOW_SIDE:
         # a small void at a step (a building's edge) is hidden ground like an occlusion; with
@@ -312,6 +314,53 @@ def fill_hole(
         return outcome
     clamped = clamp_to_rim(outcome.heights, heights, region, support=support, labels=labels)
     return replace(outcome, heights=np.where(np.isfinite(outcome.heights), clamped, np.nan))
+
+
+def fill_water(water_rim: np.ndarray, bank_rim: np.ndarray, labels: np.ndarray, params: FillParams) -> FillOutcome:
+    """Water holes: a lake flat at its rim level, a river stepping down along its course (hydro-flattening).
+
+    ``water_rim``: the lowest return of measured pixels, ``bank_rim`` the highest, NaN
+    elsewhere. Every hole is filled flat first, from the lowest returns of its whole rim;
+    those :func:`~pipeline.fill.river_surfaces` judges rivers (elongated, falling at least
+    ``river_min_drop``) get their river surface instead, method ``river``. A river's bank
+    levels come from the highest returns: a rim pixel on the shore may hold a return
+    from under the water's edge, which a whole rim outvotes but a short station does not.
+    """
+    settings = replace(params.settings, flat_percentile=params.water_percentile)
+    outcome = fill_region(
+        water_rim, labels > 0, method="flat", settings=settings, pixel_size=params.pixel_size, labels=labels
+    )
+    if not math.isfinite(params.river_min_drop):
+        return outcome
+    surface, fits = river_surfaces(
+        bank_rim,
+        outcome.labels,
+        min_drop=params.river_min_drop,
+        min_elongation=params.river_min_elongation,
+        percentile=params.water_percentile,
+    )
+    rivers = {fit.label: fit for fit in fits if fit.is_river}
+    if not rivers:
+        return outcome
+    river = np.isin(outcome.labels, list(rivers)) & np.isfinite(surface)
+    components = tuple(
+        replace(
+            c,
+            method="river",
+            level=math.nan,
+            error_estimate=math.nan,
+            detail=f"river: falls {rivers[c.label].drop:.2f} along {rivers[c.label].length_px * params.pixel_size:.0f}",
+        )
+        if c.label in rivers
+        else c
+        for c in outcome.components
+    )
+    return replace(
+        outcome,
+        heights=np.where(river, surface, outcome.heights),
+        method_code=np.where(river, np.uint8(METHOD_CODES["river"]), outcome.method_code),
+        components=components,
+    )
 
 
 def _summary(outcome: FillOutcome, components: list, filled: np.ndarray, distance: np.ndarray) -> dict:

@@ -1,0 +1,270 @@
+"""Hydro-flattening of rivers: water surfaces flat across, stepping down along the course (pure).
+
+A lake is one level (:func:`~pipeline.fill.causes.rim_level`). A river's water falls
+along its course, so one level floods its lower end or leaves its upper end below the
+banks. For each water hole this module finds the course, measures the bank level
+along it and fits a surface that is flat across the river and never rises downstream:
+
+1. **Course.** The two ends are the farthest pair found by a double sweep of geodesic
+   distance through the hole (8-connected pixel graph); the course is the path between
+   them that keeps to the middle of the channel (edge costs divided by the distance to
+   the bank, so the path follows the ridge of the distance transform: the medial axis).
+2. **Cross-sections.** The pixel path is smoothed (Gaussian, sigma half the mean width,
+   at least 2 pixels) so that its normals are the river's cross-sections. Every water
+   pixel, and every rim pixel, belongs to its nearest vertex of the smoothed course; its
+   *chainage* is the arc length of the course up to that vertex. Pixels of one
+   cross-section share one chainage, so one height.
+3. **Stations.** The course is cut into stations twice the mean width long (at least 4
+   pixels); a station's bank level is the ``percentile`` of its rim heights (the water's
+   edge: banks carry vegetation and walls, nothing below the water).
+4. **Monotone.** The station levels are fitted by isotonic regression (pool adjacent
+   violators, weighted by rim pixels), once non-increasing and once non-decreasing along
+   the chainage; the better fit says which end is upstream. Pooled stations make steps.
+5. **Surface.** Each pixel gets the fitted level interpolated linearly at its chainage
+   between station centres: monotone along the course, flat across it.
+
+A hole is a *river* when its course is at least ``min_elongation`` times as long as its
+mean width (``length**2 / area``; a disc gives 1.27) and the fitted levels drop by at
+least ``min_drop`` from one end to the other; otherwise it is a lake and keeps the flat
+fill (the caller's).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.ndimage as ndi
+from scipy.optimize import isotonic_regression
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+__all__ = ["RiverFit", "river_surfaces"]
+
+#: 8-neighbour steps (half of them: the graph is undirected) and their lengths in pixels.
+_STEPS = ((0, 1, 1.0), (1, 0, 1.0), (1, 1, math.sqrt(2.0)), (1, -1, math.sqrt(2.0)))
+#: Holes with fewer pixels are never rivers (too small to have a course).
+MIN_RIVER_PX = 16
+
+
+@dataclass(frozen=True)
+class RiverFit:
+    """What the course of one water hole says.
+
+    Attributes
+    ----------
+    label : int
+    is_river : bool
+        Elongated enough and dropping enough (see the module).
+    length_px : float
+        Length of the course (pixels).
+    elongation : float
+        ``length_px**2 / area_px``.
+    drop : float
+        Fitted level at the upstream end minus the downstream end (z units, >= 0).
+    stations : int
+        Stations with a measured bank.
+    """
+
+    label: int
+    is_river: bool
+    length_px: float
+    elongation: float
+    drop: float
+    stations: int
+
+
+def river_surfaces(
+    rim_heights: np.ndarray,
+    labels: np.ndarray,
+    *,
+    min_drop: float,
+    min_elongation: float = 4.0,
+    percentile: float = 10.0,
+) -> tuple[np.ndarray, list[RiverFit]]:
+    """Fit a river surface to every labelled water hole.
+
+    Parameters
+    ----------
+    rim_heights : ndarray (M, N)
+        Heights of measured pixels (the lowest return per pixel suits water), NaN elsewhere.
+    labels : ndarray of int (M, N)
+        One label > 0 per water hole, 0 elsewhere.
+    min_drop : float
+        Smallest fall from one end to the other (z units) for a river.
+    min_elongation : float
+        Smallest ``length**2 / area`` for a river.
+    percentile : float
+        Percentile of a station's rim heights taken as its bank level.
+
+    Returns
+    -------
+    surface : ndarray of float64 (M, N)
+        The river surface on the pixels of holes judged rivers, NaN elsewhere.
+    fits : list of RiverFit
+        One per label present, in label order.
+    """
+    heights = np.asarray(rim_heights, np.float64)
+    labels = np.asarray(labels)
+    surface = np.full(heights.shape, np.nan)
+    fits = []
+    for index, box in enumerate(ndi.find_objects(labels.astype(np.int64)), start=1):
+        if box is None:
+            continue
+        # one pixel of margin: the rim
+        grown = tuple(slice(max(s.start - 1, 0), min(s.stop + 1, n)) for s, n in zip(box, labels.shape))
+        fit, local = _fit_one(heights[grown], labels[grown] == index, index, min_drop, min_elongation, percentile)
+        fits.append(fit)
+        if fit.is_river:
+            view = surface[grown]
+            inside = labels[grown] == index
+            view[inside] = local[inside]
+    return surface, fits
+
+
+def _fit_one(
+    heights: np.ndarray, hole: np.ndarray, label: int, min_drop: float, min_elongation: float, percentile: float
+) -> tuple[RiverFit, np.ndarray]:
+    """The river fit of one hole in its box (rim included); the surface over the box."""
+    area = int(hole.sum())
+    none = RiverFit(label, False, 0.0, 0.0, 0.0, 0)
+    if area < MIN_RIVER_PX:
+        return none, np.empty(0)
+    chainage, length = _chainage(hole)
+    elongation = length**2 / area
+    if elongation < min_elongation:
+        return RiverFit(label, False, length, elongation, 0.0, 0), np.empty(0)
+    rim = _rim(hole) & np.isfinite(heights)
+    station_px = max(2.0 * area / max(length, 1.0), 4.0)
+    centres, levels, weights = _station_levels(chainage[rim], heights[rim], station_px, percentile)
+    if len(levels) < 2:
+        return RiverFit(label, False, length, elongation, 0.0, len(levels)), np.empty(0)
+    fitted = _monotone(levels, weights)
+    drop = float(abs(fitted[0] - fitted[-1]))
+    fit = RiverFit(label, drop >= min_drop, length, elongation, drop, len(levels))
+    surface = np.interp(chainage, centres, fitted)
+    return fit, surface
+
+
+def _rim(hole: np.ndarray) -> np.ndarray:
+    """Pixels 4-adjacent to the hole, outside it."""
+    return ndi.binary_dilation(hole, structure=ndi.generate_binary_structure(2, 1)) & ~hole
+
+
+def _chainage(hole: np.ndarray) -> tuple[np.ndarray, float]:
+    """Arc length along the course of the nearest course pixel, for every pixel of the box; the course length."""
+    rows, cols = np.nonzero(hole)
+    node = np.full(hole.shape, -1, np.int64)
+    node[rows, cols] = np.arange(len(rows))
+    depth = ndi.distance_transform_edt(np.pad(hole, 1))[1:-1, 1:-1]  # distance to the bank (pixels)
+    src, dst, step = _edges(hole, node)
+    n = len(rows)
+    plain = coo_matrix((step, (src, dst)), shape=(n, n)).tocsr()
+    # double sweep: the farthest pixel from anywhere is one end, the farthest from it the other
+    start = int(np.argmax(dijkstra(plain, directed=False, indices=0)))
+    from_start = dijkstra(plain, directed=False, indices=start)
+    end = int(np.argmax(np.where(np.isfinite(from_start), from_start, -1.0)))
+    medial = step / (0.5 * (depth[rows[src], cols[src]] + depth[rows[dst], cols[dst]])) ** 2
+    graph = coo_matrix((medial, (src, dst)), shape=(n, n)).tocsr()
+    _, previous = dijkstra(graph, directed=False, indices=start, return_predecessors=True)
+    path = [end]
+    while path[-1] != start and previous[path[-1]] >= 0:
+        path.append(int(previous[path[-1]]))
+    path.reverse()
+    # the pixel path is a staircase: smoothed over about half the width, its normals are the cross-sections
+    width = n / max(from_start[end], 1.0)
+    sigma = max(0.5 * width, 2.0)
+    pr = ndi.gaussian_filter1d(rows[path].astype(np.float64), sigma, mode="nearest")
+    pc = ndi.gaussian_filter1d(cols[path].astype(np.float64), sigma, mode="nearest")
+    near = _rim(hole) | hole
+    chainage = np.zeros(hole.shape)
+    chainage[near] = _project(
+        np.column_stack([pr, pc]), np.column_stack(np.nonzero(near)), trim=width + sigma, back=sigma
+    )
+    return chainage, float(np.sum(np.hypot(np.diff(pr), np.diff(pc))))
+
+
+def _project(course: np.ndarray, points: np.ndarray, *, trim: float, back: float) -> np.ndarray:
+    """Chainage of each point: arc length to its nearest course vertex, along the end tangents beyond the ends.
+
+    The ends of a double-sweep path run into the corners of the hole's open ends; ``trim``
+    pixels of arc are cut from each end first, and the points past an end are placed along
+    the straight continuation of the course there, so their sections stay perpendicular.
+    """
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(course, axis=0), axis=1))])
+    keep = (along >= min(trim, along[-1] / 4)) & (along <= along[-1] - min(trim, along[-1] / 4))
+    if keep.sum() >= 2:
+        course, along = course[keep], along[keep]
+    _, nearest = cKDTree(course).query(points)
+    chainage = _on_segments(course, along, points, nearest)
+    back = min(len(course) - 1, max(1, int(back)))
+    for end, inner, sign in ((0, back, -1.0), (len(course) - 1, len(course) - 1 - back, 1.0)):
+        tangent = course[end] - course[inner]
+        length = np.linalg.norm(tangent)
+        at_end = nearest == end
+        if length > 0 and at_end.any():
+            beyond = (points[at_end] - course[end]) @ (tangent / length)
+            chainage[at_end] = along[end] + sign * np.maximum(beyond, 0.0)
+    return chainage
+
+
+def _on_segments(course: np.ndarray, along: np.ndarray, points: np.ndarray, nearest: np.ndarray) -> np.ndarray:
+    """Arc length of each point projected on the nearer of the two segments at its nearest vertex."""
+    best = along[nearest].copy()
+    best_distance = np.linalg.norm(points - course[nearest], axis=1)
+    for step in (-1, 1):
+        other = nearest + step
+        ok = (other >= 0) & (other < len(course))
+        a, b = course[nearest[ok]], course[other[ok]]
+        direction = b - a
+        length = np.linalg.norm(direction, axis=1)
+        t = np.einsum("ij,ij->i", points[ok] - a, direction) / np.maximum(length, 1e-12) ** 2
+        t = np.clip(t, 0.0, 1.0)
+        foot = a + t[:, None] * direction
+        distance = np.linalg.norm(points[ok] - foot, axis=1)
+        closer = distance < best_distance[ok]
+        rows = np.nonzero(ok)[0][closer]
+        best[rows] = along[nearest[rows]] + step * t[closer] * length[closer]
+        best_distance[rows] = distance[closer]
+    return best
+
+
+def _edges(hole: np.ndarray, node: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """8-connected edges between hole pixels: source, target, length (pixels)."""
+    h, w = hole.shape
+    src, dst, step = [], [], []
+    for dr, dc, length in _STEPS:
+        r0, r1 = max(0, -dr), h - max(0, dr)
+        c0, c1 = max(0, -dc), w - max(0, dc)
+        a = node[r0:r1, c0:c1]
+        b = node[r0 + dr : r1 + dr, c0 + dc : c1 + dc]
+        both = (a >= 0) & (b >= 0)
+        src.append(a[both])
+        dst.append(b[both])
+        step.append(np.full(int(both.sum()), length))
+    return np.concatenate(src), np.concatenate(dst), np.concatenate(step)
+
+
+def _station_levels(
+    chainage: np.ndarray, heights: np.ndarray, station_px: float, percentile: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per station with rim pixels: centre chainage, bank level (percentile), rim pixel count."""
+    station = np.floor(chainage / station_px).astype(np.int64)
+    centres, levels, weights = [], [], []
+    for k in np.unique(station):
+        here = station == k
+        centres.append(float(np.mean(chainage[here])))
+        levels.append(float(np.percentile(heights[here], percentile)))
+        weights.append(float(here.sum()))
+    return np.array(centres), np.array(levels), np.array(weights)
+
+
+def _monotone(levels: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The better of the non-increasing and non-decreasing weighted least-squares fits."""
+    down = isotonic_regression(levels, weights=weights, increasing=False).x
+    up = isotonic_regression(levels, weights=weights, increasing=True).x
+    cost_down = float(np.sum(weights * (levels - down) ** 2))
+    cost_up = float(np.sum(weights * (levels - up) ** 2))
+    return down if cost_down <= cost_up else up
