@@ -48,7 +48,7 @@ def fill(dsm, water, **kwargs):
     return fill_hole(dsm, dsm, measured, water.astype(np.int32), WATER, params(**kwargs))
 
 
-@pytest.mark.parametrize("fall", [0.5, 1.0, 1.5, -1.0])
+@pytest.mark.parametrize("fall", [0.5, 1.0, 2.0, -1.0])
 def test_a_river_steps_down_along_its_course(fall):
     dsm, water, level, chainage, offset = river_scene(fall)
     out = fill(dsm, water)
@@ -65,8 +65,9 @@ def test_a_river_steps_down_along_its_course(fall):
     section = np.floor(chainage[water] / 0.25)
     spread = [np.ptp(heights[water][section == k]) for k in np.unique(section)]
     assert max(spread) <= 0.02, max(spread)
-    # within 0.1 m of the true water surface
+    # within 0.1 m of the true water surface, 3 cm RMSE (the banks' low percentile sits ~2.5 cm above it)
     assert np.abs(heights[water] - level[water]).max() <= 0.1
+    assert np.sqrt(np.mean((heights[water] - level[water]) ** 2)) <= 0.03
 
 
 def test_one_flat_level_would_miss_the_river():

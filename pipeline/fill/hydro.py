@@ -6,22 +6,29 @@ banks. For each water hole this module finds the course, measures the bank level
 along it and fits a surface that is flat across the river and never rises downstream:
 
 1. **Course.** The two ends are the farthest pair found by a double sweep of geodesic
-   distance through the hole (8-connected pixel graph); the course is the path between
-   them that keeps to the middle of the channel (edge costs divided by the distance to
-   the bank, so the path follows the ridge of the distance transform: the medial axis).
+   distance through the hole (8-connected pixel graph). An open end (the hole cut by the
+   survey edge) puts them in its corners, so each end is moved to the middle of the
+   pixels within a mean width of it. The course is the path between them that keeps to
+   the middle of the channel (edge costs divided by the squared distance to the bank, so
+   the path follows the ridge of the distance transform: the medial axis).
 2. **Cross-sections.** The pixel path is smoothed (Gaussian, sigma half the mean width,
    at least 2 pixels) so that its normals are the river's cross-sections. Every water
-   pixel, and every rim pixel, belongs to its nearest vertex of the smoothed course; its
-   *chainage* is the arc length of the course up to that vertex. Pixels of one
-   cross-section share one chainage, so one height.
+   pixel, and every rim pixel, is projected on the smoothed course (nearest segment); its
+   *chainage* is the arc length of the course up to there. Sigma is cut from each end of
+   the smoothed course (bent by the smoothing) and points past an end are placed along
+   its straight continuation. Pixels of one cross-section share one chainage, so one height.
 3. **Stations.** The course is cut into stations twice the mean width long (at least 4
    pixels); a station's bank level is the ``percentile`` of its rim heights (the water's
    edge: banks carry vegetation and walls, nothing below the water).
 4. **Monotone.** The station levels are fitted by isotonic regression (pool adjacent
    violators, weighted by rim pixels), once non-increasing and once non-decreasing along
    the chainage; the better fit says which end is upstream. Pooled stations make steps.
+   The levels are then measured again with the fitted fall within each station taken
+   out of its rim heights (else a low percentile leans to the station's lower end) and
+   fitted again.
 5. **Surface.** Each pixel gets the fitted level interpolated linearly at its chainage
-   between station centres: monotone along the course, flat across it.
+   between station centres, and beyond the end stations along the end slopes: monotone
+   along the course, flat across it.
 
 A hole is a *river* when its course is at least ``min_elongation`` times as long as its
 mean width (``length**2 / area``; a disc gives 1.27) and the fitted levels drop by at
@@ -142,10 +149,28 @@ def _fit_one(
     if len(levels) < 2:
         return RiverFit(label, False, length, elongation, 0.0, len(levels)), np.empty(0)
     fitted = _monotone(levels, weights)
+    # again with the fall within each station taken out: its percentile no longer leans to its lower end
+    along = chainage[rim]
+    _, station = np.unique(np.floor(along / station_px), return_inverse=True)
+    fall = _interpolate(along, centres, fitted) - fitted[station]
+    _, levels, _ = _station_levels(along, heights[rim] - fall, station_px, percentile)
+    fitted = _monotone(levels, weights)
     drop = float(abs(fitted[0] - fitted[-1]))
     fit = RiverFit(label, drop >= min_drop, length, elongation, drop, len(levels))
-    surface = np.interp(chainage, centres, fitted)
-    return fit, surface
+    return fit, _interpolate(chainage, centres, fitted)
+
+
+def _interpolate(chainage: np.ndarray, centres: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """Levels between station centres, linear; beyond the end stations along the end segments' slopes.
+
+    The rim of the last half station and of an open end is sparse; continuing the end
+    slope keeps the surface monotone and follows the water there.
+    """
+    surface = np.interp(chainage, centres, levels)
+    for outside, a, b in ((chainage < centres[0], 0, 1), (chainage > centres[-1], -1, -2)):
+        slope = (levels[b] - levels[a]) / (centres[b] - centres[a])
+        surface[outside] = levels[a] + slope * (chainage[outside] - centres[a])
+    return surface
 
 
 def _rim(hole: np.ndarray) -> np.ndarray:
@@ -163,9 +188,14 @@ def _chainage(hole: np.ndarray) -> tuple[np.ndarray, float]:
     n = len(rows)
     plain = coo_matrix((step, (src, dst)), shape=(n, n)).tocsr()
     # double sweep: the farthest pixel from anywhere is one end, the farthest from it the other
-    start = int(np.argmax(dijkstra(plain, directed=False, indices=0)))
+    start = _farthest(dijkstra(plain, directed=False, indices=0))
     from_start = dijkstra(plain, directed=False, indices=start)
-    end = int(np.argmax(np.where(np.isfinite(from_start), from_start, -1.0)))
+    end = _farthest(from_start)
+    from_end = dijkstra(plain, directed=False, indices=end)
+    width = n / max(from_start[end], 1.0)
+    # an open end is a cut across the channel: start and end in the middle of those cuts, not in a corner
+    start = _middle(rows, cols, from_end >= from_end[start] - width)
+    end = _middle(rows, cols, from_start >= from_start[end] - width)
     medial = step / (0.5 * (depth[rows[src], cols[src]] + depth[rows[dst], cols[dst]])) ** 2
     graph = coo_matrix((medial, (src, dst)), shape=(n, n)).tocsr()
     _, previous = dijkstra(graph, directed=False, indices=start, return_predecessors=True)
@@ -174,15 +204,12 @@ def _chainage(hole: np.ndarray) -> tuple[np.ndarray, float]:
         path.append(int(previous[path[-1]]))
     path.reverse()
     # the pixel path is a staircase: smoothed over about half the width, its normals are the cross-sections
-    width = n / max(from_start[end], 1.0)
     sigma = max(0.5 * width, 2.0)
     pr = ndi.gaussian_filter1d(rows[path].astype(np.float64), sigma, mode="nearest")
     pc = ndi.gaussian_filter1d(cols[path].astype(np.float64), sigma, mode="nearest")
     near = _rim(hole) | hole
     chainage = np.zeros(hole.shape)
-    chainage[near] = _project(
-        np.column_stack([pr, pc]), np.column_stack(np.nonzero(near)), trim=width + sigma, back=sigma
-    )
+    chainage[near] = _project(np.column_stack([pr, pc]), np.column_stack(np.nonzero(near)), trim=sigma, back=sigma)
     return chainage, float(np.sum(np.hypot(np.diff(pr), np.diff(pc))))
 
 
@@ -229,6 +256,18 @@ def _on_segments(course: np.ndarray, along: np.ndarray, points: np.ndarray, near
         best[rows] = along[nearest[rows]] + step * t[closer] * length[closer]
         best_distance[rows] = distance[closer]
     return best
+
+
+def _farthest(distance: np.ndarray) -> int:
+    """The node farthest from a sweep's source among those it reached."""
+    return int(np.argmax(np.where(np.isfinite(distance), distance, -1.0)))
+
+
+def _middle(rows: np.ndarray, cols: np.ndarray, cap: np.ndarray) -> int:
+    """The node of ``cap`` nearest to its centroid."""
+    r, c = rows[cap], cols[cap]
+    nodes = np.nonzero(cap)[0]
+    return int(nodes[np.argmin((r - r.mean()) ** 2 + (c - c.mean()) ** 2)])
 
 
 def _edges(hole: np.ndarray, node: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
