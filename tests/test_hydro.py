@@ -120,3 +120,14 @@ def test_elongation_and_drop_rules():
     assert not fits[0].is_river
     _, fits = river_surfaces(dsm, water.astype(np.int32), min_drop=0.25, min_elongation=1000.0)
     assert not fits[0].is_river
+
+
+def test_the_holes_layer_names_a_river():
+    """The hole's record (its ``fill_method`` and ``fill_note`` in the holes layer) says river."""
+    from pipeline.stages.fill_holes import FILLED, _record
+
+    dsm, water, _, _, _ = river_scene(1.0)
+    labels = water.astype(np.int32)
+    out = fill(dsm, water)
+    record = _record(7, 1, labels, out, np.ones(water.shape), "fill.npz")
+    assert record.status == FILLED and record.method == "river" and record.detail.startswith("river: falls 3.")
