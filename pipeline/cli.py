@@ -107,6 +107,11 @@ def main(verbose: int, quiet: int) -> None:
 @click.option("--progress/--no-progress", default=None, help="Progress bar (default: when stderr is a terminal).")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run of the same inputs and configuration.")
 @click.option("--overwrite", is_flag=True, help="Replace a result of another configuration in --out.")
+@click.option(
+    "--incremental",
+    is_flag=True,
+    help="Keep stage results in OUT/work; a later --incremental run decodes only new or changed tiles.",
+)
 def run(
     inputs,
     out_dir,
@@ -122,6 +127,7 @@ def run(
     progress,
     resume,
     overwrite,
+    incremental,
 ):
     """Build the DSM of a survey. INPUT may be files, folders or globs of LAS/LAZ/COPC."""
     from .config import load_config
@@ -143,6 +149,7 @@ def run(
         progress=sys.stderr.isatty() if progress is None else progress,
         resume=resume,
         overwrite=overwrite,
+        incremental=incremental,
     )
     _report(summary)
     if summary.skipped:  # outputs written, but some tiles are missing from them
@@ -458,6 +465,8 @@ def _report(summary) -> None:
             f"{holes['vertical_hole_groups']} vertical holes, {holes['walls']} walls",
             err=True,
         )
+    if summary.reused_tasks:
+        click.echo(f"incremental: {summary.reused_tasks} results of unchanged tiles and cells reused", err=True)
     for item in summary.skipped:
         click.echo(f"skipped {item['path']}: {item['reason']}", err=True)
 

@@ -18,16 +18,19 @@ import hashlib
 import json
 import logging
 import os
+import signal
 import time
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from . import __version__
 from .config import Config, config_key, to_dict
-from .errors import ClusterError, HolefillError, InputDataError, OutputError, TaskError
+from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, OutputError, TaskError
+from .io.checksums import input_record, output_records
 from .io.flightplan_files import plan_flights
 from .io.vector import read_survey_area
 from .outputs import (
@@ -45,7 +48,7 @@ from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells
 from .stages.bin_tiles import TileFailure, TileResult
 from .stages.merge_cells import CellResult
 from .stages.write_rasters import WriteResult
-from .staging import Staging, input_fingerprint, kept_result, run_and_keep
+from .staging import Staging, disk_full, input_fingerprint, run_and_keep
 from .survey import scan_survey
 
 logger = logging.getLogger(__name__)
@@ -63,6 +66,7 @@ def run_survey(
     progress: bool = False,
     resume: bool = False,
     overwrite: bool = False,
+    incremental: bool = False,
 ) -> RunSummary:
     """Run the pipeline on a survey and write the products into ``out_dir``.
 
@@ -90,6 +94,10 @@ def run_survey(
         folder: tasks that finished then are not run again.
     overwrite : bool
         Replace a result of another configuration in ``out_dir`` (refused otherwise).
+    incremental : bool
+        Keep the stage results in ``out_dir/work`` and take from the previous run's
+        those of unchanged tiles and of cells none of whose tiles changed: a scheduled
+        re-run decodes only new or changed tiles.
     """
     started = time.perf_counter()
     out = Path(out_dir).absolute()  # workers of a remote cluster resolve paths on their own machines
@@ -100,7 +108,12 @@ def run_survey(
     timer = _StageTimer(started)
     timer.lap("scan")
     created_out = not out.exists()
-    staging = Staging.create(out, run_key=run_key(plan, config, aoi, water), resume=resume)
+    staging = Staging.create(
+        out,
+        run_key=run_key(plan, config, aoi, water),
+        resume=resume,
+        incremental=incremental and _holds_result_of(out, config),
+    )
     try:
         with _dask_client(client, scheduler, config) as dask_client, _Progress(progress) as bar:
             runner = _Runner(dask_client, bar, staging, retries=config.dask.retries)
@@ -113,12 +126,16 @@ def run_survey(
             if holes is not None and filling:
                 fills = _run_fill(runner, plan, config, holes, rasters, staging)
                 timer.lap("fill")
-        summary = _write_products(
-            staging, plan, config, rasters, detected, holes, fills, started, timer, runner.resumed_tasks
-        )
+        try:
+            summary = _write_products(staging, plan, config, rasters, detected, holes, fills, started, timer, runner)
+        except OSError as e:
+            if disk_full(e, staging.root):
+                raise _disk_full_error(staging, "the products") from None
+            raise
         flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
-        staging.commit(PRODUCTS + flight_files, keep_work=config.output.keep_intermediate, replaces=FLIGHTPLAN_PRODUCTS)
-    except (KeyboardInterrupt, SystemExit, TaskError):
+        keep_work = config.output.keep_intermediate or incremental
+        staging.commit(PRODUCTS + flight_files, keep_work=keep_work, replaces=FLIGHTPLAN_PRODUCTS)
+    except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError):
         # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
         staging.keep_for_resume()
         raise
@@ -153,9 +170,13 @@ class _Rasters:
     failed: list[dict[str, str]]
     cells: list[CellResult]
     written: list[WriteResult]
+    inputs: dict[str, dict[str, Any]]  # path -> size, time and checksum
 
     def add(self, result: Any) -> str:
-        """File one task's result; returns its kind (``tile``, ``cell`` or ``written``)."""
+        """File one task's result; returns its kind (``input``, ``tile``, ``cell`` or ``written``)."""
+        if isinstance(result, dict):
+            self.inputs[str(result["path"])] = result
+            return "input"
         if isinstance(result, TileResult):
             self.tiles.append(result)
             if result.points_outside:
@@ -190,22 +211,38 @@ def _run_rasters(
     tile_function = bin_tiles.rasterize_tile_or_skip if skip else bin_tiles.rasterize_tile
     tile_futures = {
         task.tile_index: runner.submit(
-            tile_function, task, label=f"tile {task.path}", key=f"rasterize-{Path(task.output_dir).name}"
+            tile_function,
+            task,
+            label=f"tile {task.path}",
+            key=f"rasterize-{Path(task.output_dir).name}",
+            adopt=partial(bin_tiles.adopt_result, task),
         )
         for task in tile_tasks
     }
     merge_recipes = merge_cells.merge_tasks(plan, tile_tasks, staging)
+    tile_tasks_by_index = {task.tile_index: task for task in tile_tasks}
     merge_futures = {
         task.cell.id: runner.submit(
             merge_cells.merge_cell,
             task,
             *(tile_futures[i] for i in touching),
             label=f"cell {task.cell.id} (merge)",
-            key=f"merge-{task.cell.id}",
+            key=merge_cells.merge_key(task, [tile_tasks_by_index[i] for i in touching]),
             priority=1,
+            adopt=partial(merge_cells.adopt_result, task),
         )
         for task, touching in merge_recipes
     }
+    record_futures = [
+        runner.submit(
+            input_record,
+            task.path,
+            label=f"tile {task.path} (checksum)",
+            key=f"sha256-{Path(task.output_dir).name}",
+            priority=-1,  # after the decoding, which the file is then cached for
+        )
+        for task in tile_tasks
+    ]
     write_futures = [
         runner.submit(
             write_rasters.write_cell_rasters,
@@ -217,8 +254,9 @@ def _run_rasters(
         )
         for task in (write_rasters.write_tasks(plan, config, list(merge_futures), staging) if write else [])
     ]
-    results = _Rasters([], [], [], [])
+    results = _Rasters([], [], [], [], {})
     bars = {
+        "input": runner.bar.add("checksums", total=len(record_futures)),
         "tile": runner.bar.add("decode + bin tiles", total=len(tile_futures)),
         "cell": runner.bar.add("merge cells", total=len(merge_futures)),
         "written": runner.bar.add("write rasters", total=len(write_futures)),
@@ -230,7 +268,7 @@ def _run_rasters(
         if kind == "tile" and len(results.tiles) + len(results.failed) == len(tile_futures):
             timer.lap("rasterize")
 
-    runner.gather([*tile_futures.values(), *merge_futures.values(), *write_futures], collect)
+    runner.gather([*tile_futures.values(), *merge_futures.values(), *write_futures, *record_futures], collect)
     timer.lap("merge_tail")
     if not results.tiles:
         raise InputDataError("INPUT", "no tile could be decoded: every tile failed")
@@ -330,7 +368,7 @@ def _write_products(
     fills,
     started,
     timer,
-    resumed_tasks: int = 0,
+    runner: _Runner,
 ) -> RunSummary:
     """The mosaic, the layers, the manifest and the report, from the stages' kept results."""
     t0 = time.perf_counter()
@@ -347,7 +385,8 @@ def _write_products(
         timer.lap("flightplan")
     summary = RunSummary(
         flightplan=flight_summary,
-        resumed_tasks=resumed_tasks,
+        resumed_tasks=runner.resumed_tasks,
+        reused_tasks=runner.reused_tasks,
         holes=hole_summary,
         out_dir=str(staging.out),
         tiles=len(rasters.tiles),
@@ -360,7 +399,18 @@ def _write_products(
         dsm_tiles=sorted(os.path.relpath(r.paths["dsm"], staging.root) for r in rasters.written if r.paths),
     )
     timer.seconds["outputs"] = time.perf_counter() - t0
-    manifest = write_manifest(staging.product("manifest.json"), summary, plan, config, rasters.tiles, rasters.cells)
+    products = [name for name in PRODUCTS if name not in ("manifest.json", "report.html")]
+    products += [os.path.basename(f) for f in flight_summary.get("files", [])]
+    manifest = write_manifest(
+        staging.product("manifest.json"),
+        summary,
+        plan,
+        config,
+        rasters.tiles,
+        rasters.cells,
+        inputs=rasters.inputs,
+        outputs=output_records(staging.root, products),
+    )
     write_report(
         staging.product("report.html"), manifest, summary.holes.get("largest", []), inputs=_report_map(staging)
     )
@@ -395,14 +445,25 @@ class _Runner:
         self.bar = bar
         self.staging = staging
         self.resumed_tasks = 0
+        self.reused_tasks = 0  # taken from the previous run (incremental)
         self._run_id = uuid.uuid4().hex[:8]
         self._labels: dict[Any, str] = {}
 
-    def submit(self, function: Callable, *args: Any, label: str, key: str, priority: int = 0) -> Any:
+    def submit(
+        self,
+        function: Callable,
+        *args: Any,
+        label: str,
+        key: str,
+        priority: int = 0,
+        adopt: Callable[[Any], Any] | None = None,
+    ) -> Any:
         """Submit one task; with a staging folder its result is kept under ``key`` for a resumed run.
 
         In a resumed run, a task whose result was kept is not run again: a
         :class:`_Kept` stands in for its future (as an argument of later tasks too).
+        In an incremental run, so does the previous run's result of the same key,
+        passed through ``adopt`` (which points it at this run's files and indices).
         """
         args = tuple(a.value if isinstance(a, _Kept) else a for a in args)
         if self.staging is None:
@@ -411,8 +472,13 @@ class _Runner:
             )
         else:
             kept = self.staging.task_result(key)
-            if self.staging.resumed and (value := kept_result(kept)) is not None:
-                self.resumed_tasks += 1
+            if (found := self.staging.kept(key)) is not None:
+                value, how = found
+                if how == "resumed":
+                    self.resumed_tasks += 1
+                else:
+                    self.reused_tasks += 1
+                    value = adopt(value) if adopt is not None else value
                 return _Kept(value)
             future = self.client.submit(
                 run_and_keep,
@@ -447,7 +513,10 @@ class _Runner:
         except HolefillError:
             raise
         except Exception as e:  # a worker's unforeseen failure: one line, naming the task
-            raise TaskError(self._labels.get(future.key, str(future.key)), e) from None
+            label = self._labels.get(future.key, str(future.key))
+            if self.staging is not None and isinstance(e, OSError) and disk_full(e, self.staging.root):
+                raise _disk_full_error(self.staging, label) from None
+            raise TaskError(label, e) from None
 
 
 @dataclass(frozen=True)
@@ -455,6 +524,22 @@ class _Kept:
     """The result of a task that an interrupted run finished: stands in for its future."""
 
     value: Any
+
+
+def _disk_full_error(staging: Staging, writing: str) -> DiskFullError:
+    return DiskFullError(
+        f"{staging.out}: no space left on the device (while writing: {writing}); free some space and run "
+        "again with --resume: the finished tasks are kept"
+    )
+
+
+def _holds_result_of(out: Path, config: Config) -> bool:
+    """Whether ``out`` holds a complete result of this configuration (an incremental run's base)."""
+    try:
+        manifest = json.loads((out / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return bool(manifest.get("complete")) and manifest.get("config_key") == config_key(config)
 
 
 def _refuse_other_configuration(out: Path, config: Config, *, overwrite: bool) -> None:
@@ -524,8 +609,8 @@ def _dask_client(client, scheduler: str | None, config: Config) -> Iterator[Any]
         return
     workers = config.dask.workers or os.cpu_count() or 1
     verbose = logging.getLogger("distributed").isEnabledFor(logging.INFO)
-    with (
-        LocalCluster(
+    with _workers_ignore_ctrl_c():
+        cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=1,
             processes=True,
@@ -533,10 +618,31 @@ def _dask_client(client, scheduler: str | None, config: Config) -> Iterator[Any]
             dashboard_address=":0",  # any free port: never collide with another cluster
             silence_logs=logging.INFO if verbose else logging.CRITICAL,  # task errors reach the client anyway
             env=WORKER_ENV,
-        ) as cluster,
-        Client(cluster) as local,
-    ):
+        )
+    with cluster, Client(cluster) as local:
         yield local
+
+
+@contextlib.contextmanager
+def _workers_ignore_ctrl_c() -> Iterator[None]:
+    """Start worker processes that ignore SIGINT; the client stops them when it is interrupted.
+
+    A terminal's Ctrl-C goes to the whole process group: without this every worker
+    prints its own KeyboardInterrupt traceback. An ignored signal stays ignored in a
+    spawned child (and Python then installs no KeyboardInterrupt handler), so SIGINT
+    is ignored while the cluster starts its workers, and the client's handler is
+    restored as soon as they are up. SIGTERM stays as it is: it stops a worker.
+    """
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 class _Progress:
