@@ -130,8 +130,8 @@ def run(
     incremental,
 ):
     """Build the DSM of a survey. INPUT may be files, folders or globs of LAS/LAZ/COPC."""
+    from .cluster import ClusterStart
     from .config import load_config
-    from .run import run_survey
 
     config = _with_options(
         load_config(config_path, overrides), workers=workers, crs=crs, target_crs=target_crs, on_error=on_error
@@ -139,18 +139,27 @@ def run(
     for name, path in (("AOI", aoi), ("water", water)):
         if path is not None and not Path(path).exists():
             raise InputDataError(path, f"{name} file not found")
-    summary = run_survey(
-        inputs,
-        out_dir,
-        config,
-        scheduler=scheduler,
-        aoi=aoi,
-        water=water,
-        progress=sys.stderr.isatty() if progress is None else progress,
-        resume=resume,
-        overwrite=overwrite,
-        incremental=incremental,
-    )
+    # the workers start while the pipeline's modules are imported and the headers scanned
+    starting = None if scheduler else ClusterStart.begin(config)
+    try:
+        from .run import run_survey
+
+        summary = run_survey(
+            inputs,
+            out_dir,
+            config,
+            scheduler=scheduler,
+            cluster=starting,
+            aoi=aoi,
+            water=water,
+            progress=sys.stderr.isatty() if progress is None else progress,
+            resume=resume,
+            overwrite=overwrite,
+            incremental=incremental,
+        )
+    finally:
+        if starting is not None:
+            starting.close()
     _report(summary)
     if summary.skipped:  # outputs written, but some tiles are missing from them
         click.get_current_context().exit(EXIT_PARTIAL)

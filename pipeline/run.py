@@ -18,18 +18,18 @@ import hashlib
 import json
 import logging
 import os
-import signal
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
 
 from . import __version__
+from .cluster import ClusterStart, dask_client
 from .config import Config, config_key, to_dict
-from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, OutputError, TaskError
+from .errors import DiskFullError, HolefillError, InputDataError, OutputError, TaskError
 from .io.checksums import input_record, output_records
 from .io.flightplan_files import plan_flights
 from .io.vector import read_survey_area
@@ -67,6 +67,7 @@ def run_survey(
     resume: bool = False,
     overwrite: bool = False,
     incremental: bool = False,
+    cluster: ClusterStart | None = None,
 ) -> RunSummary:
     """Run the pipeline on a survey and write the products into ``out_dir``.
 
@@ -94,6 +95,9 @@ def run_survey(
         folder: tasks that finished then are not run again.
     overwrite : bool
         Replace a result of another configuration in ``out_dir`` (refused otherwise).
+    cluster : ClusterStart, optional
+        A local cluster already being started (the CLI starts it before importing
+        this module); default: one started here, unless ``client`` or ``scheduler``.
     incremental : bool
         Keep the stage results in ``out_dir/work`` and take from the previous run's
         those of unchanged tiles and of cells none of whose tiles changed: a scheduled
@@ -102,50 +106,61 @@ def run_survey(
     started = time.perf_counter()
     out = Path(out_dir).absolute()  # workers of a remote cluster resolve paths on their own machines
     _refuse_other_configuration(out, config, overwrite=overwrite)
-    plan = _plan(inputs, config, aoi)
-    water = water or config.holes.water or None
-    water_area = read_survey_area(water, plan.survey.crs, what="water") if water else None
     timer = _StageTimer(started)
-    timer.lap("scan")
-    created_out = not out.exists()
-    staging = Staging.create(
-        out,
-        run_key=run_key(plan, config, aoi, water),
-        resume=resume,
-        incremental=incremental and _holds_result_of(out, config),
-    )
-    try:
-        with _dask_client(client, scheduler, config) as dask_client, _Progress(progress) as bar:
-            runner = _Runner(dask_client, bar, staging, retries=config.dask.retries)
-            filling = config.holes.enabled and config.fill.enabled
-            rasters = _run_rasters(runner, plan, config, staging, timer, write=not filling)
-            detected, holes, fills = None, None, None
-            if config.holes.enabled:
-                detected, holes = _run_holes(runner, plan, config, rasters.cells, water_area, staging)
-                timer.lap("holes")
-            if holes is not None and filling:
-                fills = _run_fill(runner, plan, config, holes, rasters, staging)
-                timer.lap("fill")
+    with contextlib.ExitStack() as cluster_scope:
+        connect = cluster_scope.enter_context(dask_client(client, scheduler, config, start=cluster))
+        plan = _plan(inputs, config, aoi)  # the headers are scanned while the workers start
+        water = water or config.holes.water or None
+        water_area = read_survey_area(water, plan.survey.crs, what="water") if water else None
+        timer.lap("scan")
+        created_out = not out.exists()
+        staging = Staging.create(
+            out,
+            run_key=run_key(plan, config, aoi, water),
+            resume=resume,
+            incremental=incremental and _holds_result_of(out, config),
+        )
         try:
-            summary = _write_products(staging, plan, config, rasters, detected, holes, fills, started, timer, runner)
-        except OSError as e:
-            if disk_full(e, staging.root):
-                raise _disk_full_error(staging, "the products") from None
+            with _Progress(progress) as bar:
+                runner = _Runner(connect(), bar, staging, retries=config.dask.retries)
+                rasters, detected, holes, fills = _run_stages(runner, plan, config, staging, timer, water_area)
+            cluster_scope.close()  # the workers stop (and free their memory) before the products are written
+            try:
+                summary = _write_products(
+                    staging, plan, config, rasters, detected, holes, fills, started, timer, runner
+                )
+            except OSError as e:
+                if disk_full(e, staging.root):
+                    raise _disk_full_error(staging, "the products") from None
+                raise
+            flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
+            keep_work = config.output.keep_intermediate or incremental
+            staging.commit(PRODUCTS + flight_files, keep_work=keep_work, replaces=FLIGHTPLAN_PRODUCTS)
+        except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError):
+            # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
+            staging.keep_for_resume()
             raise
-        flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
-        keep_work = config.output.keep_intermediate or incremental
-        staging.commit(PRODUCTS + flight_files, keep_work=keep_work, replaces=FLIGHTPLAN_PRODUCTS)
-    except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError):
-        # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
-        staging.keep_for_resume()
-        raise
-    except BaseException:
-        staging.remove()
-        if created_out:
-            with contextlib.suppress(OSError):
-                out.rmdir()  # only if still empty
-        raise
+        except BaseException:
+            staging.remove()
+            if created_out:
+                with contextlib.suppress(OSError):
+                    out.rmdir()  # only if still empty
+            raise
     return summary
+
+
+def _run_stages(runner: _Runner, plan: SurveyPlan, config: Config, staging: Staging, timer: _StageTimer, water_area):
+    """Every stage that runs on the workers, in order; returns their gathered results."""
+    filling = config.holes.enabled and config.fill.enabled
+    rasters = _run_rasters(runner, plan, config, staging, timer, write=not filling)
+    detected, holes, fills = None, None, None
+    if config.holes.enabled:
+        detected, holes = _run_holes(runner, plan, config, rasters.cells, water_area, staging)
+        timer.lap("holes")
+    if holes is not None and filling:
+        fills = _run_fill(runner, plan, config, holes, rasters, staging)
+        timer.lap("fill")
+    return rasters, detected, holes, fills
 
 
 # -- stages ---------------------------------------------------------------------------
@@ -580,69 +595,6 @@ class _StageTimer:
         now = time.perf_counter()
         self.seconds[name] = now - self._last
         self._last = now
-
-
-#: One thread per worker process for BLAS and OpenMP (workers are single-threaded
-#: processes; oversubscription slows every kernel), and a bounded GDAL cache each.
-WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "GDAL_CACHEMAX": "256"}
-
-#: Seconds to wait for a ``--scheduler`` before giving up with one line.
-SCHEDULER_TIMEOUT_S = 10
-
-
-@contextlib.contextmanager
-def _dask_client(client, scheduler: str | None, config: Config) -> Iterator[Any]:
-    if client is not None:
-        yield client
-        return
-    from distributed import Client, LocalCluster
-
-    if scheduler:
-        try:
-            remote = Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
-        except (OSError, TimeoutError) as e:
-            raise ClusterError(
-                f"{scheduler}: cannot reach the Dask scheduler within {SCHEDULER_TIMEOUT_S} s ({type(e).__name__})"
-            ) from None
-        with remote:
-            yield remote
-        return
-    workers = config.dask.workers or os.cpu_count() or 1
-    verbose = logging.getLogger("distributed").isEnabledFor(logging.INFO)
-    with _workers_ignore_ctrl_c():
-        cluster = LocalCluster(
-            n_workers=workers,
-            threads_per_worker=1,
-            processes=True,
-            memory_limit=config.dask.memory_limit,
-            dashboard_address=":0",  # any free port: never collide with another cluster
-            silence_logs=logging.INFO if verbose else logging.CRITICAL,  # task errors reach the client anyway
-            env=WORKER_ENV,
-        )
-    with cluster, Client(cluster) as local:
-        yield local
-
-
-@contextlib.contextmanager
-def _workers_ignore_ctrl_c() -> Iterator[None]:
-    """Start worker processes that ignore SIGINT; the client stops them when it is interrupted.
-
-    A terminal's Ctrl-C goes to the whole process group: without this every worker
-    prints its own KeyboardInterrupt traceback. An ignored signal stays ignored in a
-    spawned child (and Python then installs no KeyboardInterrupt handler), so SIGINT
-    is ignored while the cluster starts its workers, and the client's handler is
-    restored as soon as they are up. SIGTERM stays as it is: it stops a worker.
-    """
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
 
 
 class _Progress:
