@@ -1,4 +1,4 @@
-"""Running a survey on Dask: the only module that knows about Dask.
+"""Running a survey on Dask: the only module that builds Dask graphs (the client comes from :mod:`pipeline.cluster`).
 
 A run is: scan headers -> plan (grid, cells, tile-to-cell index) -> stage 1
 (one task per tile: decode once, bin) -> stage 2 (one task per cell: merge) ->
