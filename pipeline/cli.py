@@ -107,6 +107,11 @@ def main(verbose: int, quiet: int) -> None:
 @click.option("--progress/--no-progress", default=None, help="Progress bar (default: when stderr is a terminal).")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run of the same inputs and configuration.")
 @click.option("--overwrite", is_flag=True, help="Replace a result of another configuration in --out.")
+@click.option(
+    "--incremental",
+    is_flag=True,
+    help="Keep stage results in OUT/work; a later --incremental run decodes only new or changed tiles.",
+)
 def run(
     inputs,
     out_dir,
@@ -122,10 +127,11 @@ def run(
     progress,
     resume,
     overwrite,
+    incremental,
 ):
     """Build the DSM of a survey. INPUT may be files, folders or globs of LAS/LAZ/COPC."""
+    from .cluster import ClusterStart
     from .config import load_config
-    from .run import run_survey
 
     config = _with_options(
         load_config(config_path, overrides), workers=workers, crs=crs, target_crs=target_crs, on_error=on_error
@@ -133,17 +139,27 @@ def run(
     for name, path in (("AOI", aoi), ("water", water)):
         if path is not None and not Path(path).exists():
             raise InputDataError(path, f"{name} file not found")
-    summary = run_survey(
-        inputs,
-        out_dir,
-        config,
-        scheduler=scheduler,
-        aoi=aoi,
-        water=water,
-        progress=sys.stderr.isatty() if progress is None else progress,
-        resume=resume,
-        overwrite=overwrite,
-    )
+    # the workers start while the pipeline's modules are imported and the headers scanned
+    starting = None if scheduler else ClusterStart.begin(config)
+    try:
+        from .run import run_survey
+
+        summary = run_survey(
+            inputs,
+            out_dir,
+            config,
+            scheduler=scheduler,
+            cluster=starting,
+            aoi=aoi,
+            water=water,
+            progress=sys.stderr.isatty() if progress is None else progress,
+            resume=resume,
+            overwrite=overwrite,
+            incremental=incremental,
+        )
+    finally:
+        if starting is not None:
+            starting.close()
     _report(summary)
     if summary.skipped:  # outputs written, but some tiles are missing from them
         click.get_current_context().exit(EXIT_PARTIAL)
@@ -458,6 +474,8 @@ def _report(summary) -> None:
             f"{holes['vertical_hole_groups']} vertical holes, {holes['walls']} walls",
             err=True,
         )
+    if summary.reused_tasks:
+        click.echo(f"incremental: {summary.reused_tasks} results of unchanged tiles and cells reused", err=True)
     for item in summary.skipped:
         click.echo(f"skipped {item['path']}: {item['reason']}", err=True)
 

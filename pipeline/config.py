@@ -183,6 +183,11 @@ class CausesConfig:
         ge=0,
         le=1,
     )
+    water_min_rim_area_m2: float = _opt(
+        50.0,
+        "level_rim and flat_low_rim rules: smallest hole (m2) called water from its rim alone.",
+        ge=0,
+    )
     low_quantile: float = _opt(0.05, "Quantile of the ring heights taken as the ring's low level.", ge=0, le=1)
     high_quantile: float = _opt(
         0.95, "Quantile of the ring heights taken as its high level (step = high - low level).", ge=0, le=1

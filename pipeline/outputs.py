@@ -7,6 +7,7 @@ run's staging folder (``docs/outputs.md`` documents every product and field).
 from __future__ import annotations
 
 import collections
+import functools
 import json
 import os
 import socket
@@ -83,6 +84,7 @@ class RunSummary:
     flightplan: dict[str, Any] = field(default_factory=dict)
     resumed_tasks: int = 0  # tasks an interrupted run had finished, not run again
     point_files: list[str] = field(default_factory=list)  # points/*.laz (output.points)
+    reused_tasks: int = 0  # results of unchanged tiles and cells taken from the previous run (incremental)
 
     @property
     def points_per_second(self) -> float:
@@ -375,9 +377,19 @@ def write_manifest(
     config: Config,
     tile_results: list[TileResult],
     cell_results: list[CellResult],
+    *,
+    inputs: dict[str, dict[str, Any]] | None = None,
+    outputs: list[dict[str, Any]] | None = None,
 ) -> dict:
-    """``manifest.json``: the resolved configuration, inputs, outputs and figures of the run."""
+    """``manifest.json``: the resolved configuration, inputs, outputs and figures of the run.
+
+    ``inputs``: size, modification time and SHA-256 of each input file, by path;
+    ``outputs``: path, size and SHA-256 of each product file (the report and the
+    manifest itself excepted).
+    """
     grid = plan.grid
+    inputs = inputs or {}
+    headers = {t.path: t for t in plan.survey.tiles}
     manifest = {
         "complete": True,  # written last: a manifest in OUT means one complete result (pipeline.staging)
         "config_key": config_key(config),  # a later run with another configuration is refused unless --overwrite
@@ -397,10 +409,7 @@ def write_manifest(
             "align": plan.sizing.align,
             "sizing": plan.sizing.as_record(),
         },
-        "inputs": [
-            {"path": r.path, "points_read": r.points_read, "points_used": r.points_used, "seconds": round(r.seconds, 3)}
-            for r in tile_results
-        ],
+        "inputs": [_input_entry(r, headers[r.path], inputs.get(r.path, {})) for r in tile_results],
         "skipped": summary.skipped,
         "outputs": {
             "dsm_vrt": "dsm.vrt" if summary.dsm_tiles else None,
@@ -408,6 +417,7 @@ def write_manifest(
             "holes_gpkg": "holes.gpkg",
             "points": summary.point_files,
             "flightplan": [os.path.basename(f) for f in summary.flightplan.get("files", [])],
+            "files": outputs or [],
         },
         "summary": {
             "tiles": summary.tiles,
@@ -419,9 +429,32 @@ def write_manifest(
             "stage_seconds": {k: round(v, 3) for k, v in summary.stage_seconds.items()},
             "empty_pixels": sum(r.empty_pixels for r in cell_results),
             "resumed_tasks": summary.resumed_tasks,
+            "reused_tasks": summary.reused_tasks,
         },
         "holes": summary.holes,
         "flightplan": {k: v for k, v in summary.flightplan.items() if k != "files"},
     }
     path.write_text(json.dumps(manifest, indent=2, default=str))
     return manifest
+
+
+def _input_entry(result: TileResult, tile: Any, record: dict[str, Any]) -> dict[str, Any]:
+    """One input of the manifest: the file (size, time, checksum), its header and what was read."""
+    header = tile.header
+    return {
+        "path": result.path,
+        "bytes": record.get("bytes", header.file_size),
+        "mtime": record.get("mtime"),
+        "sha256": record.get("sha256"),
+        "format": header.format,
+        "header_points": header.point_count,
+        "crs": _crs_name(tile.source_crs_wkt) if tile.source_crs_wkt else None,
+        "points_read": result.points_read,
+        "points_used": result.points_used,
+        "seconds": round(result.seconds, 3),
+    }
+
+
+@functools.lru_cache(maxsize=64)
+def _crs_name(wkt: str) -> str:
+    return CRS.from_wkt(wkt).name

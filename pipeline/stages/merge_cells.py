@@ -6,8 +6,11 @@ footprint (:func:`footprint_blocks`), which hole detection needs.
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -66,6 +69,26 @@ def merge_tasks(plan: SurveyPlan, tiles: list[TileTask], staging: Staging) -> li
         )
         recipes.append((task, touching))
     return recipes
+
+
+def merge_key(task: CellTask, tiles: list[TileTask]) -> str:
+    """The key of a cell's merge: what its result is made of (the cell, the lattice, its tiles' keys).
+
+    An incremental run reuses the previous run's merge of a cell whose key is unchanged.
+    """
+    made_of = (
+        task.cell,
+        task.grid,
+        task.planned_windows,
+        task.block_px,
+        sorted(Path(t.output_dir).name for t in tiles),
+    )
+    return f"merge-{hashlib.sha1(repr(made_of).encode()).hexdigest()[:12]}-{task.cell.id}"
+
+
+def adopt_result(task: CellTask, kept: CellResult) -> CellResult:
+    """A previous run's merge of the same cell (same key), pointed at this run's files."""
+    return dataclasses.replace(kept, statistics_path=task.statistics_path)
 
 
 def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
