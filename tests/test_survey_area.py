@@ -44,9 +44,20 @@ def test_a_line_missed_along_a_tile_boundary_is_a_missed_coverage_hole(tmp_path,
     # ... and a re-flight is planned over it
     status = read_layer(tmp_path / "out" / "flightplan.gpkg", "holes_status")
     assert set(status.loc[status["planned"], "hole_id"]) == {int(missed["hole_id"].iloc[0])}
+    # the same holes with other cells (the gaps' pixels are a function of the global position only)
+    other = run(tmp_path / "tiles", tmp_path / "cells64", dask_client, "grid.cell_size_m=64")
+    assert hole_masks(other, survey) == hole_masks(holes, survey)
     # with the tile extents (the behaviour before), the strip vanished
     before = run(tmp_path / "tiles", tmp_path / "before", dask_client, "survey.area=footprint")
     assert (before.loc[before["cause"] == "missed_coverage", "area_m2"] < 1000).all()
+
+
+def hole_masks(holes, survey) -> list[tuple]:
+    shape = survey.hole_cause.shape
+    return sorted(
+        (tuple(np.flatnonzero(geometry_mask(g, survey.transform, shape))), round(a, 3), c)
+        for g, a, c in zip(holes.geometry, holes["area_m2"], holes["cause"])
+    )
 
 
 @pytest.fixture(scope="module")
