@@ -183,7 +183,8 @@ class SurveyPlan:
         """The survey area less what only tiles that failed in stage 1 would have covered (exterior)."""
         if not failed:
             return self.survey_area
-        kept = [self.tile_footprint(i) for i in range(len(self.survey.tiles)) if i not in set(failed)]
+        lost_tiles = set(failed)
+        kept = [self.tile_footprint(i) for i in range(len(self.survey.tiles)) if i not in lost_tiles]
         lost = shapely.difference(shapely.union_all([self.tile_footprint(i) for i in failed]), shapely.union_all(kept))
         return shapely.difference(self.survey_area, lost)
 
@@ -202,7 +203,7 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
     sizing = plan_sizing(survey.density, config)
     area = survey_area(survey, config, aoi=aoi)
     grid = Grid.covering(
-        [t.bounds for t in survey.tiles] + _area_squares(area),
+        [t.bounds for t in survey.tiles] + list(area.missing_tiles),
         resolution=sizing.resolution_m / survey.horizontal_unit_m,
         cell_px=sizing.cell_px,
         halo_px=config.grid.halo_px,
@@ -212,7 +213,8 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
     tile_windows = [grid.window_of_bounds(*t.bounds) for t in survey.tiles]
     tiles_of_core = _tiles_by_cell(grid, tile_windows, expand_px=0)
     tiles_of_halo = _tiles_by_cell(grid, tile_windows, expand_px=grid.halo_px)
-    # cells under the squares of a tile grid too (missing tiles, margins): as many squares as tiles
+    # cells under the squares of a tile grid too (missing tiles, gaps between tiles' data), within the
+    # lattice: as many squares as tiles, and never the empty margins beyond the data (exterior anyway)
     keys = set(tiles_of_core) | {
         k for b in _area_squares(area) for k in grid.cell_indices_under(_inner_window(grid, b))
     }
