@@ -110,3 +110,17 @@ def test_a_corrupt_tile_is_skipped_exterior_never_an_unknown_hole(three_by_three
         tile_rows = read_layer(gpkg, "tiles")
         assert tile_rows.loc[tile_rows["name"] == middle.name, "status"].tolist() == ["skipped"]
         assert "survey_area" in list_layers(gpkg)
+
+
+def test_a_tile_whose_header_cannot_be_read_is_placed_by_its_name(three_by_three, tmp_path, dask_client):
+    folder, survey, middle = three_by_three
+    tiles = tmp_path / "tiles"
+    shutil.copytree(folder / "tiles", tiles)
+    (tiles / middle.name).write_bytes(b"not a las file at all")  # skipped at the scan: no bounds
+    holes = run(tiles, tmp_path / "out", dask_client, "survey.on_error=skip")
+    square = middle_square(survey)
+    assert all(geometry_mask(g, survey.transform, square.shape)[square].sum() == 0 for g in holes.geometry)
+    assert (holes["cause_rule"] != "missing_tile").all()
+    area = read_layer(tmp_path / "out" / "holes.gpkg", "survey_area")
+    skipped = area[area["status"] == "skipped"]
+    assert len(skipped) == 1 and skipped.geometry.iloc[0].equals(shapely.box(500_100, 5_000_100, 500_200, 5_000_200))
