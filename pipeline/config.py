@@ -232,6 +232,13 @@ class SurveyConfig:
     on_error: str = _opt(
         "fail", "What a bad tile does: stop the run, or be skipped and listed.", choices=("fail", "skip")
     )
+    area: str = _opt(
+        "auto",
+        "Survey area without --aoi: 'auto' (the tile grid's squares when the tiles lie on one, else the tile "
+        "extents), 'tiles' (the tile grid's squares; a survey whose tiles lie on no grid is refused) or "
+        "'footprint' (the tile extents, no grid inferred).",
+        choices=("auto", "tiles", "footprint"),
+    )
 
 
 @dataclass(frozen=True)

@@ -161,13 +161,23 @@ def write_survey_layers(
         )
         cell_geometries.append(shapely.box(*grid.window_bounds(cell.window)))
     write_layer(gpkg, "cells", cell_records, cell_geometries, crs_wkt=grid.crs_wkt, geometry_type="Polygon")
-    write_layer(
-        gpkg,
-        "survey_area",
-        [{"source": "--aoi polygon" if plan.aoi_given else "union of tile extents"}],
-        [plan.survey_area],
-        crs_wkt=grid.crs_wkt,
-    )
+    failed = [i for i in range(len(plan.survey.tiles)) if i not in done]
+    write_survey_area_layer(gpkg, plan, failed)
+
+
+def write_survey_area_layer(gpkg: Path, plan: SurveyPlan, failed: list[int]) -> None:
+    """The ``survey_area`` layer: the area (status ``inside``), then the skipped tiles' areas (``skipped``: exterior)."""
+    area = plan.area
+    source = area.source if area is not None else ("--aoi polygon" if plan.aoi_given else "union of tile extents")
+    records: list[dict[str, Any]] = [{"status": "inside", "source": source}]
+    geometries = [plan.area_without(failed)]
+    for i in failed:
+        records.append({"status": "skipped", "source": plan.survey.tiles[i].name})
+        geometries.append(plan.tile_footprint(i))
+    for bounds in area.skipped_squares if area is not None else ():
+        records.append({"status": "skipped", "source": "a tile skipped at the scan (placed by its name)"})
+        geometries.append(shapely.box(*bounds))
+    write_layer(gpkg, "survey_area", records, geometries, crs_wkt=plan.grid.crs_wkt)
 
 
 def write_hole_layers(
@@ -370,6 +380,20 @@ def _finite(value: float, ring_px: int) -> float | None:
     return float(value) if ring_px and np.isfinite(value) else None
 
 
+def _survey_area_record(plan: SurveyPlan) -> dict[str, object]:
+    """What the manifest records of the survey area: its source and the tile grid, if any."""
+    area = plan.area
+    if area is None:
+        return {"source": "--aoi polygon" if plan.aoi_given else "union of tile extents"}
+    grid = area.tile_grid
+    return {
+        "source": area.source,
+        "tile_grid": grid.as_record() if grid is not None else None,
+        "missing_tiles": [list(b) for b in area.missing_tiles],
+        "skipped_squares": [list(b) for b in area.skipped_squares],
+    }
+
+
 def write_manifest(
     path: Path,
     summary: RunSummary,
@@ -411,6 +435,7 @@ def write_manifest(
         },
         "inputs": [_input_entry(r, headers[r.path], inputs.get(r.path, {})) for r in tile_results],
         "skipped": summary.skipped,
+        "survey_area": _survey_area_record(plan),
         "outputs": {
             "dsm_vrt": "dsm.vrt" if summary.dsm_tiles else None,
             "dsm_tiles": summary.dsm_tiles,

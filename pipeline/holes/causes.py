@@ -27,6 +27,7 @@ CAUSES: tuple[str, ...] = ("occlusion", "water", "missed_coverage", "unknown")
 #: A hole no rule claims is ``unknown`` / ``none`` (``no_ring`` without any measured neighbour).
 RULES: tuple[tuple[str, str], ...] = (
     ("water_mask", "water"),
+    ("missing_tile", "missed_coverage"),
     ("coverage_gap", "missed_coverage"),
     ("water_points", "water"),
     ("jumps", "occlusion"),
@@ -57,7 +58,7 @@ class CauseRules:
     water_min_mask_fraction, water_min_point_fraction
         ``water_mask`` / ``water_points`` rules.
     gap_min_fraction
-        ``coverage_gap`` rule.
+        ``coverage_gap`` and ``missing_tile`` rules.
     occlusion_min_jump_fraction
         ``jumps`` rule.
     shadow_min_high_fraction, shadow_min_residual_ratio, max_terrain_slope
@@ -162,7 +163,10 @@ def classify_causes(stats: HoleStats, rules: CauseRules) -> np.ndarray:
 
     1. ``water`` / ``water_mask``: at least ``water_min_mask_fraction`` of the hole
        lies inside the given water mask.
-    2. ``missed_coverage`` / ``coverage_gap``: at least ``gap_min_fraction`` of the
+    2. ``missed_coverage`` / ``missing_tile``: at least ``gap_min_fraction`` of the
+       hole lies in the square of a missing tile (a square of the tile grid without a
+       tile, enclosed by squares with one: :mod:`pipeline.tile_grid`); then
+       ``missed_coverage`` / ``coverage_gap``: at least ``gap_min_fraction`` of the
        hole lies in a coverage gap (no flight line's swath, :mod:`pipeline.holes.coverage`).
     3. ``water`` / ``water_points``: at least ``water_min_point_fraction`` of the
        ring (or of the hole) holds water-class points.
@@ -275,6 +279,7 @@ def _rule_conditions(stats: HoleStats, ring: _RingEvidence, rules: CauseRules) -
         strip = np.where(has_lines, strip_with_lines, strip)
     return {
         "water_mask": stats["water_mask_px"] / area1 >= rules.water_min_mask_fraction,
+        "missing_tile": stats["missing_tile_px"] / area1 >= rules.gap_min_fraction,
         "coverage_gap": stats["gap_px"] / area1 >= rules.gap_min_fraction,
         "water_points": (ring.has_ring & (stats["ring_water_px"] / ring.size >= rules.water_min_point_fraction))
         | (stats["hole_water_px"] / area1 >= rules.water_min_point_fraction),

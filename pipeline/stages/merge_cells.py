@@ -50,15 +50,20 @@ class CellResult:
     empty_pixels: int
     occupied_blocks: np.ndarray  # packed keys of the footprint blocks holding data
     line_moments: np.ndarray  # LINE_MOMENT_DTYPE: pixel moments of each flight line in the core
+    failed_tiles: tuple[int, ...] = ()  # tiles touching the cell that stage 1 skipped (their area is exterior)
 
 
 def merge_tasks(plan: SurveyPlan, tiles: list[TileTask], staging: Staging) -> list[tuple[CellTask, list[int]]]:
-    """One task per planned cell touched by a tile, with the indices of the tiles it needs."""
+    """One task per planned cell, with the indices of the tiles it needs.
+
+    A cell that no tile touches is planned only for the survey area (a missing tile
+    of the tile grid): it is merged empty, so that its pixels are holes.
+    """
     windows = {t.tile_index: t.window for t in tiles}
     recipes = []
     for cell in plan.cells:
         touching = [i for i in plan.tiles_of_cell[cell.id] if i in windows]
-        if not touching:
+        if not touching and plan.tiles_of_cell[cell.id]:
             continue
         task = CellTask(
             cell=cell,
@@ -100,6 +105,7 @@ def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
     cell, grid = task.cell, task.grid
     window = cell.halo_window
     parts = []
+    failed = tuple(tile.tile_index for tile in tiles if isinstance(tile, TileFailure))
     for tile in tiles:
         if not isinstance(tile, TileResult):
             continue
@@ -122,6 +128,7 @@ def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
         line_moments=line_moments(
             core.source.astype(np.int64) - 1, row_off=cell.window.row_off, col_off=cell.window.col_off
         ),
+        failed_tiles=failed,
     )
 
 
