@@ -14,7 +14,6 @@ streamable. The last ``filters.reprojection`` decides the CRS the points arrive 
 
 from __future__ import annotations
 
-import hashlib
 import importlib
 import json
 import os
@@ -52,14 +51,9 @@ class UserPipeline:
     """The user's filter stages, checked: what runs between each tile's reader and the binning."""
 
     path: str
-    stages_json: str  # the filter stages as a JSON list, key order kept
+    stages_json: str  # the filter stages as a JSON list, key order kept (part of each tile's fingerprint)
     out_srs: str | None  # the CRS of the last filters.reprojection, None when no stage reprojects
     streaming: bool  # every stage streams (else each tile is read whole)
-
-    @property
-    def digest(self) -> str:
-        """A key of the stages (the file's path does not matter, its content does)."""
-        return hashlib.sha1(self.stages_json.encode()).hexdigest()[:12]
 
 
 @dataclass(frozen=True)
@@ -96,7 +90,7 @@ def load_user_pipeline(path: str | os.PathLike, *, streaming: bool = True) -> Us
         data = json.loads(Path(path).read_text())
     except OSError as e:
         raise ConfigError(f"{where}: cannot be read: {e.strerror or e}") from None
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ConfigError(f"{where}: not valid JSON: {e}") from None
     stages = data.get("pipeline") if isinstance(data, dict) else data
     if not isinstance(stages, list) or not stages:
