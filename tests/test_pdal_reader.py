@@ -204,7 +204,7 @@ def test_filters_outlier_needs_whole_tiles_and_then_drops_the_outliers(pdal, tmp
         [path], tmp_path, "read.reader='pdal'", f"read.pdal_pipeline='{pipeline}'", "read.pdal_streaming=false"
     )["spiky.laz"]
     assert (plain["spiky.laz"]["zmax"] > 200).sum() == 15
-    assert cleaned["zmax"].max() < 200  # classified 7 (low noise) by PDAL, dropped by filter.drop_classes
+    assert np.nanmax(cleaned["zmax"]) < 200  # classified 7 (low noise) by PDAL, dropped by filter.drop_classes
     assert cleaned["count"].sum() >= plain["spiky.laz"]["count"].sum() - 15 - 200  # few real points lost
 
 
@@ -246,7 +246,7 @@ def test_user_reprojection_becomes_the_survey_crs(pdal, shared_data, tmp_path):
     )[name]
     assert got["window"] == expected["window"]
     np.testing.assert_array_equal(got["count"], expected["count"])
-    np.testing.assert_allclose(got["zmax"], expected["zmax"], atol=1e-3)
+    np.testing.assert_array_equal(got["zmax"], expected["zmax"])
 
     runner = CliRunner()
     conflict = runner.invoke(
