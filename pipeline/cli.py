@@ -8,10 +8,12 @@ configured here and nowhere else.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
 import sys
+import time
 from pathlib import Path
 
 import click
@@ -38,13 +40,17 @@ class _Group(click.Group):
         try:
             return super().invoke(ctx)
         except HolefillError as e:
-            click.echo(f"holefill: error: {e}", err=True)
             code = next(code for cls, code in EXIT_CODES if isinstance(e, cls))
+            _note(f"holefill: error: {e}", level="error", exit_status=code, error=type(e).__name__)
             if isinstance(e, TaskError):
-                click.echo("holefill: finished tasks are kept: run again with --resume to continue", err=True)
+                _note("holefill: finished tasks are kept: run again with --resume to continue", level="error")
             ctx.exit(code)
         except KeyboardInterrupt:
-            click.echo("holefill: interrupted; finished tasks are kept: run again with --resume to continue", err=True)
+            _note(
+                "holefill: interrupted; finished tasks are kept: run again with --resume to continue",
+                level="error",
+                exit_status=EXIT_INTERRUPTED,
+            )
             ctx.exit(EXIT_INTERRUPTED)
         finally:
             signal.signal(signal.SIGTERM, previous)
@@ -61,9 +67,49 @@ def _terminate(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
-def _configure_logging(verbose: int, quiet: int) -> None:
+class _Output:
+    """How the command talks on stderr: ``-q`` keeps only errors; ``--log-format json`` writes JSON lines."""
+
+    quiet = False
+    json = False
+
+
+def _note(message: str, *, level: str = "info", **fields: object) -> None:
+    """One message for the user on stderr (an error, or a summary line that ``-q`` silences).
+
+    With ``--log-format json`` it is one JSON object per line: ``time``, ``level``,
+    ``message`` and the given fields, as a scheduler's log collector reads them.
+    """
+    if _Output.quiet and level != "error":
+        return
+    if _Output.json:
+        record = {"time": _now(), "level": level, "logger": "holefill", "message": message, **fields}
+        click.echo(json.dumps(record, default=str), err=True)
+    else:
+        click.echo(message, err=True)
+
+
+def _now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
+
+
+class _JsonFormatter(logging.Formatter):
+    """Log records as JSON lines (``--log-format json``)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return json.dumps(
+            {"time": _now(), "level": record.levelname.lower(), "logger": record.name, "message": record.getMessage()}
+        )
+
+
+def _configure_logging(verbose: int, quiet: int, log_format: str = "text") -> None:
+    _Output.quiet = quiet > 0
+    _Output.json = log_format == "json"
     level = max(logging.DEBUG, logging.WARNING - 10 * (verbose - quiet))
     logging.basicConfig(level=level, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s", force=True)
+    if _Output.json:
+        for handler in logging.getLogger().handlers:
+            handler.setFormatter(_JsonFormatter())
     quiet_level = logging.INFO if verbose >= 2 else logging.ERROR
     # distributed installs its own handlers when imported; its configuration says at which level
     os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", logging.getLevelName(max(level, quiet_level)).lower())
@@ -86,10 +132,18 @@ set_option = click.option(
 @click.group(cls=_Group)
 @click.version_option(__version__, prog_name="holefill")
 @click.option("-v", "--verbose", count=True, help="More log output (repeatable).")
-@click.option("-q", "--quiet", count=True, help="Less log output (repeatable).")
-def main(verbose: int, quiet: int) -> None:
+@click.option("-q", "--quiet", count=True, help="Less log output (repeatable); -q: errors only.")
+@click.option(
+    "--log-format",
+    type=click.Choice(["text", "json"]),
+    default="text",
+    envvar="HOLEFILL_LOG_FORMAT",
+    show_default=True,
+    help="json: every message and log record as one JSON object per line on stderr (for scheduled runs).",
+)
+def main(verbose: int, quiet: int, log_format: str) -> None:
     """Complete DSMs from airborne lidar surveys: find, explain and fill the holes."""
-    _configure_logging(verbose, quiet)
+    _configure_logging(verbose, quiet, log_format)
 
 
 @main.command()
@@ -115,6 +169,11 @@ def main(verbose: int, quiet: int) -> None:
 @click.option("--progress/--no-progress", default=None, help="Progress bar (default: when stderr is a terminal).")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run of the same inputs and configuration.")
 @click.option("--overwrite", is_flag=True, help="Replace a result of another configuration in --out.")
+@click.option(
+    "--incremental",
+    is_flag=True,
+    help="Keep stage results in OUT/work; a later --incremental run decodes only new or changed tiles.",
+)
 def run(
     inputs,
     out_dir,
@@ -132,10 +191,11 @@ def run(
     progress,
     resume,
     overwrite,
+    incremental,
 ):
     """Build the DSM of a survey. INPUT may be files, folders or globs of LAS/LAZ/COPC."""
+    from .cluster import ClusterStart
     from .config import load_config
-    from .run import run_survey
 
     if pdal_pipeline is not None and reader is None:
         reader = "pdal"
@@ -152,17 +212,27 @@ def run(
     for name, path in (("AOI", aoi), ("water", water)):
         if path is not None and not Path(path).exists():
             raise InputDataError(path, f"{name} file not found")
-    summary = run_survey(
-        inputs,
-        out_dir,
-        config,
-        scheduler=scheduler,
-        aoi=aoi,
-        water=water,
-        progress=sys.stderr.isatty() if progress is None else progress,
-        resume=resume,
-        overwrite=overwrite,
-    )
+    # the workers start while the pipeline's modules are imported and the headers scanned
+    starting = None if scheduler else ClusterStart.begin(config)
+    try:
+        from .run import run_survey
+
+        summary = run_survey(
+            inputs,
+            out_dir,
+            config,
+            scheduler=scheduler,
+            cluster=starting,
+            aoi=aoi,
+            water=water,
+            progress=sys.stderr.isatty() if progress is None else progress,
+            resume=resume,
+            overwrite=overwrite,
+            incremental=incremental,
+        )
+    finally:
+        if starting is not None:
+            starting.close()
     _report(summary)
     if summary.skipped:  # outputs written, but some tiles are missing from them
         click.get_current_context().exit(EXIT_PARTIAL)
@@ -188,12 +258,12 @@ def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
     config = _with_options(load_config(config_path, overrides), workers=workers)
     out = Path(out_dir)
     survey_dir = out / "survey"
-    click.echo(f"generating a synthetic survey ({size}) in {survey_dir} ...", err=True)
+    _note(f"generating a synthetic survey ({size}) in {survey_dir} ...")
     synthetic = generate_survey(survey_dir / "tiles", preset(size))
     truth = write_truth(synthetic, survey_dir)
     if config.grid.resolution_m == "auto":  # the truth rasters are on the synthetic survey's grid
         config = config.replace("grid", source="demo", resolution_m=synthetic.spec.resolution)
-    click.echo(f"{len(synthetic.tiles)} LAZ tiles, {synthetic.n_points:,} points; truth in {survey_dir}", err=True)
+    _note(f"{len(synthetic.tiles)} LAZ tiles, {synthetic.n_points:,} points; truth in {survey_dir}")
     summary = run_survey(
         [str(survey_dir / "tiles")],
         out,
@@ -209,10 +279,9 @@ def demo(out_dir, size, config_path, overrides, workers, scheduler, progress):
         truth["hole_cause"],
         min_area_px=_min_area_px(summary.holes["min_area_m2"], synthetic.spec.resolution),
     )
-    click.echo(
+    _note(
         f"against the truth: hole IoU {score.iou:.3f}, causes right for {score.cause_correct} of "
         f"{score.holes} holes ({score.cause_accuracy:.1%})",
-        err=True,
     )
 
 
@@ -365,7 +434,7 @@ def _fill_benchmark(
 
     def progress(result) -> None:
         state = f"skipped: {result.skipped}" if result.skipped else f"{len(result.holes)} holes, {result.cut_px} px"
-        click.echo(f"{result.model} {result.survey}: {state}", err=True)
+        _note(f"{result.model} {result.survey}: {state}")
 
     benchmark = evaluate_fill(
         surveys,
@@ -384,7 +453,7 @@ def _fill_benchmark(
     table = format_table(benchmark)
     (Path(out_dir) / "fill_eval.txt").write_text(table + "\n")
     click.echo(table)
-    click.echo(f"fill benchmark: {benchmark.seconds:.0f} s -> {Path(out_dir) / 'fill_eval.json'}", err=True)
+    _note(f"fill benchmark: {benchmark.seconds:.0f} s -> {Path(out_dir) / 'fill_eval.json'}")
 
 
 def _min_area_px(min_area_m2: float, resolution: float) -> int:
@@ -417,11 +486,10 @@ def plan_command(holes_gpkg, dsm_path, out_dir, config_path, overrides, home):
             raise ConfigError(f"--home {home}: expected X,Y in the survey CRS, e.g. 651200,6862100") from None
         config = config.replace("flightplan", source=f"--home {home}", home=[x, y])
     summary = replan_flights(holes_gpkg, dsm_path, config, out_dir)
-    click.echo(
+    _note(
         f"{summary['holes_planned']} of {summary['holes']} holes planned: {summary['patterns']} patterns, "
         f"{summary['lanes']} lanes, {summary['sorties']} sorties, route {summary['flown_route_m']:,.0f} m "
         f"(greedy {summary['greedy_route_m']:,.0f} m) -> {out_dir}",
-        err=True,
     )
     for hole_id, reason in summary["holes_not_planned"].items():
         logging.getLogger(__name__).info("hole %s not planned: %s", hole_id, reason)
@@ -439,7 +507,7 @@ def config_command(show, config_path, overrides):
     if show:
         click.echo(config.to_toml())
     else:
-        click.echo("configuration is valid", err=True)
+        _note("configuration is valid")
 
 
 #: Command-line options that set a configuration key: option -> (section, key).
@@ -480,24 +548,38 @@ def _with_pdal(config):
 
 
 def _report(summary) -> None:
-    click.echo(
+    _note(
         f"{summary.tiles} tiles, {summary.points_read:,} points "
         f"({summary.points_per_second / 1e6:.2f} M/s), {summary.cells} cells, "
         f"{len(summary.dsm_tiles)} DSM tiles in {summary.seconds:.1f} s -> {summary.out_dir}",
-        err=True,
     )
     holes = summary.holes
     if holes:
         causes = ", ".join(f"{n} {cause}" for cause, n in holes["by_cause"].items() if n)
         types = ", ".join(f"{n} {kind}" for kind, n in holes["parts_by_type"].items())
-        click.echo(
+        _note(
             f"{holes['listed']} holes ({holes['area_m2']:,.0f} m2): {causes or 'none'}; parts by type: {types or 'none'}; "
             f"{holes['small_voids']} small voids under {holes['min_area_m2']:g} m2 or sampling gaps; "
             f"{holes['vertical_hole_groups']} vertical holes, {holes['walls']} walls",
-            err=True,
         )
+    if summary.reused_tasks:
+        _note(f"incremental: {summary.reused_tasks} results of unchanged tiles and cells reused")
     for item in summary.skipped:
-        click.echo(f"skipped {item['path']}: {item['reason']}", err=True)
+        _note(f"skipped {item['path']}: {item['reason']}", level="warning", skipped=item["path"])
+    if _Output.json:  # the whole run in one record
+        _note(
+            "holefill run: done",
+            event="run_complete",
+            out_dir=summary.out_dir,
+            tiles=summary.tiles,
+            cells=summary.cells,
+            points_read=summary.points_read,
+            seconds=round(summary.seconds, 3),
+            holes=holes.get("listed", 0) if holes else 0,
+            skipped=len(summary.skipped),
+            reused_tasks=summary.reused_tasks,
+            resumed_tasks=summary.resumed_tasks,
+        )
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -183,6 +183,11 @@ class CausesConfig:
         ge=0,
         le=1,
     )
+    water_min_rim_area_m2: float = _opt(
+        50.0,
+        "level_rim and flat_low_rim rules: smallest hole (m2) called water from its rim alone.",
+        ge=0,
+    )
     low_quantile: float = _opt(0.05, "Quantile of the ring heights taken as the ring's low level.", ge=0, le=1)
     high_quantile: float = _opt(
         0.95, "Quantile of the ring heights taken as its high level (step = high - low level).", ge=0, le=1
@@ -222,6 +227,13 @@ class SurveyConfig:
     target_crs: str = _opt("", "Reproject every tile to this CRS while streaming; needed for mixed-CRS surveys.")
     on_error: str = _opt(
         "fail", "What a bad tile does: stop the run, or be skipped and listed.", choices=("fail", "skip")
+    )
+    area: str = _opt(
+        "auto",
+        "Survey area without --aoi: 'auto' (the tile grid's squares when the tiles lie on one, else the tile "
+        "extents), 'tiles' (the tile grid's squares; a survey whose tiles lie on no grid is refused) or "
+        "'footprint' (the tile extents, no grid inferred).",
+        choices=("auto", "tiles", "footprint"),
     )
 
 

@@ -40,6 +40,10 @@ class OutputError(HolefillError, OSError):
     """The output folder cannot be created or written."""
 
 
+class DiskFullError(OutputError):
+    """The output folder's file system filled up during the run; finished tasks are kept for ``--resume``."""
+
+
 class HolefillWarning(UserWarning):
     """Root of holefill's warnings."""
 

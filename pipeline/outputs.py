@@ -7,6 +7,7 @@ run's staging folder (``docs/outputs.md`` documents every product and field).
 from __future__ import annotations
 
 import collections
+import functools
 import json
 import os
 import socket
@@ -81,6 +82,7 @@ class RunSummary:
     holes: dict[str, Any] = field(default_factory=dict)
     flightplan: dict[str, Any] = field(default_factory=dict)
     resumed_tasks: int = 0  # tasks an interrupted run had finished, not run again
+    reused_tasks: int = 0  # results of unchanged tiles and cells taken from the previous run (incremental)
 
     @property
     def points_per_second(self) -> float:
@@ -157,13 +159,23 @@ def write_survey_layers(
         )
         cell_geometries.append(shapely.box(*grid.window_bounds(cell.window)))
     write_layer(gpkg, "cells", cell_records, cell_geometries, crs_wkt=grid.crs_wkt, geometry_type="Polygon")
-    write_layer(
-        gpkg,
-        "survey_area",
-        [{"source": "--aoi polygon" if plan.aoi_given else "union of tile extents"}],
-        [plan.survey_area],
-        crs_wkt=grid.crs_wkt,
-    )
+    failed = [i for i in range(len(plan.survey.tiles)) if i not in done]
+    write_survey_area_layer(gpkg, plan, failed)
+
+
+def write_survey_area_layer(gpkg: Path, plan: SurveyPlan, failed: list[int]) -> None:
+    """The ``survey_area`` layer: the area (status ``inside``), then the skipped tiles' areas (``skipped``: exterior)."""
+    area = plan.area
+    source = area.source if area is not None else ("--aoi polygon" if plan.aoi_given else "union of tile extents")
+    records: list[dict[str, Any]] = [{"status": "inside", "source": source}]
+    geometries = [plan.area_without(failed)]
+    for i in failed:
+        records.append({"status": "skipped", "source": plan.survey.tiles[i].name})
+        geometries.append(plan.tile_footprint(i))
+    for bounds in area.skipped_squares if area is not None else ():
+        records.append({"status": "skipped", "source": "a tile skipped at the scan (placed by its name)"})
+        geometries.append(shapely.box(*bounds))
+    write_layer(gpkg, "survey_area", records, geometries, crs_wkt=plan.grid.crs_wkt)
 
 
 def write_hole_layers(
@@ -366,6 +378,20 @@ def _finite(value: float, ring_px: int) -> float | None:
     return float(value) if ring_px and np.isfinite(value) else None
 
 
+def _survey_area_record(plan: SurveyPlan) -> dict[str, object]:
+    """What the manifest records of the survey area: its source and the tile grid, if any."""
+    area = plan.area
+    if area is None:
+        return {"source": "--aoi polygon" if plan.aoi_given else "union of tile extents"}
+    grid = area.tile_grid
+    return {
+        "source": area.source,
+        "tile_grid": grid.as_record() if grid is not None else None,
+        "missing_tiles": [list(b) for b in area.missing_tiles],
+        "skipped_squares": [list(b) for b in area.skipped_squares],
+    }
+
+
 def write_manifest(
     path: Path,
     summary: RunSummary,
@@ -373,9 +399,19 @@ def write_manifest(
     config: Config,
     tile_results: list[TileResult],
     cell_results: list[CellResult],
+    *,
+    inputs: dict[str, dict[str, Any]] | None = None,
+    outputs: list[dict[str, Any]] | None = None,
 ) -> dict:
-    """``manifest.json``: the resolved configuration, inputs, outputs and figures of the run."""
+    """``manifest.json``: the resolved configuration, inputs, outputs and figures of the run.
+
+    ``inputs``: size, modification time and SHA-256 of each input file, by path;
+    ``outputs``: path, size and SHA-256 of each product file (the report and the
+    manifest itself excepted).
+    """
     grid = plan.grid
+    inputs = inputs or {}
+    headers = {t.path: t for t in plan.survey.tiles}
     manifest = {
         "complete": True,  # written last: a manifest in OUT means one complete result (pipeline.staging)
         "config_key": config_key(config),  # a later run with another configuration is refused unless --overwrite
@@ -395,16 +431,15 @@ def write_manifest(
             "align": plan.sizing.align,
             "sizing": plan.sizing.as_record(),
         },
-        "inputs": [
-            {"path": r.path, "points_read": r.points_read, "points_used": r.points_used, "seconds": round(r.seconds, 3)}
-            for r in tile_results
-        ],
+        "inputs": [_input_entry(r, headers[r.path], inputs.get(r.path, {})) for r in tile_results],
         "skipped": summary.skipped,
+        "survey_area": _survey_area_record(plan),
         "outputs": {
             "dsm_vrt": "dsm.vrt" if summary.dsm_tiles else None,
             "dsm_tiles": summary.dsm_tiles,
             "holes_gpkg": "holes.gpkg",
             "flightplan": [os.path.basename(f) for f in summary.flightplan.get("files", [])],
+            "files": outputs or [],
         },
         "summary": {
             "tiles": summary.tiles,
@@ -416,9 +451,32 @@ def write_manifest(
             "stage_seconds": {k: round(v, 3) for k, v in summary.stage_seconds.items()},
             "empty_pixels": sum(r.empty_pixels for r in cell_results),
             "resumed_tasks": summary.resumed_tasks,
+            "reused_tasks": summary.reused_tasks,
         },
         "holes": summary.holes,
         "flightplan": {k: v for k, v in summary.flightplan.items() if k != "files"},
     }
     path.write_text(json.dumps(manifest, indent=2, default=str))
     return manifest
+
+
+def _input_entry(result: TileResult, tile: Any, record: dict[str, Any]) -> dict[str, Any]:
+    """One input of the manifest: the file (size, time, checksum), its header and what was read."""
+    header = tile.header
+    return {
+        "path": result.path,
+        "bytes": record.get("bytes", header.file_size),
+        "mtime": record.get("mtime"),
+        "sha256": record.get("sha256"),
+        "format": header.format,
+        "header_points": header.point_count,
+        "crs": _crs_name(tile.source_crs_wkt) if tile.source_crs_wkt else None,
+        "points_read": result.points_read,
+        "points_used": result.points_used,
+        "seconds": round(result.seconds, 3),
+    }
+
+
+@functools.lru_cache(maxsize=64)
+def _crs_name(wkt: str) -> str:
+    return CRS.from_wkt(wkt).name

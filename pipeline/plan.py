@@ -29,15 +29,49 @@ from .density import (
     sampling_gap_width_m,
     supported_resolution_m,
 )
+from .errors import InputDataError
 from .footprint import block_size_px
 from .grid import Cell, Grid, PixelWindow
 from .io.vector import read_survey_area
 from .survey import Survey
+from .tile_grid import TileGrid, grid_survey_area, infer_tile_grid
 
 logger = logging.getLogger(__name__)
 
 #: ``grid.align`` -> the lattice offset of :class:`pipeline.grid.Grid`.
 ALIGN_OFFSETS = {"edge": 0.0, "center": 0.5}
+
+#: A tile bound lies on a grid square's edge within this many point spacings (the last
+#: point of a tile lies about a spacing before its edge), kept within these metres.
+GRID_EDGE_SPACINGS = 3.0
+GRID_EDGE_TOLERANCE_M = (0.05, 2.0)
+
+Bounds = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class SurveyArea:
+    """Where the survey is, before any point is read: the ``--aoi`` polygon, the tile grid's squares or the tile extents.
+
+    Attributes
+    ----------
+    geometry : shapely geometry
+        The survey area (without the tiles that stage 1 will skip: :meth:`SurveyPlan.area_without`).
+    source : str
+        What it is made of, for the ``survey_area`` layer and the manifest.
+    tile_grid : TileGrid or None
+        The grid the tiles lie on, when the area is made of its squares.
+    missing_tiles : tuple of bounds
+        Squares without a tile enclosed by squares with one: inside, holes of cause ``missing_tile``.
+    skipped_squares : tuple of bounds
+        Squares of tiles skipped at the scan (placed by their names): exterior.
+    """
+
+    geometry: shapely.Geometry
+    source: str
+    tile_grid: TileGrid | None = None
+    missing_tiles: tuple[Bounds, ...] = ()
+    skipped_squares: tuple[Bounds, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -128,9 +162,31 @@ class SurveyPlan:
     block_px: int
     sizing: Sizing
     hole_params: HoleParams
+    area: SurveyArea | None = None  # how the survey area was found (None: the tile extents)
 
     def cell_by_id(self) -> dict[str, Cell]:
         return {cell.id: cell for cell in self.cells}
+
+    @property
+    def tile_grid(self) -> TileGrid | None:
+        """The tile grid whose squares make the survey area, if any."""
+        return self.area.tile_grid if self.area is not None else None
+
+    def tile_footprint(self, tile: int) -> shapely.Geometry:
+        """Where a tile's data would be: its grid square, or its header bounds without a grid."""
+        grid = self.tile_grid
+        if grid is not None:
+            return shapely.box(*grid.square_bounds(grid.squares[tile]))
+        return shapely.box(*self.survey.tiles[tile].bounds)
+
+    def area_without(self, failed: list[int] | tuple[int, ...]) -> shapely.Geometry:
+        """The survey area less what only tiles that failed in stage 1 would have covered (exterior)."""
+        if not failed:
+            return self.survey_area
+        lost_tiles = set(failed)
+        kept = [self.tile_footprint(i) for i in range(len(self.survey.tiles)) if i not in lost_tiles]
+        lost = shapely.difference(shapely.union_all([self.tile_footprint(i) for i in failed]), shapely.union_all(kept))
+        return shapely.difference(self.survey_area, lost)
 
     @property
     def pixel_size_m(self) -> float:
@@ -145,8 +201,9 @@ class SurveyPlan:
 def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None = None) -> SurveyPlan:
     """Lay the global grid over the survey, cut it into cells and index tiles by cell."""
     sizing = plan_sizing(survey.density, config)
+    area = survey_area(survey, config, aoi=aoi)
     grid = Grid.covering(
-        [t.bounds for t in survey.tiles],
+        [t.bounds for t in survey.tiles] + list(area.missing_tiles),
         resolution=sizing.resolution_m / survey.horizontal_unit_m,
         cell_px=sizing.cell_px,
         halo_px=config.grid.halo_px,
@@ -154,15 +211,16 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
         offset=ALIGN_OFFSETS[config.grid.align],
     )
     tile_windows = [grid.window_of_bounds(*t.bounds) for t in survey.tiles]
-    if aoi is not None:
-        survey_area = read_survey_area(aoi, survey.crs)
-    else:
-        survey_area = shapely.union_all([shapely.box(*t.bounds) for t in survey.tiles])
     tiles_of_core = _tiles_by_cell(grid, tile_windows, expand_px=0)
     tiles_of_halo = _tiles_by_cell(grid, tile_windows, expand_px=grid.halo_px)
-    candidates = [grid.cell(ix, iy) for iy, ix in sorted(((iy, ix) for ix, iy in tiles_of_core), key=_north_west_first)]
+    # cells under the squares of a tile grid too (missing tiles, gaps between tiles' data), within the
+    # lattice: as many squares as tiles, and never the empty margins beyond the data (exterior anyway)
+    keys = set(tiles_of_core) | {
+        k for b in _area_squares(area) for k in grid.cell_indices_under(_inner_window(grid, b))
+    }
+    candidates = [grid.cell(ix, iy) for iy, ix in sorted(((iy, ix) for ix, iy in keys), key=_north_west_first)]
     boxes = shapely.box(*zip(*(grid.window_bounds(c.window) for c in candidates))) if candidates else []
-    meets_area = shapely.intersects(boxes, survey_area) if candidates else []
+    meets_area = shapely.intersects(boxes, area.geometry) if candidates else []
     cells = [cell for cell, inside in zip(candidates, meets_area) if inside]
     tiles_of_cell = {
         cell.id: tuple(
@@ -179,12 +237,75 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
         tile_windows=tile_windows,
         shared_windows=_shared_windows(tile_windows, tiles_of_core),
         tiles_of_cell=tiles_of_cell,
-        survey_area=survey_area,
+        survey_area=area.geometry,
         aoi_given=aoi is not None,
         block_px=block_px,
         sizing=sizing,
         hole_params=hole_params(survey, config, pixel_size_m=pixel_size_m, spacing_m=sizing.density.spacing_m),
+        area=area,
     )
+
+
+def survey_area(survey: Survey, config: Config, *, aoi: str | os.PathLike | None = None) -> SurveyArea:
+    """The survey area: the ``--aoi`` polygon, else the tile grid's squares (``survey.area``), else the tile extents.
+
+    ``survey.area = "auto"`` infers the grid and falls back to the tile extents with
+    a warning saying why there is none; ``"tiles"`` stops there instead;
+    ``"footprint"`` never infers a grid. A given AOI is authoritative: no grid is
+    inferred.
+    """
+    if aoi is not None:
+        return SurveyArea(read_survey_area(aoi, survey.crs), "--aoi polygon")
+    extents = SurveyArea(shapely.union_all([shapely.box(*t.bounds) for t in survey.tiles]), "union of tile extents")
+    mode = config.survey.area
+    if mode == "footprint":
+        return extents
+    spacing_m = survey.density.spacing_m
+    low, high = GRID_EDGE_TOLERANCE_M
+    tolerance_m = min(max(GRID_EDGE_SPACINGS * spacing_m, low), high) if math.isfinite(spacing_m) else high
+    inference = infer_tile_grid(
+        [t.bounds for t in survey.tiles],
+        [t.name for t in survey.tiles],
+        tolerance=tolerance_m / survey.horizontal_unit_m,
+    )
+    if inference.grid is None:
+        if mode == "tiles":
+            raise InputDataError("INPUT", f'survey.area = "tiles" but the tiles lie on no grid: {inference.reason}')
+        if len(survey.tiles) > 1:
+            logger.warning("survey area: the tile extents (no tile grid: %s)", inference.reason)
+        return extents
+    grid = inference.grid
+    found = grid_survey_area(grid, skipped_names=[os.path.basename(s["path"]) for s in survey.skipped])
+    if found.note:
+        logger.warning("tile grid: %s", found.note)
+    logger.info(
+        "survey area: the squares of %s%s",
+        inference.reason,
+        f", {len(found.missing)} missing tile(s) inside" if found.missing else "",
+    )
+    size = f"{grid.size_x:g}" if grid.size_x == grid.size_y else f"{grid.size_x:g} x {grid.size_y:g}"
+    return SurveyArea(
+        found.area,
+        f"tile grid squares ({size})",
+        tile_grid=grid,
+        missing_tiles=tuple(grid.square_bounds(s) for s in found.missing),
+        skipped_squares=tuple(grid.square_bounds(s) for s in found.skipped),
+    )
+
+
+def _inner_window(grid: Grid, bounds: Bounds) -> PixelWindow:
+    """The pixels whose centres lie inside a box (a square's max edge pulls in no further cell)."""
+    half = grid.resolution / 2
+    minx, miny, maxx, maxy = bounds
+    return grid.window_of_bounds(minx + half, miny + half, maxx - half, maxy - half)
+
+
+def _area_squares(area: SurveyArea) -> list[Bounds]:
+    """The bounds of the squares a tile-grid area is made of (none for other areas)."""
+    grid = area.tile_grid
+    if grid is None:
+        return []
+    return [grid.square_bounds(s) for s in grid.squares] + list(area.missing_tiles)
 
 
 def plan_sizing(density: Density, config: Config) -> Sizing:

@@ -1,4 +1,4 @@
-"""Running a survey on Dask: the only module that knows about Dask.
+"""Running a survey on Dask: the only module that builds Dask graphs (the client comes from :mod:`pipeline.cluster`).
 
 A run is: scan headers -> plan (grid, cells, tile-to-cell index) -> stage 1
 (one task per tile: decode once, bin) -> stage 2 (one task per cell: merge) ->
@@ -20,14 +20,17 @@ import logging
 import os
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from . import __version__
+from .cluster import ClusterStart, dask_client
 from .config import Config, config_key, to_dict
-from .errors import ClusterError, HolefillError, InputDataError, OutputError, TaskError
+from .errors import DiskFullError, HolefillError, InputDataError, OutputError, TaskError
+from .io.checksums import input_record, output_records
 from .io.flightplan_files import plan_flights
 from .io.vector import read_survey_area
 from .outputs import (
@@ -45,7 +48,7 @@ from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells
 from .stages.bin_tiles import TileFailure, TileResult
 from .stages.merge_cells import CellResult
 from .stages.write_rasters import WriteResult
-from .staging import Staging, input_fingerprint, kept_result, run_and_keep
+from .staging import Staging, disk_full, input_fingerprint, run_and_keep
 from .survey import scan_survey
 
 logger = logging.getLogger(__name__)
@@ -63,6 +66,8 @@ def run_survey(
     progress: bool = False,
     resume: bool = False,
     overwrite: bool = False,
+    incremental: bool = False,
+    cluster: ClusterStart | None = None,
 ) -> RunSummary:
     """Run the pipeline on a survey and write the products into ``out_dir``.
 
@@ -90,45 +95,72 @@ def run_survey(
         folder: tasks that finished then are not run again.
     overwrite : bool
         Replace a result of another configuration in ``out_dir`` (refused otherwise).
+    cluster : ClusterStart, optional
+        A local cluster already being started (the CLI starts it before importing
+        this module); default: one started here, unless ``client`` or ``scheduler``.
+    incremental : bool
+        Keep the stage results in ``out_dir/work`` and take from the previous run's
+        those of unchanged tiles and of cells none of whose tiles changed: a scheduled
+        re-run decodes only new or changed tiles.
     """
     started = time.perf_counter()
     out = Path(out_dir).absolute()  # workers of a remote cluster resolve paths on their own machines
     _refuse_other_configuration(out, config, overwrite=overwrite)
-    plan = _plan(inputs, config, aoi)
-    water = water or config.holes.water or None
-    water_area = read_survey_area(water, plan.survey.crs, what="water") if water else None
     timer = _StageTimer(started)
-    timer.lap("scan")
-    created_out = not out.exists()
-    staging = Staging.create(out, run_key=run_key(plan, config, aoi, water), resume=resume)
-    try:
-        with _dask_client(client, scheduler, config) as dask_client, _Progress(progress) as bar:
-            runner = _Runner(dask_client, bar, staging, retries=config.dask.retries)
-            filling = config.holes.enabled and config.fill.enabled
-            rasters = _run_rasters(runner, plan, config, staging, timer, write=not filling)
-            detected, holes, fills = None, None, None
-            if config.holes.enabled:
-                detected, holes = _run_holes(runner, plan, config, rasters.cells, water_area, staging)
-                timer.lap("holes")
-            if holes is not None and filling:
-                fills = _run_fill(runner, plan, config, holes, rasters, staging)
-                timer.lap("fill")
-        summary = _write_products(
-            staging, plan, config, rasters, detected, holes, fills, started, timer, runner.resumed_tasks
+    with contextlib.ExitStack() as cluster_scope:
+        connect = cluster_scope.enter_context(dask_client(client, scheduler, config, start=cluster))
+        plan = _plan(inputs, config, aoi)  # the headers are scanned while the workers start
+        water = water or config.holes.water or None
+        water_area = read_survey_area(water, plan.survey.crs, what="water") if water else None
+        timer.lap("scan")
+        created_out = not out.exists()
+        staging = Staging.create(
+            out,
+            run_key=run_key(plan, config, aoi, water),
+            resume=resume,
+            incremental=incremental and _holds_result_of(out, config),
         )
-        flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
-        staging.commit(PRODUCTS + flight_files, keep_work=config.output.keep_intermediate, replaces=FLIGHTPLAN_PRODUCTS)
-    except (KeyboardInterrupt, SystemExit, TaskError):
-        # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
-        staging.keep_for_resume()
-        raise
-    except BaseException:
-        staging.remove()
-        if created_out:
-            with contextlib.suppress(OSError):
-                out.rmdir()  # only if still empty
-        raise
+        try:
+            with _Progress(progress) as bar:
+                runner = _Runner(connect(), bar, staging, retries=config.dask.retries)
+                rasters, detected, holes, fills = _run_stages(runner, plan, config, staging, timer, water_area)
+            cluster_scope.close()  # the workers stop (and free their memory) before the products are written
+            try:
+                summary = _write_products(
+                    staging, plan, config, rasters, detected, holes, fills, started, timer, runner
+                )
+            except OSError as e:
+                if disk_full(e, staging.root):
+                    raise _disk_full_error(staging, "the products") from None
+                raise
+            flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
+            keep_work = config.output.keep_intermediate or incremental
+            staging.commit(PRODUCTS + flight_files, keep_work=keep_work, replaces=FLIGHTPLAN_PRODUCTS)
+        except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError):
+            # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
+            staging.keep_for_resume()
+            raise
+        except BaseException:
+            staging.remove()
+            if created_out:
+                with contextlib.suppress(OSError):
+                    out.rmdir()  # only if still empty
+            raise
     return summary
+
+
+def _run_stages(runner: _Runner, plan: SurveyPlan, config: Config, staging: Staging, timer: _StageTimer, water_area):
+    """Every stage that runs on the workers, in order; returns their gathered results."""
+    filling = config.holes.enabled and config.fill.enabled
+    rasters = _run_rasters(runner, plan, config, staging, timer, write=not filling)
+    detected, holes, fills = None, None, None
+    if config.holes.enabled:
+        detected, holes = _run_holes(runner, plan, config, rasters.cells, water_area, staging)
+        timer.lap("holes")
+    if holes is not None and filling:
+        fills = _run_fill(runner, plan, config, holes, rasters, staging)
+        timer.lap("fill")
+    return rasters, detected, holes, fills
 
 
 # -- stages ---------------------------------------------------------------------------
@@ -153,9 +185,13 @@ class _Rasters:
     failed: list[dict[str, str]]
     cells: list[CellResult]
     written: list[WriteResult]
+    inputs: dict[str, dict[str, Any]]  # path -> size, time and checksum
 
     def add(self, result: Any) -> str:
-        """File one task's result; returns its kind (``tile``, ``cell`` or ``written``)."""
+        """File one task's result; returns its kind (``input``, ``tile``, ``cell`` or ``written``)."""
+        if isinstance(result, dict):
+            self.inputs[str(result["path"])] = result
+            return "input"
         if isinstance(result, TileResult):
             self.tiles.append(result)
             if result.points_outside:
@@ -190,22 +226,38 @@ def _run_rasters(
     tile_function = bin_tiles.rasterize_tile_or_skip if skip else bin_tiles.rasterize_tile
     tile_futures = {
         task.tile_index: runner.submit(
-            tile_function, task, label=f"tile {task.path}", key=f"rasterize-{Path(task.output_dir).name}"
+            tile_function,
+            task,
+            label=f"tile {task.path}",
+            key=f"rasterize-{Path(task.output_dir).name}",
+            adopt=partial(bin_tiles.adopt_result, task),
         )
         for task in tile_tasks
     }
     merge_recipes = merge_cells.merge_tasks(plan, tile_tasks, staging)
+    tile_tasks_by_index = {task.tile_index: task for task in tile_tasks}
     merge_futures = {
         task.cell.id: runner.submit(
             merge_cells.merge_cell,
             task,
             *(tile_futures[i] for i in touching),
             label=f"cell {task.cell.id} (merge)",
-            key=f"merge-{task.cell.id}",
+            key=merge_cells.merge_key(task, [tile_tasks_by_index[i] for i in touching]),
             priority=1,
+            adopt=partial(merge_cells.adopt_result, task),
         )
         for task, touching in merge_recipes
     }
+    record_futures = [
+        runner.submit(
+            input_record,
+            task.path,
+            label=f"tile {task.path} (checksum)",
+            key=f"sha256-{Path(task.output_dir).name}",
+            priority=-1,  # after the decoding, which the file is then cached for
+        )
+        for task in tile_tasks
+    ]
     write_futures = [
         runner.submit(
             write_rasters.write_cell_rasters,
@@ -217,8 +269,9 @@ def _run_rasters(
         )
         for task in (write_rasters.write_tasks(plan, config, list(merge_futures), staging) if write else [])
     ]
-    results = _Rasters([], [], [], [])
+    results = _Rasters([], [], [], [], {})
     bars = {
+        "input": runner.bar.add("checksums", total=len(record_futures)),
         "tile": runner.bar.add("decode + bin tiles", total=len(tile_futures)),
         "cell": runner.bar.add("merge cells", total=len(merge_futures)),
         "written": runner.bar.add("write rasters", total=len(write_futures)),
@@ -230,7 +283,7 @@ def _run_rasters(
         if kind == "tile" and len(results.tiles) + len(results.failed) == len(tile_futures):
             timer.lap("rasterize")
 
-    runner.gather([*tile_futures.values(), *merge_futures.values(), *write_futures], collect)
+    runner.gather([*tile_futures.values(), *merge_futures.values(), *write_futures, *record_futures], collect)
     timer.lap("merge_tail")
     if not results.tiles:
         raise InputDataError("INPUT", "no tile could be decoded: every tile failed")
@@ -330,7 +383,7 @@ def _write_products(
     fills,
     started,
     timer,
-    resumed_tasks: int = 0,
+    runner: _Runner,
 ) -> RunSummary:
     """The mosaic, the layers, the manifest and the report, from the stages' kept results."""
     t0 = time.perf_counter()
@@ -347,7 +400,8 @@ def _write_products(
         timer.lap("flightplan")
     summary = RunSummary(
         flightplan=flight_summary,
-        resumed_tasks=resumed_tasks,
+        resumed_tasks=runner.resumed_tasks,
+        reused_tasks=runner.reused_tasks,
         holes=hole_summary,
         out_dir=str(staging.out),
         tiles=len(rasters.tiles),
@@ -360,7 +414,18 @@ def _write_products(
         dsm_tiles=sorted(os.path.relpath(r.paths["dsm"], staging.root) for r in rasters.written if r.paths),
     )
     timer.seconds["outputs"] = time.perf_counter() - t0
-    manifest = write_manifest(staging.product("manifest.json"), summary, plan, config, rasters.tiles, rasters.cells)
+    products = [name for name in PRODUCTS if name not in ("manifest.json", "report.html")]
+    products += [os.path.basename(f) for f in flight_summary.get("files", [])]
+    manifest = write_manifest(
+        staging.product("manifest.json"),
+        summary,
+        plan,
+        config,
+        rasters.tiles,
+        rasters.cells,
+        inputs=rasters.inputs,
+        outputs=output_records(staging.root, products),
+    )
     write_report(
         staging.product("report.html"), manifest, summary.holes.get("largest", []), inputs=_report_map(staging)
     )
@@ -395,14 +460,25 @@ class _Runner:
         self.bar = bar
         self.staging = staging
         self.resumed_tasks = 0
+        self.reused_tasks = 0  # taken from the previous run (incremental)
         self._run_id = uuid.uuid4().hex[:8]
         self._labels: dict[Any, str] = {}
 
-    def submit(self, function: Callable, *args: Any, label: str, key: str, priority: int = 0) -> Any:
+    def submit(
+        self,
+        function: Callable,
+        *args: Any,
+        label: str,
+        key: str,
+        priority: int = 0,
+        adopt: Callable[[Any], Any] | None = None,
+    ) -> Any:
         """Submit one task; with a staging folder its result is kept under ``key`` for a resumed run.
 
         In a resumed run, a task whose result was kept is not run again: a
         :class:`_Kept` stands in for its future (as an argument of later tasks too).
+        In an incremental run, so does the previous run's result of the same key,
+        passed through ``adopt`` (which points it at this run's files and indices).
         """
         args = tuple(a.value if isinstance(a, _Kept) else a for a in args)
         if self.staging is None:
@@ -411,8 +487,13 @@ class _Runner:
             )
         else:
             kept = self.staging.task_result(key)
-            if self.staging.resumed and (value := kept_result(kept)) is not None:
-                self.resumed_tasks += 1
+            if (found := self.staging.kept(key)) is not None:
+                value, how = found
+                if how == "resumed":
+                    self.resumed_tasks += 1
+                else:
+                    self.reused_tasks += 1
+                    value = adopt(value) if adopt is not None else value
                 return _Kept(value)
             future = self.client.submit(
                 run_and_keep,
@@ -447,7 +528,10 @@ class _Runner:
         except HolefillError:
             raise
         except Exception as e:  # a worker's unforeseen failure: one line, naming the task
-            raise TaskError(self._labels.get(future.key, str(future.key)), e) from None
+            label = self._labels.get(future.key, str(future.key))
+            if self.staging is not None and isinstance(e, OSError) and disk_full(e, self.staging.root):
+                raise _disk_full_error(self.staging, label) from None
+            raise TaskError(label, e) from None
 
 
 @dataclass(frozen=True)
@@ -455,6 +539,22 @@ class _Kept:
     """The result of a task that an interrupted run finished: stands in for its future."""
 
     value: Any
+
+
+def _disk_full_error(staging: Staging, writing: str) -> DiskFullError:
+    return DiskFullError(
+        f"{staging.out}: no space left on the device (while writing: {writing}); free some space and run "
+        "again with --resume: the finished tasks are kept"
+    )
+
+
+def _holds_result_of(out: Path, config: Config) -> bool:
+    """Whether ``out`` holds a complete result of this configuration (an incremental run's base)."""
+    try:
+        manifest = json.loads((out / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return bool(manifest.get("complete")) and manifest.get("config_key") == config_key(config)
 
 
 def _refuse_other_configuration(out: Path, config: Config, *, overwrite: bool) -> None:
@@ -495,48 +595,6 @@ class _StageTimer:
         now = time.perf_counter()
         self.seconds[name] = now - self._last
         self._last = now
-
-
-#: One thread per worker process for BLAS and OpenMP (workers are single-threaded
-#: processes; oversubscription slows every kernel), and a bounded GDAL cache each.
-WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "GDAL_CACHEMAX": "256"}
-
-#: Seconds to wait for a ``--scheduler`` before giving up with one line.
-SCHEDULER_TIMEOUT_S = 10
-
-
-@contextlib.contextmanager
-def _dask_client(client, scheduler: str | None, config: Config) -> Iterator[Any]:
-    if client is not None:
-        yield client
-        return
-    from distributed import Client, LocalCluster
-
-    if scheduler:
-        try:
-            remote = Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
-        except (OSError, TimeoutError) as e:
-            raise ClusterError(
-                f"{scheduler}: cannot reach the Dask scheduler within {SCHEDULER_TIMEOUT_S} s ({type(e).__name__})"
-            ) from None
-        with remote:
-            yield remote
-        return
-    workers = config.dask.workers or os.cpu_count() or 1
-    verbose = logging.getLogger("distributed").isEnabledFor(logging.INFO)
-    with (
-        LocalCluster(
-            n_workers=workers,
-            threads_per_worker=1,
-            processes=True,
-            memory_limit=config.dask.memory_limit,
-            dashboard_address=":0",  # any free port: never collide with another cluster
-            silence_logs=logging.INFO if verbose else logging.CRITICAL,  # task errors reach the client anyway
-            env=WORKER_ENV,
-        ) as cluster,
-        Client(cluster) as local,
-    ):
-        yield local
 
 
 class _Progress:

@@ -30,11 +30,21 @@ gone (same host) or that has been silent for 5 minutes (any host) is taken over.
 every finished task has left its result under ``work/done/``; ``--resume`` picks
 the folder of the same inputs and configuration (``run.json``) and reruns only
 what is missing. Other partial folders are reported and removed.
+
+**Incremental runs.** ``--incremental`` keeps ``work/`` in OUT after a run, and the
+next run of the same configuration adopts from it the results of tasks whose key
+it plans again (:meth:`Staging.adopt`): the keys of stage 1 and 2 name what a
+result is made of (a tile's path, size and time and the lattice; a cell and the
+keys of its tiles), so an unchanged tile is not decoded again and a cell none of
+whose tiles changed is not merged again. Adopted files are hard links (copies
+across file systems); every kept file is replaced, never rewritten in place, so
+the previous result in OUT stays whole until this run commits.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import logging
@@ -76,13 +86,18 @@ class Staging:
     out: Path
     root: Path
     resumed: bool = False
+    reuse_from: Path | None = None  # OUT/work of the previous run, for an incremental run
 
     @classmethod
-    def create(cls, out: str | os.PathLike, *, run_key: str = "", resume: bool = False) -> Staging:
+    def create(
+        cls, out: str | os.PathLike, *, run_key: str = "", resume: bool = False, incremental: bool = False
+    ) -> Staging:
         """Lock OUT, make (or, with ``resume``, find) the run's private folder and check it is writable.
 
         ``run_key`` identifies the inputs and configuration; only a partial folder of
         the same key is resumed. Partial folders of other, interrupted runs are removed.
+        ``incremental``: results kept in ``OUT/work`` by the previous run may be
+        adopted (the caller has checked that OUT holds a result of the same configuration).
         """
         out = Path(out)
         try:
@@ -103,7 +118,9 @@ class Staging:
         except OSError as e:
             _unlock(out)
             raise OutputError(f"{out}: output folder cannot be created or written: {e.strerror or e}") from None
-        return cls(out, root, resumed)
+        previous_work = out / "work"
+        reuse_from = previous_work if incremental and (previous_work / "done").is_dir() else None
+        return cls(out, root, resumed, reuse_from)
 
     @property
     def work(self) -> Path:
@@ -130,6 +147,53 @@ class Staging:
     def task_result(self, key: str) -> Path:
         """Where a finished task keeps its (small) result, for a resumed run."""
         return self.work / "done" / f"{key}.pkl"
+
+    def kept(self, key: str) -> tuple[Any, str] | None:
+        """The kept result of task ``key`` and where it came from (``resumed`` or ``reused``), if any.
+
+        An interrupted run's own results come first (``--resume``); then, in an
+        incremental run, the previous run's (:meth:`adopt`).
+        """
+        if self.resumed and (value := kept_result(self.task_result(key))) is not None:
+            return value, "resumed"
+        if (
+            self.reuse_from is not None
+            and self.adopt(key)
+            and (value := kept_result(self.task_result(key))) is not None
+        ):
+            return value, "reused"
+        return None
+
+    def adopt(self, key: str) -> bool:
+        """Link the previous run's result of task ``key`` and the files it names into this run.
+
+        Only stage-1 (``rasterize-<tile folder>``), stage-2 (``merge-<digest>-<cell id>``)
+        and input checksum (``sha256-<tile folder>``) results are adopted: their keys
+        say everything they are made of. Returns whether the result (and its files)
+        is now here.
+        """
+        assert self.reuse_from is not None
+        kind = key.split("-", 1)[0]
+        if kind == "rasterize":
+            data = [Path("tiles") / key.removeprefix("rasterize-")]
+        elif kind == "merge":
+            data = [Path("cells") / f"cell_{key.split('-', 2)[2]}.npz"]
+        elif kind == "sha256":
+            data = []
+        else:
+            return False
+        sources = [self.reuse_from / "done" / f"{key}.pkl", *(self.reuse_from / d for d in data)]
+        if not all(s.exists() for s in sources):
+            return False
+        targets = [self.task_result(key), *(self.work / d for d in data)]
+        try:
+            for source, target in zip(sources, targets):
+                _link_tree(source, target)
+        except OSError:
+            for target in targets:  # nothing half-adopted: the task runs and writes its own files
+                shutil.rmtree(target, ignore_errors=True) if target.is_dir() else target.unlink(missing_ok=True)
+            return False
+        return True
 
     def raster_tile(self, product: str, cell_id: str) -> Path:
         """One cell's tile of a raster product (``dsm``, ``fill_mask``, ``fill_distance``, ``dsm_unfilled``)."""
@@ -180,6 +244,23 @@ class Staging:
     def keep_for_resume(self) -> None:
         """An interrupted run: keep the folder (finished tasks' results) for ``--resume``; unlock."""
         _unlock(self.out)
+
+
+def _link_tree(source: Path, target: Path) -> None:
+    """Hard-link a file, or every file of a folder, to ``target`` (copy across file systems)."""
+    if source.is_dir():
+        shutil.copytree(source, target, copy_function=_link_or_copy, dirs_exist_ok=True)
+    else:
+        _link_or_copy(str(source), str(target))
+
+
+def _link_or_copy(source: str, target: str) -> None:
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(target)
+    try:
+        os.link(source, target)
+    except OSError:
+        shutil.copy2(source, target)
 
 
 def run_and_keep(function: Callable[..., Any], result_path: str, *args: Any) -> Any:
@@ -297,6 +378,21 @@ def _remove_stale_partials(out: Path, *, keep: Path | None) -> None:
         size = sum(f.stat().st_size for f in partial.rglob("*") if f.is_file())
         logger.warning("removing %s, left by an interrupted run (%.1f MB)", partial, size / 1e6)
         shutil.rmtree(partial, ignore_errors=True)
+
+
+#: A failed write with less free space than this on the output's file system is a full disk
+#: (numpy and GDAL do not always say ENOSPC: ``tofile`` reports "N requested and 0 written").
+DISK_FULL_FREE_BYTES = 4 << 20
+
+
+def disk_full(error: OSError, folder: Path) -> bool:
+    """Whether ``error`` (from writing under ``folder``) means its file system is full."""
+    if error.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    try:
+        return shutil.disk_usage(folder).free < DISK_FULL_FREE_BYTES
+    except OSError:
+        return False
 
 
 def input_fingerprint(path: str, *parts: object) -> str:

@@ -41,11 +41,15 @@ def test_cause_rules_from_config_are_in_survey_units():
     assert rules.jump_threshold == 3.0 / 0.3048
     assert rules.pixel_size == 2.0 / 0.3048
     assert rules.max_shadow_ratio == 0.6
+    assert rules.pixel_area_m2 == 4.0  # areas stay in m2 (water_min_rim_area_m2)
     for field, key in CONFIG_KEYS.items():
         if key.startswith("causes."):
             assert getattr(rules, field) == getattr(config.causes, field)
     # the defaults are those of the configuration
-    assert CauseRules.with_defaults(pixel_size=2.0 / 0.3048, jump_threshold=3.0 / 0.3048, max_shadow_ratio=0.6) == rules
+    defaults = CauseRules.with_defaults(
+        pixel_size=2.0 / 0.3048, jump_threshold=3.0 / 0.3048, max_shadow_ratio=0.6, pixel_area_m2=4.0
+    )
+    assert defaults == rules
 
 
 def test_a_changed_config_key_changes_a_cause():
@@ -76,6 +80,7 @@ def test_a_changed_strip_key_changes_missed_coverage():
 def test_rule_order_is_one_table():
     assert [rule for rule, _ in RULES] == [
         "water_mask",
+        "missing_tile",
         "coverage_gap",
         "water_points",
         "jumps",

@@ -93,3 +93,23 @@ def test_crs_given_as_wkt_reaches_the_config_intact(runner, tmp_path, rng):
 
     config = _with_options(load_config(), crs=wkt, workers=2)
     assert config.survey.crs == wkt and config.dask.workers == 2
+
+
+@pytest.mark.slow
+def test_quiet_run_says_nothing_and_json_log_is_one_object_per_line(runner, tmp_path, rng, dask_client):
+    path = write_points(tmp_path / "a.laz", *random_points(rng, 5000))
+    run = ["run", str(path), "--scheduler", dask_client.scheduler.address, "--set", "grid.cell_size_m=50"]
+    quiet = runner.invoke(main, ["-q", *run, "--out", str(tmp_path / "q"), "--no-progress"])
+    assert quiet.exit_code == 0 and quiet.stderr == "" and (tmp_path / "q" / "manifest.json").exists()
+    logged = runner.invoke(main, ["--log-format", "json", *run, "--out", str(tmp_path / "j"), "--no-progress"])
+    assert logged.exit_code == 0, logged.output
+    records = [json.loads(line) for line in logged.stderr.splitlines()]
+    assert records and all({"time", "level", "message"} <= set(r) for r in records)
+    done = records[-1]
+    manifest = json.loads((tmp_path / "j" / "manifest.json").read_text())
+    assert done["event"] == "run_complete" and done["points_read"] == manifest["summary"]["points_read"] > 0
+    # an error is one JSON line too, with its exit status; -q keeps it
+    failed = runner.invoke(main, ["-q", "--log-format", "json", "run", str(tmp_path / "nothing.laz"), "--out", "o"])
+    assert failed.exit_code == 3
+    [error] = [json.loads(line) for line in failed.stderr.splitlines()]
+    assert error["level"] == "error" and error["exit_status"] == 3 and "nothing.laz" in error["message"]

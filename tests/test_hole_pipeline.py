@@ -58,8 +58,14 @@ def test_synthetic_holes_and_causes_match_the_truth(tmp_path, dask_client):
     assert correct / holes >= 0.95, [s.confusion for s in scores]
 
 
-def test_holes_do_not_depend_on_cell_size(tmp_path, dask_client):
-    """The same holes (pixel sets, areas, causes), ids aside, with cells of 50 m to 1000 m."""
+@pytest.mark.parametrize("area", ["footprint", "auto"])
+def test_holes_do_not_depend_on_cell_size(tmp_path, dask_client, area):
+    """The same holes (pixel sets, areas, causes), ids aside, with cells of 50 m to 1000 m.
+
+    With the tile extents, and with the tile grid's squares (``auto``: the tiles lie
+    on a 100 m grid; the missed strip at the east edge opens to the outside and stays
+    exterior, and so does the 4 m2 sliver of water at the edge of the tiles' extents).
+    """
     survey = generate_survey(tmp_path / "tiles", preset("demo", width_m=300.0, height_m=200.0, seed=6))
     results = {}
     sizes = (50.0, 64.0, 250.0, 1000.0)
@@ -68,7 +74,7 @@ def test_holes_do_not_depend_on_cell_size(tmp_path, dask_client):
         run_survey(
             [str(tmp_path / "tiles")],
             out,
-            load_config(overrides=[*SYNTHETIC, f"grid.cell_size_m={cell_m}"]),
+            load_config(overrides=[*SYNTHETIC, f"grid.cell_size_m={cell_m}", f"survey.area={area}"]),
             client=dask_client,
         )
         holes = read_layer(out / "holes.gpkg", "holes")
@@ -83,7 +89,7 @@ def test_holes_do_not_depend_on_cell_size(tmp_path, dask_client):
         )
         results[cell_m] = masks
     assert len(results[64.0]) > 5
-    assert {m[2] for m in results[64.0]} >= {"water", "occlusion"}
+    assert "occlusion" in {m[2] for m in results[64.0]} and len({m[2] for m in results[64.0]}) >= 2
     for cell_m in sizes[1:]:
         assert [m[0] for m in results[sizes[0]]] == [m[0] for m in results[cell_m]], cell_m
         assert [m[1:] for m in results[sizes[0]]] == [m[1:] for m in results[cell_m]], cell_m

@@ -107,3 +107,22 @@ def test_dtm_keeps_only_ground(shared_data, tmp_path, dask_client):
     out = tmp_path / "dtm"
     summary = run(shared_data, ["ign_bat.laz"], out, dask_client, "filter.keep_classes=[2]", "grid.cell_size_m=50")
     assert summary.points_used == 33_888  # class 2 count in PROVENANCE.md
+
+
+@pytest.mark.parametrize(
+    "name, crs", [("ahn3_delft_1.laz", "EPSG:28992"), ("lidr_topography.laz", None), ("ign_corse_water.laz", None)]
+)
+def test_real_holes_and_causes_do_not_depend_on_cell_size(shared_data, tmp_path, dask_client, name, crs):
+    """The same holes (area, place) with the same causes, with cells of 50 m, 250 m and 1000 m."""
+    found = {}
+    for cell_m in (50, 250, 1000):
+        overrides = [f"grid.cell_size_m={cell_m}"] + ([f"survey.crs={crs}"] if crs else [])
+        out = tmp_path / f"out{cell_m}"
+        run(shared_data, [name], out, dask_client, *overrides)
+        holes = read_layer(out / "holes.gpkg", "holes")
+        found[cell_m] = sorted(
+            (round(area, 2), cause, round(g.centroid.x, 1), round(g.centroid.y, 1))
+            for area, cause, g in zip(holes["area_m2"], holes["cause"], holes.geometry)
+        )
+    assert found[50], name
+    assert found[50] == found[250] == found[1000]

@@ -289,3 +289,22 @@ def test_report_inputs_from_a_real_run(tmp_path, dask_client):
     assert 0 < len(got.zooms) <= 4
     page = render_report(manifest, manifest["holes"]["largest"], inputs=got)
     assert "<svg class='map'" in page
+
+
+@pytest.mark.slow
+def test_a_run_without_holes_keeps_its_map(tmp_path, rng, dask_client):
+    """An empty holes layer (no hole listed) must not cost the report its map."""
+    from pipeline.config import load_config
+    from pipeline.run import run_survey
+
+    from .lasfiles import write_points
+
+    n = 40_000
+    x, y = rng.uniform(1000, 1060, n).round(2), rng.uniform(2000, 2060, n).round(2)
+    path = write_points(tmp_path / "dense.laz", x, y, (50 + rng.uniform(0, 1, n)).round(2))
+    out = tmp_path / "out"
+    run_survey([str(path)], out, load_config(overrides=["grid.resolution_m=1"]), client=dask_client)
+    assert json.loads((out / "manifest.json").read_text())["holes"]["listed"] == 0
+    got = read_report_inputs(out)
+    assert got is not None and got.holes == ()
+    assert "<svg class='map'" in (out / "report.html").read_text()

@@ -27,6 +27,15 @@ def survey(tmp_path_factory):
     return folder
 
 
+@pytest.fixture(scope="module")
+def reference(survey):
+    """The outputs of one uninterrupted run of the survey."""
+    out = survey / "reference"
+    done = holefill(str(survey / "tiles"), "--out", str(out))
+    assert done.wait(timeout=300) == 0, done.communicate()
+    return out
+
+
 def holefill(*args: str, **kwargs) -> subprocess.Popen:
     """``holefill`` as a user runs it, in its own process group (so a kill reaches its workers)."""
     command = [sys.executable, "-m", "pipeline.cli", "run", *args, "--workers", "1", "--no-progress"]
@@ -66,11 +75,8 @@ def same_outputs(a: Path, b: Path) -> None:
                 assert plain(fa[column]) == plain(fb[column]), (layer, column)
 
 
-def test_killed_run_resumes_to_the_same_outputs(survey, tmp_path):
+def test_killed_run_resumes_to_the_same_outputs(survey, reference, tmp_path):
     tiles = str(survey / "tiles")
-    reference = tmp_path / "reference"
-    done = holefill(tiles, "--out", str(reference))
-    assert done.wait(timeout=300) == 0, done.communicate()
     out = tmp_path / "out"
     killed = holefill(tiles, "--out", str(out))
     wait_for_kept_tiles(out, 4, killed)
@@ -101,6 +107,115 @@ def test_sigterm_stops_like_ctrl_c_and_a_later_run_cleans_up(survey, tmp_path):
     _, err = again.communicate(timeout=300)
     assert again.returncode == 0 and "left by an interrupted run" in err
     assert not list(out.glob(".holefill-partial-*"))
+
+
+def test_ctrl_c_to_the_process_group_exits_130_in_one_line_and_resumes(survey, reference, tmp_path):
+    """A terminal's Ctrl-C reaches the client and every worker process at once."""
+    tiles = str(survey / "tiles")
+    out = tmp_path / "out"
+    run = holefill(tiles, "--out", str(out), "--workers", "2")
+    wait_for_kept_tiles(out, 2, run)
+    os.killpg(run.pid, signal.SIGINT)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 130, err
+    assert err.strip().splitlines() == [
+        "holefill: interrupted; finished tasks are kept: run again with --resume to continue"
+    ]
+    resumed = holefill(tiles, "--out", str(out), "--resume")
+    _, err = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, err
+    same_outputs(reference, out)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 3 MB file system (tmpfs), grown on request; skipped where mounting is not allowed."""
+    mount_point = tmp_path / "small"
+    mount_point.mkdir()
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=3000k", "tmpfs", str(mount_point)], capture_output=True
+    )
+    if mounted.returncode != 0:
+        pytest.skip("cannot mount a small file system here (needs root)")
+
+    def grow(size: str) -> None:
+        subprocess.run(["mount", "-o", f"remount,size={size}", str(mount_point)], check=True)
+
+    try:
+        yield mount_point, grow
+    finally:
+        subprocess.run(["umount", "-l", str(mount_point)], check=False)
+
+
+def test_disk_full_is_one_line_exit_4_and_resumes_once_space_is_freed(survey, reference, small_disk):
+    mount_point, grow = small_disk
+    tiles, out = str(survey / "tiles"), mount_point / "out"
+    run = holefill(tiles, "--out", str(out))
+    _, err = run.communicate(timeout=300)
+    assert run.returncode == 4, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "no space left on the device" in lines[0] and str(out) in lines[0], err
+    assert "--resume" in lines[0] and not (out / "manifest.json").exists()
+    grow("64m")
+    resumed = holefill(tiles, "--out", str(out), "--resume")
+    _, err = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, err
+    same_outputs(reference, out)
+
+
+def _kept_files(work: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(work)): p.read_bytes() for p in sorted(work.rglob("*")) if p.is_file()}
+
+
+def test_incremental_run_decodes_only_new_and_changed_tiles(survey, reference, tmp_path):
+    import shutil
+
+    tiles = tmp_path / "tiles"
+    shutil.copytree(survey / "tiles", tiles)
+    held = sorted(tiles.glob("*.laz"))[-1]
+    held.rename(tmp_path / held.name)  # delivered later
+    out = tmp_path / "out"
+    first = holefill(str(tiles), "--out", str(out), "--incremental")
+    assert first.wait(timeout=300) == 0, first.communicate()
+    assert (out / "work" / "done").is_dir()
+    # the next delivery: the missing tile arrives, another is re-delivered (same bytes, new time)
+    (tmp_path / held.name).rename(held)
+    changed = sorted(tiles.glob("*.laz"))[0]
+    os.utime(changed, (time.time() + 5, time.time() + 5))
+    second = holefill(str(tiles), "--out", str(out), "--incremental")
+    _, err = second.communicate(timeout=300)
+    assert second.returncode == 0, err
+    manifest = json.loads((out / "manifest.json").read_text())
+    n_tiles = len(list(tiles.glob("*.laz")))
+    # every other tile's decoding and checksum came from the first run
+    assert manifest["summary"]["reused_tasks"] >= 2 * (n_tiles - 2), manifest["summary"]
+    entry = next(e for e in manifest["inputs"] if e["path"] == str(changed))
+    assert entry["mtime"] == pytest.approx(changed.stat().st_mtime)
+    same_outputs(reference, out)  # as a full run of the whole delivery
+    # nothing changed: every tile and every cell is reused
+    third = holefill(str(tiles), "--out", str(out), "--incremental")
+    assert third.wait(timeout=300) == 0
+    summary = json.loads((out / "manifest.json").read_text())["summary"]
+    assert summary["reused_tasks"] == 2 * n_tiles + summary["cells"]
+    same_outputs(reference, out)
+
+
+def test_a_failed_incremental_run_leaves_the_previous_result_whole(survey, tmp_path):
+    import shutil
+
+    tiles = tmp_path / "tiles"
+    shutil.copytree(survey / "tiles", tiles)
+    out = tmp_path / "out"
+    first = holefill(str(tiles), "--out", str(out), "--incremental")
+    assert first.wait(timeout=300) == 0, first.communicate()
+    manifest, kept = (out / "manifest.json").read_text(), _kept_files(out / "work")
+    (tiles / "zz_corrupt.laz").write_bytes(b"LASF" + bytes(400))  # sorts last: the others merge first
+    os.utime(sorted(tiles.glob("synth_*.laz"))[0], (time.time() + 5, time.time() + 5))
+    failed = holefill(str(tiles), "--out", str(out), "--incremental")
+    _, err = failed.communicate(timeout=300)
+    assert failed.returncode != 0 and "zz_corrupt.laz" in err
+    assert (out / "manifest.json").read_text() == manifest
+    assert _kept_files(out / "work") == kept  # adopted files were linked, never rewritten
 
 
 def test_second_run_into_the_same_folder_is_refused(survey, tmp_path):
@@ -197,12 +312,9 @@ def real_cluster(tmp_path):
             process.wait(timeout=30)
 
 
-def test_distributed_run_survives_a_worker_killed_mid_run(survey, tmp_path, real_cluster):
+def test_distributed_run_survives_a_worker_killed_mid_run(survey, reference, tmp_path, real_cluster):
     address, workers = real_cluster
     tiles = str(survey / "tiles")
-    reference = tmp_path / "reference"
-    done = holefill(tiles, "--out", str(reference))
-    assert done.wait(timeout=300) == 0
     out = tmp_path / "out"
     command = [
         sys.executable,

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from ..cluster import dask_client
 from ..config import Config
 from ..errors import ConfigError, HolefillError
 from .alternatives import ALTERNATIVES, AlternativeUnavailable, _hole_windows
@@ -140,13 +141,14 @@ def evaluate_fill(
     plan = _Plan(n_holes, seed, models, methods, alternatives, resolution_m, margin_px, (min_size_m, max_size_m))
     benchmark = FillBenchmark(settings=plan.settings())
     base = config.replace("flightplan", source="fill benchmark", enabled=False)
-    with _client(client, scheduler, base) as dask_client:
+    with dask_client(client, scheduler, base) as connect:
+        runs_client = connect()
         for model_index, model in enumerate(models):
             for name, inputs in zip(names, surveys):
                 rng = np.random.default_rng([seed, zlib.crc32(name.encode()), model_index])
                 survey_config = _survey_config(base, model, (crs or {}).get(name) or (crs or {}).get("*"))
                 result = _evaluate_survey(
-                    name, inputs, out / model / name, survey_config, model=model, rng=rng, plan=plan, client=dask_client
+                    name, inputs, out / model / name, survey_config, model=model, rng=rng, plan=plan, client=runs_client
                 )
                 benchmark.surveys.append(result)
                 benchmark.seconds = time.perf_counter() - started
@@ -157,13 +159,6 @@ def evaluate_fill(
     benchmark.seconds = time.perf_counter() - started
     write_json(out / "fill_eval.json", benchmark.as_dict())
     return benchmark
-
-
-def _client(client: Any, scheduler: str | None, config: Config) -> Any:
-    """The Dask client of the runs (:func:`pipeline.run._dask_client`: the given one, or one for all runs)."""
-    from ..run import _dask_client
-
-    return _dask_client(client, scheduler, config)
 
 
 def _check_choices(

@@ -27,6 +27,7 @@ CAUSES: tuple[str, ...] = ("occlusion", "water", "missed_coverage", "unknown")
 #: A hole no rule claims is ``unknown`` / ``none`` (``no_ring`` without any measured neighbour).
 RULES: tuple[tuple[str, str], ...] = (
     ("water_mask", "water"),
+    ("missing_tile", "missed_coverage"),
     ("coverage_gap", "missed_coverage"),
     ("water_points", "water"),
     ("jumps", "occlusion"),
@@ -57,7 +58,7 @@ class CauseRules:
     water_min_mask_fraction, water_min_point_fraction
         ``water_mask`` / ``water_points`` rules.
     gap_min_fraction
-        ``coverage_gap`` rule.
+        ``coverage_gap`` and ``missing_tile`` rules.
     occlusion_min_jump_fraction
         ``jumps`` rule.
     shadow_min_high_fraction, shadow_min_residual_ratio, max_terrain_slope
@@ -71,6 +72,10 @@ class CauseRules:
         ``flat_low_rim`` rule (``water_flat_tolerance`` in z units).
     water_max_below_fraction
         ``level_rim`` rule (with ``water_flat_tolerance`` and ``water_min_flat_fraction``).
+    water_min_rim_area_m2, pixel_area_m2
+        Both rim-only water rules (``level_rim``, ``flat_low_rim``) need a hole of at
+        least this area: a small void with a flat rim is as often a dropout on dark or
+        wet ground as water.
     low_quantile, high_quantile
         Quantiles of the ring heights taken as its low and high level.
     """
@@ -95,8 +100,10 @@ class CauseRules:
     water_min_flat_fraction: float
     water_min_low_fraction: float
     water_max_below_fraction: float
+    water_min_rim_area_m2: float
     low_quantile: float
     high_quantile: float
+    pixel_area_m2: float = 1.0
 
     @classmethod
     def from_config(cls, config: Config, *, pixel_size_m: float, vertical_unit_m: float) -> CauseRules:
@@ -114,6 +121,7 @@ class CauseRules:
         return cls(
             pixel_size=pixel_size_m / vertical_unit_m,
             jump_threshold=config.holes.jump_threshold_m / vertical_unit_m,
+            pixel_area_m2=pixel_size_m**2,
             **_thresholds(config.causes),
         )
 
@@ -121,12 +129,18 @@ class CauseRules:
     def with_defaults(cls, *, pixel_size: float, jump_threshold: float, **thresholds: float) -> CauseRules:
         """The ``[causes]`` defaults, some of them replaced by ``thresholds`` (z units, pixels)."""
         return cls(
-            pixel_size=pixel_size, jump_threshold=jump_threshold, **{**_thresholds(CausesConfig()), **thresholds}
+            pixel_size=pixel_size,
+            jump_threshold=jump_threshold,
+            **{"pixel_area_m2": pixel_size**2, **_thresholds(CausesConfig()), **thresholds},
         )
 
 
 #: The fields :meth:`CauseRules.from_config` derives from other sections, in survey units.
-_DERIVED: dict[str, str] = {"pixel_size": "grid.resolution_m", "jump_threshold": "holes.jump_threshold_m"}
+_DERIVED: dict[str, str] = {
+    "pixel_size": "grid.resolution_m",
+    "jump_threshold": "holes.jump_threshold_m",
+    "pixel_area_m2": "grid.resolution_m",
+}
 
 #: The configuration key behind each field of :class:`CauseRules`: the others are ``[causes]`` keys of the same name.
 CONFIG_KEYS: dict[str, str] = {f.name: _DERIVED.get(f.name, f"causes.{f.name}") for f in dataclasses.fields(CauseRules)}
@@ -149,7 +163,10 @@ def classify_causes(stats: HoleStats, rules: CauseRules) -> np.ndarray:
 
     1. ``water`` / ``water_mask``: at least ``water_min_mask_fraction`` of the hole
        lies inside the given water mask.
-    2. ``missed_coverage`` / ``coverage_gap``: at least ``gap_min_fraction`` of the
+    2. ``missed_coverage`` / ``missing_tile``: at least ``gap_min_fraction`` of the
+       hole lies in the square of a missing tile (a square of the tile grid without a
+       tile, enclosed by squares with one: :mod:`pipeline.tile_grid`); then
+       ``missed_coverage`` / ``coverage_gap``: at least ``gap_min_fraction`` of the
        hole lies in a coverage gap (no flight line's swath, :mod:`pipeline.holes.coverage`).
     3. ``water`` / ``water_points``: at least ``water_min_point_fraction`` of the
        ring (or of the hole) holds water-class points.
@@ -170,6 +187,7 @@ def classify_causes(stats: HoleStats, rules: CauseRules) -> np.ndarray:
     6. ``water`` / ``flat_low_rim``: at least ``water_min_flat_fraction`` of the ring
        lies within ``water_flat_tolerance`` above the low level and at least
        ``water_min_low_fraction`` of it is at the local minimum (``ring_low_px``).
+       Like ``level_rim``, only for holes of at least ``water_min_rim_area_m2``.
     7. ``unknown`` / ``none`` (``no_ring`` when no measured pixel borders the hole).
 
     Parameters
@@ -249,6 +267,7 @@ def _rule_conditions(stats: HoleStats, ring: _RingEvidence, rules: CauseRules) -
     not_terrain = (np.nan_to_num(ring_fit["plane_slope"]) / rules.pixel_size > rules.max_terrain_slope) | (
         np.nan_to_num(ring_fit["plane_residual_std"]) >= rules.shadow_min_residual_ratio * rules.jump_threshold
     )
+    large_enough_for_rim_water = stats["area_px"] * rules.pixel_area_m2 >= rules.water_min_rim_area_m2
     strip_shape = (shape["fill"] >= rules.strip_min_fill) & (shape["length_px"] >= rules.strip_min_length_px)
     in_swath = stats["swath_px"] / area1 >= 0.5  # the lines flew over it: not a gap in coverage
     strip = strip_shape & ~in_swath & (shape["elongation"] >= rules.strip_min_elongation)
@@ -260,6 +279,7 @@ def _rule_conditions(stats: HoleStats, ring: _RingEvidence, rules: CauseRules) -
         strip = np.where(has_lines, strip_with_lines, strip)
     return {
         "water_mask": stats["water_mask_px"] / area1 >= rules.water_min_mask_fraction,
+        "missing_tile": stats["missing_tile_px"] / area1 >= rules.gap_min_fraction,
         "coverage_gap": stats["gap_px"] / area1 >= rules.gap_min_fraction,
         "water_points": (ring.has_ring & (stats["ring_water_px"] / ring.size >= rules.water_min_point_fraction))
         | (stats["hole_water_px"] / area1 >= rules.water_min_point_fraction),
@@ -267,10 +287,12 @@ def _rule_conditions(stats: HoleStats, ring: _RingEvidence, rules: CauseRules) -
         "shadow": shadow_like & (ring.high_frac >= rules.shadow_min_high_fraction) & not_terrain,
         "strip": strip,
         "level_rim": ring.has_ring
+        & large_enough_for_rim_water
         & in_swath
         & (ring.level_frac >= rules.water_min_flat_fraction)
         & (ring.below_frac <= rules.water_max_below_fraction),
         "flat_low_rim": ring.has_ring
+        & large_enough_for_rim_water
         & (ring.flat_frac >= rules.water_min_flat_fraction)
         & (ring.low_frac >= rules.water_min_low_fraction),
     }

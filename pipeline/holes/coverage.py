@@ -24,10 +24,21 @@ import numpy as np
 
 from ..grid import PixelWindow
 
-__all__ = ["IN_GAP", "IN_SWATH", "UNKNOWN", "Band", "CoverageGaps", "coverage_gaps", "line_bands"]
+__all__ = [
+    "IN_GAP",
+    "IN_MISSING_TILE",
+    "IN_SWATH",
+    "UNKNOWN",
+    "Band",
+    "CoverageGaps",
+    "coverage_gaps",
+    "line_bands",
+]
 
 #: Coverage classes of a pixel (:meth:`CoverageGaps.classes`, ``detect_cell_holes(coverage=)``).
-UNKNOWN, IN_SWATH, IN_GAP = 0, 1, 2
+#: ``IN_MISSING_TILE``: in the square of a missing tile of the tile grid (:mod:`pipeline.tile_grid`),
+#: a coverage gap of its own kind.
+UNKNOWN, IN_SWATH, IN_GAP, IN_MISSING_TILE = 0, 1, 2, 3
 
 #: Lines whose directions differ by more than this are not neighbours of one gap.
 MAX_PARALLEL_DEG = 5.0
@@ -63,16 +74,18 @@ class CoverageGaps:
 
     gaps: tuple[tuple[tuple[float, float], float, float, float, float], ...]
     bands: tuple[Band, ...]
+    missing_tiles: tuple[PixelWindow, ...] = ()  # squares of missing tiles, in grid pixels
 
     def __bool__(self) -> bool:
-        return bool(self.gaps or self.bands)
+        return bool(self.gaps or self.bands or self.missing_tiles)
 
     def classes(self, window: PixelWindow, *, margin_px: float = 3.0) -> np.ndarray:
         """Per pixel of ``window``: ``IN_GAP``, ``IN_SWATH`` or ``UNKNOWN`` (int8).
 
         A gap is grown by ``margin_px`` across and along track, a band shrunk by as
         much: the margin absorbs the jitter of swath edges, so that a missed strip is
-        not cut into a core and slivers along its edges. A gap wins over a band.
+        not cut into a core and slivers along its edges. A gap wins over a band, a
+        missing tile (``IN_MISSING_TILE``, exact pixels) over both.
         """
         rows = np.arange(window.row_off, window.row_end, dtype=np.float64)[:, None]
         cols = np.arange(window.col_off, window.col_end, dtype=np.float64)[None, :]
@@ -92,6 +105,10 @@ class CoverageGaps:
                 & (along < a_hi + margin_px)
             )
             out[inside] = IN_GAP
+        for square in self.missing_tiles:
+            overlap = square.intersection(window)
+            if not overlap.is_empty:
+                out[overlap.slices_within(window)] = IN_MISSING_TILE
         return out
 
 

@@ -163,7 +163,8 @@ def detect_cell_holes(
     flight_line : ndarray of int, same shape, optional
         An id of a flight line covering each pixel (e.g. a point_source_id), < 0: unknown.
     coverage : ndarray of int, same shape, optional
-        Per pixel: 2 in a coverage gap (no flight line's swath reaches), 1 inside a flight line's swath,
+        Per pixel: 2 in a coverage gap (no flight line's swath reaches), 3 in the square of a missing
+        tile (a gap too, counted apart in ``missing_tile_px``), 1 inside a flight line's swath,
         0 unknown (:meth:`pipeline.holes.coverage.CoverageGaps.classes`). Hole pixels inside and outside
         a gap are labelled apart: no part straddles a gap's edge (a river crossing a missed strip gives two holes).
     min_area_px : int
@@ -307,8 +308,9 @@ class _Work(NamedTuple):
     water: np.ndarray | None  # holds water-class points
     mask: np.ndarray | None  # inside the water mask
     line: np.ndarray | None  # flight line id, < 0 unknown
-    gap: np.ndarray | None  # inside a coverage gap
+    gap: np.ndarray | None  # inside a coverage gap (or a missing tile's square)
     swath: np.ndarray | None  # inside a flight line's swath
+    missing_tile: np.ndarray | None  # inside a missing tile's square
 
     def core(self, arr: np.ndarray) -> np.ndarray:
         """The view of a work-window array over the core."""
@@ -363,8 +365,9 @@ def _work_arrays(arrays: dict[str, np.ndarray | None], cell: Cell, R: int) -> _W
         water=None if water_points is None else water_points > 0,
         mask=view("water_mask", False, bool),
         line=view("flight_line", _NO_LINE, np.int64),
-        gap=None if coverage_w is None else coverage_w == 2,
+        gap=None if coverage_w is None else coverage_w >= 2,
         swath=None if coverage_w is None else coverage_w == 1,
+        missing_tile=None if coverage_w is None else coverage_w == 3,
     )
 
 
@@ -553,7 +556,7 @@ def _pixel_statistics(
     cols["touches_data"] = sums.near_data[1:] > 0
     cols["hole_water_px"] = sums.water[1:]
     cols["water_mask_px"] = sums.in_mask[1:]
-    for name, where in (("gap_px", work.gap), ("swath_px", work.swath)):
+    for name, where in (("gap_px", work.gap), ("swath_px", work.swath), ("missing_tile_px", work.missing_tile)):
         cols[name] = (
             np.zeros(n, np.int64) if where is None else np.bincount(labels[work.core(where)], minlength=n + 1)[1:]
         )

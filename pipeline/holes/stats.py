@@ -71,6 +71,7 @@ STATS_COLUMNS: dict[str, tuple[type, str, str]] = {
     "water_mask_px": (np.int64, "sum", "hole pixels inside the given water mask"),
     "gap_px": (np.int64, "sum", "hole pixels inside a coverage gap (no flight line's swath)"),
     "swath_px": (np.int64, "sum", "hole pixels inside a flight line's swath"),
+    "missing_tile_px": (np.int64, "sum", "hole pixels inside the square of a missing tile (counted in gap_px too)"),
     "touches_data": (np.bool_, "any", "a measured pixel is 4-adjacent somewhere"),
 }
 

@@ -140,7 +140,10 @@ def _read_holes(gpkg: Path, pixel: float) -> tuple[MapHole, ...]:
 
     if "holes" not in list_layers(gpkg):
         return ()
-    frame = read_layer(gpkg, "holes").sort_values("area_m2", ascending=False)
+    frame = read_layer(gpkg, "holes")
+    if frame.empty or "area_m2" not in frame.columns:  # a survey without holes: an empty layer
+        return ()
+    frame = frame.sort_values("area_m2", ascending=False)
     budget = MAX_HOLE_VERTICES
     holes = []
     for record, geometry in zip(frame.drop(columns="geometry").to_dict("records"), frame.geometry):
@@ -180,6 +183,8 @@ def _read_part_areas(gpkg: Path) -> dict[str, float]:
 
     if "hole_parts" not in list_layers(gpkg):
         return {}
+    if "area_m2" not in pyogrio.read_info(gpkg, layer="hole_parts")["fields"]:
+        return {}  # no part: an empty layer
     frame = pyogrio.read_dataframe(
         gpkg, layer="hole_parts", columns=["category", "shape", "area_m2"], read_geometry=False
     )

@@ -20,6 +20,6 @@ Stages, in the order they run (a module imports only stages before it):
 - :mod:`.link_holes`    on the client: holes linked across cells, causes
 - :mod:`.write_rasters` one task per cell: the DSM tiles (and later the fill products)
 
-Only :mod:`pipeline.run` knows about Dask: it submits each stage's tasks with
+Only :mod:`pipeline.run` (and :mod:`pipeline.cluster`, the client's lifecycle) knows about Dask: it submits each stage's tasks with
 their dependencies and gathers the results.
 """

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -185,3 +186,10 @@ def rasterize_tile_or_skip(task: TileTask) -> TileResult | TileFailure:
         return rasterize_tile(task)
     except InputDataError as e:
         return TileFailure(task.tile_index, task.path, e.reason)
+
+
+def adopt_result(task: TileTask, kept: TileResult | TileFailure) -> TileResult | TileFailure:
+    """A previous run's result of the same tile (same key), pointed at this run's index and folder."""
+    if isinstance(kept, TileResult):
+        return dataclasses.replace(kept, tile_index=task.tile_index, output_dir=task.output_dir)
+    return dataclasses.replace(kept, tile_index=task.tile_index)

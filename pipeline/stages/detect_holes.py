@@ -6,7 +6,7 @@ stage reads it) and returns only small tables and outlines to the client.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import shapely
@@ -15,7 +15,7 @@ from ..config import HOLE_CONTEXT_PX
 from ..footprint import BlockMap, aoi_mask, window_union_mask
 from ..grid import Cell, Grid, PixelWindow
 from ..holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
-from ..holes.coverage import CoverageGaps
+from ..holes.coverage import IN_GAP, CoverageGaps
 from ..holes.outlines import label_outlines
 from ..holes.walls import Wall, find_walls
 from ..io.intermediate import load_cell_statistics, save_labels
@@ -36,10 +36,11 @@ class DetectTask:
     labels_path: str
     blocks: BlockMap
     tile_windows: tuple[PixelWindow, ...]
-    survey_area_wkb: bytes | None  # the --aoi polygon, else the tile windows are the survey area
+    survey_area_wkb: bytes | None  # the --aoi polygon or the tile grid's squares, else the tile windows
     water_wkb: bytes | None  # the --water polygons
     params: HoleParams
-    gaps: CoverageGaps | None = None  # between the flight lines' swaths, survey-wide
+    gaps: CoverageGaps | None = None  # between the flight lines' swaths, survey-wide; missing tiles
+    gaps_inside: bool = False  # coverage gaps and missing tiles in the survey area are inside the AOI
 
 
 @dataclass(frozen=True)
@@ -62,10 +63,19 @@ def detect_tasks(
     staging: Staging,
     gaps: CoverageGaps | None = None,
 ) -> list[DetectTask]:
-    """One task per merged cell, in plan order."""
+    """One task per merged cell, in plan order.
+
+    The survey area is the ``--aoi`` polygon or the tile grid's squares (a polygon),
+    else the windows of the tiles; tiles that stage 1 skipped are left out of it
+    either way (exterior: never a hole of unknown cause). With a tile grid, the
+    squares of missing tiles join the coverage gaps.
+    """
     cells = plan.cell_by_id()
-    area_wkb = shapely.to_wkb(plan.survey_area) if plan.aoi_given else None
+    failed = sorted({i for r in merged for i in r.failed_tiles})
+    polygon = plan.aoi_given or plan.tile_grid is not None
+    area_wkb = shapely.to_wkb(plan.area_without(failed)) if polygon else None
     water_wkb = shapely.to_wkb(water) if water is not None else None
+    gaps = _with_missing_tiles(plan, gaps)
     tasks = []
     for result in merged:
         cell = cells[result.cell_id]
@@ -76,22 +86,36 @@ def detect_tasks(
                 statistics_path=result.statistics_path,
                 labels_path=str(staging.cell_labels(cell.id)),
                 blocks=blocks.slice_for(plan.grid, cell.halo_window),
-                tile_windows=tuple(plan.tile_windows[i] for i in plan.tiles_of_cell[cell.id]),
+                tile_windows=tuple(plan.tile_windows[i] for i in plan.tiles_of_cell[cell.id] if i not in failed),
                 survey_area_wkb=area_wkb,
                 water_wkb=water_wkb,
                 params=params,
                 gaps=gaps if gaps else None,
+                gaps_inside=plan.tile_grid is not None,
             )
         )
     return tasks
+
+
+def _with_missing_tiles(plan: SurveyPlan, gaps: CoverageGaps | None) -> CoverageGaps | None:
+    """The coverage gaps with the squares of the tile grid's missing tiles (grid pixels)."""
+    missing = plan.area.missing_tiles if plan.area is not None else ()
+    if not missing:
+        return gaps
+    half = plan.grid.resolution / 2  # the pixels whose centres lie in the square
+    windows = tuple(
+        plan.grid.window_of_bounds(x0 + half, y0 + half, x1 - half, y1 - half) for x0, y0, x1, y1 in missing
+    )
+    return replace(gaps or CoverageGaps((), ()), missing_tiles=windows)
 
 
 def detect_cell(task: DetectTask) -> DetectResult:
     """Holes, vertical holes and walls of one cell, from its merged statistics."""
     cell, grid, params = task.cell, task.grid, task.params
     stats = load_cell_statistics(task.statistics_path)
-    aoi = _aoi(task, stats)
-    holes = _cell_holes(task, stats, aoi)
+    coverage = task.gaps.classes(stats.window) if task.gaps is not None else None
+    aoi = _aoi(task, stats, coverage)
+    holes = _cell_holes(task, stats, aoi, coverage)
     labels = holes.labels if holes.labels is not None else np.zeros(cell.window.shape, np.int32)
     save_labels(task.labels_path, labels, cell.window)
     core_rows, core_cols = cell.window.slices_within(stats.window)
@@ -123,18 +147,26 @@ def detect_cell(task: DetectTask) -> DetectResult:
     )
 
 
-def _aoi(task: DetectTask, stats: PixelStatistics) -> np.ndarray:
-    """Where an empty pixel of the cell and its halo is a hole: survey area x data footprint."""
+def _aoi(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray | None) -> np.ndarray:
+    """Where an empty pixel of the cell and its halo is a hole: survey area x data footprint.
+
+    With a tile grid, the survey area's coverage gaps and missing tiles are inside
+    whatever the footprint says: a missed flight line open at the survey's ends lies
+    between two flown lines, a missing tile among the tiles.
+    """
     window = stats.window
     transform = task.grid.window_transform(window)
     if task.survey_area_wkb is not None:
         survey_area = geometry_mask(shapely.from_wkb(task.survey_area_wkb), transform, window.shape)
     else:
         survey_area = window_union_mask(window, task.tile_windows)
-    return aoi_mask(window, task.grid, task.blocks, count=stats.count, survey_area=survey_area)
+    aoi = aoi_mask(window, task.grid, task.blocks, count=stats.count, survey_area=survey_area)
+    if task.gaps_inside and coverage is not None:
+        aoi |= survey_area & (coverage >= IN_GAP)
+    return aoi
 
 
-def _cell_holes(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray) -> CellHoles:
+def _cell_holes(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray, coverage: np.ndarray | None) -> CellHoles:
     params = task.params
     water_mask = (
         geometry_mask(shapely.from_wkb(task.water_wkb), task.grid.window_transform(stats.window), stats.window.shape)
@@ -153,7 +185,7 @@ def _cell_holes(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray) -> Ce
         water_points=stats.water,
         water_mask=water_mask,
         flight_line=stats.source.astype(np.int64) - 1,
-        coverage=task.gaps.classes(stats.window) if task.gaps is not None else None,
+        coverage=coverage,
         min_area_px=params.min_area_px,
         local_radius_px=HOLE_CONTEXT_PX,
     )

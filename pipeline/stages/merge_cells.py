@@ -6,8 +6,11 @@ footprint (:func:`footprint_blocks`), which hole detection needs.
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -47,15 +50,20 @@ class CellResult:
     empty_pixels: int
     occupied_blocks: np.ndarray  # packed keys of the footprint blocks holding data
     line_moments: np.ndarray  # LINE_MOMENT_DTYPE: pixel moments of each flight line in the core
+    failed_tiles: tuple[int, ...] = ()  # tiles touching the cell that stage 1 skipped (their area is exterior)
 
 
 def merge_tasks(plan: SurveyPlan, tiles: list[TileTask], staging: Staging) -> list[tuple[CellTask, list[int]]]:
-    """One task per planned cell touched by a tile, with the indices of the tiles it needs."""
+    """One task per planned cell, with the indices of the tiles it needs.
+
+    A cell that no tile touches is planned only for the survey area (a missing tile
+    of the tile grid): it is merged empty, so that its pixels are holes.
+    """
     windows = {t.tile_index: t.window for t in tiles}
     recipes = []
     for cell in plan.cells:
         touching = [i for i in plan.tiles_of_cell[cell.id] if i in windows]
-        if not touching:
+        if not touching and plan.tiles_of_cell[cell.id]:
             continue
         task = CellTask(
             cell=cell,
@@ -68,6 +76,26 @@ def merge_tasks(plan: SurveyPlan, tiles: list[TileTask], staging: Staging) -> li
     return recipes
 
 
+def merge_key(task: CellTask, tiles: list[TileTask]) -> str:
+    """The key of a cell's merge: what its result is made of (the cell, the lattice, its tiles' keys).
+
+    An incremental run reuses the previous run's merge of a cell whose key is unchanged.
+    """
+    made_of = (
+        task.cell,
+        task.grid,
+        task.planned_windows,
+        task.block_px,
+        sorted(Path(t.output_dir).name for t in tiles),
+    )
+    return f"merge-{hashlib.sha1(repr(made_of).encode()).hexdigest()[:12]}-{task.cell.id}"
+
+
+def adopt_result(task: CellTask, kept: CellResult) -> CellResult:
+    """A previous run's merge of the same cell (same key), pointed at this run's files."""
+    return dataclasses.replace(kept, statistics_path=task.statistics_path)
+
+
 def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
     """Merge tile statistics over a cell and its halo and keep them for the later stages.
 
@@ -77,6 +105,7 @@ def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
     cell, grid = task.cell, task.grid
     window = cell.halo_window
     parts = []
+    failed = tuple(tile.tile_index for tile in tiles if isinstance(tile, TileFailure))
     for tile in tiles:
         if not isinstance(tile, TileResult):
             continue
@@ -99,6 +128,7 @@ def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
         line_moments=line_moments(
             core.source.astype(np.int64) - 1, row_off=cell.window.row_off, col_off=cell.window.col_off
         ),
+        failed_tiles=failed,
     )
 
 

@@ -1,0 +1,184 @@
+"""Benchmark: whole `holefill run` commands as a user runs them, against decoding alone.
+
+Both sides are timed as commands from process start to exit: `holefill run` (Python start,
+imports, header scan, cluster start, every stage, outputs) against the plainest baseline,
+a Python process that decodes every tile with laspy + lazrs in a `ProcessPoolExecutor`
+with as many processes as holefill has workers. Runs are interleaved (decode, DSM only,
+default, decode, ...) so every command sees the same machine state; best of N.
+
+    .venv/bin/python bench/bench_command.py                       # ~42 M points
+    .venv/bin/python bench/bench_command.py --points 200e6        # ~211 M points, 320 tiles
+
+The survey: `pipeline.synth` preset `bench` (2 km x 2 km, 64 LAZ tiles, ~42 M points),
+generated once into bench-out/ and, for more points, copied side by side with shifted
+header offsets (the compressed points are copied byte for byte, tile by tile: the
+survey is streamed to disk, never held in memory). The peak memory printed is the
+largest resident set of any process of the command (the client or a worker):
+``getrusage(RUSAGE_CHILDREN)`` of a wrapper process around each command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import struct
+import subprocess
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+#: LAS header byte positions of the x/y offsets and bounds (the same in LAS 1.0 to 1.4).
+X_OFFSET, Y_OFFSET = 155, 163
+MAX_X, MIN_X, MAX_Y, MIN_Y = 179, 187, 195, 203
+
+
+def decode_file(path: str) -> int:
+    """The baseline task: laspy + lazrs decoding every point of one file, in chunks."""
+    import laspy
+
+    total = 0
+    with laspy.open(path, laz_backend=laspy.LazBackend.Lazrs) as reader:
+        for chunk in reader.chunk_iterator(1_000_000):
+            total += len(chunk)
+    return total
+
+
+def decode_command(workers: int, files: list[str]) -> None:
+    """The baseline command's body (run as ``bench_command.py decode``)."""
+    with ProcessPoolExecutor(workers) as pool:
+        points = sum(pool.map(decode_file, files, chunksize=1))
+    print(points)
+
+
+def timed(command: list[str]) -> tuple[float, int, str]:
+    """Wall seconds, peak RSS (bytes) of the command's largest process, and its stdout+stderr.
+
+    Timed in a fresh wrapper process so that RUSAGE_CHILDREN covers this command alone.
+    """
+    wrapper = (
+        "import json, resource, subprocess, sys, time\n"
+        "t = time.perf_counter()\n"
+        "p = subprocess.run(sys.argv[1:], capture_output=True, text=True)\n"
+        "s = time.perf_counter() - t\n"
+        "peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024\n"
+        "print(json.dumps({'s': s, 'peak': peak, 'rc': p.returncode, 'out': p.stdout + p.stderr}))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", wrapper, *command], capture_output=True, text=True, check=True)
+    result = json.loads(done.stdout)
+    if result["rc"] != 0:
+        raise SystemExit(f"{' '.join(command)} failed ({result['rc']}):\n{result['out']}")
+    return result["s"], result["peak"], result["out"]
+
+
+def base_survey(bench_dir: Path) -> Path:
+    from pipeline.synth import generate_survey, preset
+
+    folder = bench_dir / "survey_2000m_250m"
+    marker = folder / "complete.json"
+    if not marker.exists():
+        shutil.rmtree(folder, ignore_errors=True)
+        t0 = time.perf_counter()
+        spec = preset("bench", width_m=2000.0, height_m=2000.0, tile_size_m=250.0)
+        synthetic = generate_survey(folder, spec, keep_truth=False)
+        marker.write_text(json.dumps({"points": synthetic.n_points, "tiles": len(synthetic.tiles)}))
+        print(f"generated {synthetic.n_points:,} points in {time.perf_counter() - t0:.0f} s", flush=True)
+    return folder
+
+
+def shifted_copy(source: Path, target: Path, dx: float, dy: float) -> None:
+    """Copy a LAS/LAZ file with its x/y offsets and bounds moved by (dx, dy): same points, elsewhere."""
+    shutil.copyfile(source, target)
+    with open(target, "r+b") as fh:
+        for position, delta in ((X_OFFSET, dx), (Y_OFFSET, dy), (MAX_X, dx), (MIN_X, dx), (MAX_Y, dy), (MIN_Y, dy)):
+            fh.seek(position)
+            (value,) = struct.unpack("<d", fh.read(8))
+            fh.seek(position)
+            fh.write(struct.pack("<d", value + delta))
+
+
+def large_survey(bench_dir: Path, base: Path, copies: int) -> Path:
+    """``copies`` shifted copies of the base survey in a row, east of each other."""
+    if copies == 1:
+        return base
+    folder = bench_dir / f"survey_2000m_x{copies}"
+    marker = folder / "complete.json"
+    if not marker.exists():
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir(parents=True)
+        for k in range(copies):
+            for tile in sorted(base.glob("*.laz")):
+                shifted_copy(tile, folder / f"copy{k}_{tile.name}", dx=2000.0 * k, dy=0.0)
+        info = json.loads((base / "complete.json").read_text())
+        marker.write_text(json.dumps({"points": info["points"] * copies, "tiles": info["tiles"] * copies}))
+    return folder
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "decode":
+        decode_command(int(sys.argv[2]), sys.argv[3:])
+        return
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--points", type=float, default=42e6, help="at least this many points (copies of 42 M)")
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--repeat", type=int, default=2)
+    parser.add_argument("--bench-dir", type=Path, default=Path("bench-out"))
+    parser.add_argument("--json", type=Path, help="also write the figures to this file")
+    args = parser.parse_args()
+
+    base = base_survey(args.bench_dir)
+    per_copy = json.loads((base / "complete.json").read_text())["points"]
+    survey = large_survey(args.bench_dir, base, max(1, -(-int(args.points) // per_copy)))
+    info = json.loads((survey / "complete.json").read_text())
+    files = sorted(str(p) for p in survey.glob("*.laz"))
+    holefill = str(Path(sys.executable).with_name("holefill"))
+    out = args.bench_dir / "command-out"
+    commands = {
+        "decode": [sys.executable, __file__, "decode", str(args.workers), *files],
+        "dsm_only": [holefill, "run", str(survey), "--out", str(out / "dsm"), "--workers", str(args.workers),
+                     "--no-progress", "--overwrite", "--set", "holes.enabled=false"],
+        "default": [holefill, "run", str(survey), "--out", str(out / "default"), "--workers", str(args.workers),
+                    "--no-progress", "--overwrite"],
+    }  # fmt: skip
+    print(
+        f"survey: {info['points']:,} points, {len(files)} LAZ tiles, "
+        f"{sum(os.path.getsize(f) for f in files) / 1e6:.0f} MB; {args.workers} workers; "
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {sys.version.split()[0]}",
+        flush=True,
+    )
+    seconds: dict[str, list[float]] = {name: [] for name in commands}
+    peaks: dict[str, int] = {name: 0 for name in commands}
+    for i in range(args.repeat):
+        for name, command in commands.items():
+            s, peak, output = timed(command)
+            seconds[name].append(s)
+            peaks[name] = max(peaks[name], peak)
+            if name == "decode":
+                assert int(output.split()[-1]) == info["points"], output
+            print(f"run {i + 1}: {name} {s:.2f} s, peak {peak / 2**20:.0f} MB", flush=True)
+    best = {name: min(v) for name, v in seconds.items()}
+    stages = {}
+    for name in ("dsm_only", "default"):
+        manifest = json.loads((out / ("dsm" if name == "dsm_only" else "default") / "manifest.json").read_text())
+        assert manifest["summary"]["points_read"] == info["points"]
+        stages[name] = manifest["summary"]["stage_seconds"]
+    figures = {
+        "points": info["points"],
+        "tiles": len(files),
+        "workers": args.workers,
+        "seconds": {name: round(s, 2) for name, s in best.items()},
+        "ratio_vs_decode": {name: round(best[name] / best["decode"], 3) for name in ("dsm_only", "default")},
+        "points_per_s": {name: round(info["points"] / s) for name, s in best.items()},
+        "peak_process_rss_mb": {name: round(p / 2**20) for name, p in peaks.items()},
+        "stage_seconds_last_run": stages,
+    }
+    print(json.dumps(figures, indent=2))
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,153 @@
+"""The Dask client of a run: a local cluster started in the background, or a running scheduler.
+
+Start-up is part of a run's time: a local cluster's worker processes take about a second
+to start and another to import the stages. :class:`ClusterStart` starts them in a
+background thread as the very first thing a run does, with the stages preloaded, so that
+the client imports its own modules and scans the tile headers meanwhile; the run asks
+for the client (:meth:`ClusterStart.client`) only when it submits its first task.
+
+This module and :mod:`pipeline.run` are the only ones that know about Dask.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import threading
+from collections.abc import Iterator
+from concurrent.futures import Future
+from typing import Any
+
+from .config import Config
+from .errors import ClusterError
+
+#: One thread per worker process for BLAS and OpenMP (workers are single-threaded
+#: processes; oversubscription slows every kernel), and a bounded GDAL cache each.
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "GDAL_CACHEMAX": "256"}
+
+#: Seconds to wait for a ``--scheduler`` before giving up with one line.
+SCHEDULER_TIMEOUT_S = 10
+
+#: Imported by every local worker as it starts (while the client scans the headers), so
+#: that the first task does not pay for it.
+WORKER_PRELOAD = ["pipeline.stages.bin_tiles", "pipeline.stages.merge_cells"]
+
+
+class ClusterStart:
+    """A local cluster being started in a background thread.
+
+    SIGINT is ignored from :meth:`begin` until the workers are up (an ignored signal
+    stays ignored in a spawned child, and Python then installs no KeyboardInterrupt
+    handler there): a terminal's Ctrl-C reaches the whole process group, and only
+    the client should answer it, in one line. The client's handler is back as soon
+    as the workers are up, at the latest when :meth:`client` returns.
+    """
+
+    def __init__(self, config: Config) -> None:
+        self._config = config
+        self._future: Future = Future()
+        self._previous_handler: Any = None
+        self._restore_lock = threading.Lock()
+        self._closed = False
+
+    @classmethod
+    def begin(cls, config: Config) -> ClusterStart:
+        """Start the workers now; returns at once."""
+        start = cls(config)
+        if threading.current_thread() is threading.main_thread():
+            start._previous_handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        threading.Thread(target=start._start, name="holefill-cluster-start", daemon=True).start()
+        return start
+
+    def _start(self) -> None:
+        try:
+            self._future.set_result(_local_cluster(self._config))
+        except BaseException as e:
+            self._future.set_exception(e)
+
+    def client(self) -> Any:
+        """The client, once the workers are up (waits for them)."""
+        try:
+            return self._future.result()[1]
+        finally:
+            self._restore_ctrl_c()
+
+    def close(self) -> None:
+        """Stop the client and the workers (waiting for a start still under way); idempotent."""
+        self._restore_ctrl_c()
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            cluster, client = self._future.result()
+        except Exception:
+            return  # it never started: nothing to stop
+        client.close()
+        cluster.close()
+
+    def _restore_ctrl_c(self) -> None:
+        with self._restore_lock:
+            if self._previous_handler is not None:
+                signal.signal(signal.SIGINT, self._previous_handler)
+                self._previous_handler = None
+
+
+def _local_cluster(config: Config) -> tuple[Any, Any]:
+    from distributed import Client, LocalCluster
+
+    workers = config.dask.workers or os.cpu_count() or 1
+    verbose = logging.getLogger("distributed").isEnabledFor(logging.INFO)
+    cluster = LocalCluster(
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        memory_limit=config.dask.memory_limit,
+        dashboard_address=":0",  # any free port: never collide with another cluster
+        silence_logs=logging.INFO if verbose else logging.CRITICAL,  # task errors reach the client anyway
+        env=WORKER_ENV,
+        preload=WORKER_PRELOAD,
+    )
+    try:
+        return cluster, Client(cluster)
+    except BaseException:
+        cluster.close()
+        raise
+
+
+def connect_scheduler(address: str) -> Any:
+    """A client of a running scheduler; one line within seconds when it cannot be reached."""
+    from distributed import Client
+
+    try:
+        return Client(address, timeout=SCHEDULER_TIMEOUT_S)
+    except (OSError, TimeoutError) as e:
+        raise ClusterError(
+            f"{address}: cannot reach the Dask scheduler within {SCHEDULER_TIMEOUT_S} s ({type(e).__name__})"
+        ) from None
+
+
+@contextlib.contextmanager
+def dask_client(
+    client: Any = None, scheduler: str | None = None, config: Config | None = None, *, start: ClusterStart | None = None
+) -> Iterator[Any]:
+    """A callable returning the run's client: the given one, a scheduler's, or a local cluster's.
+
+    A local cluster is started at once (or ``start`` is the one already being
+    started) and stopped on exit; the callable waits for its workers.
+    """
+    if client is not None:
+        yield lambda: client
+        return
+    if scheduler:
+        remote = connect_scheduler(scheduler)
+        with remote:
+            yield lambda: remote
+        return
+    assert config is not None or start is not None
+    starting = start or ClusterStart.begin(config)  # type: ignore[arg-type]
+    try:
+        yield starting.client
+    finally:
+        starting.close()

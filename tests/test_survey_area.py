@@ -1,0 +1,126 @@
+"""The survey area from the tile grid, end to end (issue #8): missed lines between tiles, missing and skipped tiles."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import shapely
+
+from pipeline.config import load_config
+from pipeline.io.raster import geometry_mask
+from pipeline.io.vector import list_layers, read_layer
+from pipeline.run import run_survey
+from pipeline.synth import HoleCause, generate_survey, preset
+
+pytestmark = pytest.mark.slow
+
+#: Synthetic truth on the survey's grid: pin the pixel size and the area rule.
+SYNTHETIC = ["grid.resolution_m=2", "holes.min_area_m2=8"]
+#: 1 pulse per m2 at 2 m pixels: small surveys, quick runs.
+SPARSE = dict(resolution=2.0, pulse_spacing_m=1.0)
+
+
+def run(tiles, out, client, *overrides):
+    run_survey([str(tiles)], out, load_config(overrides=[*SYNTHETIC, *overrides]), client=client)
+    return read_layer(out / "holes.gpkg", "holes")
+
+
+def test_a_line_missed_along_a_tile_boundary_is_a_missed_coverage_hole(tmp_path, dask_client):
+    # 50 m tiles: the missed line's strip (x 207..295 m) straddles the tile edge at x = 250 m, so the
+    # header bounds of the tiles beside it stop at the strip: it lies between the tiles' extents
+    spec = preset("demo", width_m=400.0, height_m=300.0, tile_size_m=50.0, water=False, seed=3, **SPARSE)
+    survey = generate_survey(tmp_path / "tiles", spec)
+    strip = survey.hole_cause == HoleCause.MISSED_COVERAGE
+    assert strip.sum() * 4.0 > 20_000
+    holes = run(tmp_path / "tiles", tmp_path / "out", dask_client)
+    missed = holes[holes["cause"] == "missed_coverage"]
+    assert len(missed) == 1, holes[["area_m2", "cause", "cause_rule"]]
+    found = geometry_mask(missed.geometry.iloc[0], survey.transform, strip.shape)
+    assert (found & strip).sum() / (found | strip).sum() > 0.95
+    area = read_layer(tmp_path / "out" / "holes.gpkg", "survey_area")
+    assert area["source"].iloc[0] == "tile grid squares (50)"
+    # ... and a re-flight is planned over it
+    status = read_layer(tmp_path / "out" / "flightplan.gpkg", "holes_status")
+    assert set(status.loc[status["planned"], "hole_id"]) == {int(missed["hole_id"].iloc[0])}
+    # the same holes with other cells (the gaps' pixels are a function of the global position only)
+    other = run(tmp_path / "tiles", tmp_path / "cells64", dask_client, "grid.cell_size_m=64")
+    assert hole_masks(other, survey) == hole_masks(holes, survey)
+    # with the tile extents (the behaviour before), the strip vanished
+    before = run(tmp_path / "tiles", tmp_path / "before", dask_client, "survey.area=footprint")
+    assert (before.loc[before["cause"] == "missed_coverage", "area_m2"] < 1000).all()
+
+
+def hole_masks(holes, survey) -> list[tuple]:
+    shape = survey.hole_cause.shape
+    return sorted(
+        (tuple(np.flatnonzero(geometry_mask(g, survey.transform, shape))), round(a, 3), c)
+        for g, a, c in zip(holes.geometry, holes["area_m2"], holes["cause"])
+    )
+
+
+@pytest.fixture(scope="module")
+def three_by_three(tmp_path_factory):
+    """A 300 m x 300 m survey in 100 m tiles, every line flown."""
+    folder = tmp_path_factory.mktemp("grid3x3")
+    spec = preset("demo", width_m=300.0, height_m=300.0, tile_size_m=100.0, water=False, missed_line=None, **SPARSE)
+    survey = generate_survey(folder / "tiles", spec)
+    middle = folder / "tiles" / "synth_500100_5000100.laz"
+    assert middle.exists()
+    return folder, survey, middle
+
+
+def middle_square(survey) -> np.ndarray:
+    return geometry_mask(shapely.box(500_100, 5_000_100, 500_200, 5_000_200), survey.transform, survey.hole_cause.shape)
+
+
+def test_a_missing_tile_inside_the_grid_is_missed_coverage(three_by_three, tmp_path, dask_client):
+    folder, survey, middle = three_by_three
+    tiles = tmp_path / "tiles"
+    shutil.copytree(folder / "tiles", tiles, ignore=shutil.ignore_patterns(middle.name))
+    # 50 m cells: four cells hold no tile, planned for the survey area alone
+    holes = run(tiles, tmp_path / "out", dask_client, "grid.cell_size_m=50")
+    square = middle_square(survey)
+    hole = holes[holes["cause_rule"] == "missing_tile"]
+    assert len(hole) == 1 and (hole["cause"] == "missed_coverage").all(), holes[["area_m2", "cause", "cause_rule"]]
+    found = geometry_mask(hole.geometry.iloc[0], survey.transform, square.shape)
+    assert (found & square).sum() / (found | square).sum() > 0.95
+    assert (holes["cause"] != "unknown").all()
+
+
+def test_a_corrupt_tile_is_skipped_exterior_never_an_unknown_hole(three_by_three, tmp_path, dask_client):
+    folder, survey, middle = three_by_three
+    tiles = tmp_path / "tiles"
+    shutil.copytree(folder / "tiles", tiles)
+    data = (tiles / middle.name).read_bytes()
+    (tiles / middle.name).write_bytes(data[: len(data) // 2])  # the header reads, the points do not decode
+    for mode, out in (("auto", tmp_path / "out"), ("footprint", tmp_path / "extents")):
+        holes = run(tiles, out, dask_client, "survey.on_error=skip", f"survey.area={mode}")
+        square = middle_square(survey)
+        inside = [geometry_mask(g, survey.transform, square.shape)[square].sum() for g in holes.geometry]
+        assert max(inside, default=0) == 0, (mode, holes[["area_m2", "cause", "cause_rule"]])
+        assert (holes["cause"] != "unknown").all() or holes.loc[holes["cause"] == "unknown", "area_m2"].max() < 100
+        gpkg = out / "holes.gpkg"
+        area = read_layer(gpkg, "survey_area")
+        skipped = area[area["status"] == "skipped"]
+        assert list(skipped["source"]) == [middle.name]
+        assert skipped.geometry.iloc[0].equals(shapely.box(500_100, 5_000_100, 500_200, 5_000_200)) or mode != "auto"
+        assert not area.geometry.iloc[0].intersection(skipped.geometry.iloc[0]).area > 0
+        tile_rows = read_layer(gpkg, "tiles")
+        assert tile_rows.loc[tile_rows["name"] == middle.name, "status"].tolist() == ["skipped"]
+        assert "survey_area" in list_layers(gpkg)
+
+
+def test_a_tile_whose_header_cannot_be_read_is_placed_by_its_name(three_by_three, tmp_path, dask_client):
+    folder, survey, middle = three_by_three
+    tiles = tmp_path / "tiles"
+    shutil.copytree(folder / "tiles", tiles)
+    (tiles / middle.name).write_bytes(b"not a las file at all")  # skipped at the scan: no bounds
+    holes = run(tiles, tmp_path / "out", dask_client, "survey.on_error=skip")
+    square = middle_square(survey)
+    assert all(geometry_mask(g, survey.transform, square.shape)[square].sum() == 0 for g in holes.geometry)
+    assert (holes["cause_rule"] != "missing_tile").all()
+    area = read_layer(tmp_path / "out" / "holes.gpkg", "survey_area")
+    skipped = area[area["status"] == "skipped"]
+    assert len(skipped) == 1 and skipped.geometry.iloc[0].equals(shapely.box(500_100, 5_000_100, 500_200, 5_000_200))
