@@ -158,6 +158,14 @@ def main(verbose: int, quiet: int, log_format: str) -> None:
 @click.option("--aoi", type=click.Path(dir_okay=False), help="Polygon file: the survey area.")
 @click.option("--water", type=click.Path(dir_okay=False), help="Polygon file of known water (holes.water).")
 @click.option("--on-error", type=click.Choice(["fail", "skip"]), help="What a bad tile does (survey.on_error).")
+@click.option(
+    "--reader", type=click.Choice(["laspy", "pdal"]), help="Point reader (read.reader); pdal needs python-pdal."
+)
+@click.option(
+    "--pdal-pipeline",
+    type=click.Path(dir_okay=False),
+    help="JSON file of PDAL filter stages run on each tile before binning (read.pdal_pipeline; implies --reader pdal).",
+)
 @click.option("--progress/--no-progress", default=None, help="Progress bar (default: when stderr is a terminal).")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run of the same inputs and configuration.")
 @click.option("--overwrite", is_flag=True, help="Replace a result of another configuration in --out.")
@@ -178,6 +186,8 @@ def run(
     aoi,
     water,
     on_error,
+    reader,
+    pdal_pipeline,
     progress,
     resume,
     overwrite,
@@ -187,9 +197,18 @@ def run(
     from .cluster import ClusterStart
     from .config import load_config
 
+    if pdal_pipeline is not None and reader is None:
+        reader = "pdal"
     config = _with_options(
-        load_config(config_path, overrides), workers=workers, crs=crs, target_crs=target_crs, on_error=on_error
+        load_config(config_path, overrides),
+        workers=workers,
+        crs=crs,
+        target_crs=target_crs,
+        on_error=on_error,
+        reader=reader,
+        pdal_pipeline=pdal_pipeline,
     )
+    config = _with_pdal(config)
     for name, path in (("AOI", aoi), ("water", water)):
         if path is not None and not Path(path).exists():
             raise InputDataError(path, f"{name} file not found")
@@ -497,6 +516,8 @@ OPTION_KEYS = {
     "crs": ("survey", "crs"),
     "target_crs": ("survey", "target_crs"),
     "on_error": ("survey", "on_error"),
+    "reader": ("read", "reader"),
+    "pdal_pipeline": ("read", "pdal_pipeline"),
 }
 
 
@@ -506,6 +527,23 @@ def _with_options(config, **options):
         if value is not None:
             section, key = OPTION_KEYS[name]
             config = config.replace(section, source=f"--{name.replace('_', '-')} {value}", **{key: value})
+    return config
+
+
+def _with_pdal(config):
+    """With ``read.reader = "pdal"``: python-pdal must import, the pipeline file is checked, and its
+    ``filters.reprojection`` becomes the survey's target CRS (a different --target-crs is refused)."""
+    if config.read.reader != "pdal":
+        return config
+    from .io.pdal_reader import import_pdal, load_user_pipeline, settle_target_crs
+
+    import_pdal("--reader pdal")
+    if not config.read.pdal_pipeline:
+        return config
+    pipeline = load_user_pipeline(config.read.pdal_pipeline, streaming=config.read.pdal_streaming)
+    target_crs = settle_target_crs(pipeline, config.survey.target_crs)
+    if target_crs != config.survey.target_crs:
+        config = config.replace("survey", source=f"{pipeline.path} (filters.reprojection)", target_crs=target_crs)
     return config
 
 

@@ -242,6 +242,23 @@ class SurveyConfig:
 
 
 @dataclass(frozen=True)
+class ReadConfig:
+    """How points are read (docs/usage.md, "PDAL pipelines")."""
+
+    reader: str = _opt(
+        "laspy",
+        "Point reader: laspy (built in) or pdal (python-pdal, the holefill[pdal] extra).",
+        choices=("laspy", "pdal"),
+    )
+    pdal_pipeline: str = _opt(
+        "", "JSON file of PDAL filter stages run on each tile before binning (needs reader = 'pdal')."
+    )
+    pdal_streaming: bool = _opt(
+        True, "Refuse stages that cannot stream; false allows them, each tile then read whole into memory."
+    )
+
+
+@dataclass(frozen=True)
 class FlightPlanConfig:
     """Re-flight plans for the holes a drone can re-scan (docs/flightplans.md)."""
 
@@ -334,6 +351,7 @@ class Config:
     dask: DaskConfig = field(default_factory=DaskConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     survey: SurveyConfig = field(default_factory=SurveyConfig)
+    read: ReadConfig = field(default_factory=ReadConfig)
     flightplan: FlightPlanConfig = field(default_factory=FlightPlanConfig)
     fill: FillConfig = field(default_factory=FillConfig)
 
@@ -472,6 +490,12 @@ def _check_across_keys(config: Config, sources: dict[str, str]) -> None:
         raise ConfigError(
             f"{where}: output.points = true adds the filled pixels to the point clouds; "
             "it needs holes.enabled = true and fill.enabled = true"
+        )
+    if config.read.pdal_pipeline and config.read.reader != "pdal":
+        where = sources.get("read.pdal_pipeline", "default")
+        raise ConfigError(
+            f"{where}: read.pdal_pipeline = {config.read.pdal_pipeline!r} needs read.reader = 'pdal' "
+            f"(it is {config.read.reader!r})"
         )
     if not config.causes.low_quantile < config.causes.high_quantile:
         where = sources.get("causes.low_quantile", sources.get("causes.high_quantile", "default"))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 from pyproj import Transformer
@@ -11,8 +12,9 @@ from pyproj import Transformer
 from ..config import Config
 from ..errors import InputDataError
 from ..grid import Grid, PixelWindow
+from ..io import pdal_reader
 from ..io.intermediate import save_tile_statistics
-from ..io.las import iter_point_chunks
+from ..io.las import PointChunk, iter_point_chunks
 from ..plan import SurveyPlan
 from ..rasterize import WATER_CLASS, HeightMapAccumulator, point_filter_mask
 from ..staging import Staging, input_fingerprint
@@ -42,6 +44,7 @@ class TileTask:
     chunk_points: int
     voxel_height: float  # z units
     output_dir: str
+    pdal: pdal_reader.PdalRead | None = None  # read through PDAL (read.reader = "pdal"), else laspy
 
 
 @dataclass(frozen=True)
@@ -71,9 +74,14 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
     point_filter = PointFilter(tuple(f.drop_classes), tuple(f.keep_classes), f.drop_withheld)
     voxel_height = config.rasterize.voxel_height_m / plan.survey.vertical_unit_m
     grid = plan.grid
+    user_pipeline = _user_pipeline(config)
     tasks = []
     for tile, window in zip(plan.survey.tiles, plan.tile_windows):
         source_crs = source_crs_for_task(tile, plan.survey)
+        pdal = None
+        if config.read.reader == "pdal":
+            pdal = pdal_reader.tile_read(user_pipeline, plan.survey.crs_wkt, tile.header, tile.source_crs_wkt)
+            source_crs = None if pdal.reprojects else source_crs  # else PDAL's points are in the survey CRS
         fingerprint = input_fingerprint(
             tile.path,
             window,
@@ -84,6 +92,7 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
             source_crs,
             point_filter,
             voxel_height,
+            *(() if pdal is None else (pdal,)),
         )
         tasks.append(
             TileTask(
@@ -97,9 +106,27 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
                 chunk_points=config.rasterize.chunk_points,
                 voxel_height=voxel_height,
                 output_dir=str(staging.tile_folder(tile.path, fingerprint)),
+                pdal=pdal,
             )
         )
     return sorted(tasks, key=lambda t: (t.window.row_off, t.window.col_off))
+
+
+def _user_pipeline(config: Config) -> pdal_reader.UserPipeline | None:
+    """The checked ``read.pdal_pipeline`` (python-pdal is checked with the laspy reader off)."""
+    if config.read.reader != "pdal":
+        return None
+    if not config.read.pdal_pipeline:
+        pdal_reader.import_pdal()
+        return None
+    return pdal_reader.load_user_pipeline(config.read.pdal_pipeline, streaming=config.read.pdal_streaming)
+
+
+def _point_chunks(task: TileTask) -> Iterator[PointChunk]:
+    """The read dispatch: the tile's points through laspy, or through PDAL and the user's stages."""
+    if task.pdal is None:
+        return iter_point_chunks(task.path, task.chunk_points)
+    return pdal_reader.iter_pdal_chunks(task.path, task.chunk_points, task.pdal)
 
 
 def rasterize_tile(task: TileTask) -> TileResult:
@@ -120,7 +147,7 @@ def rasterize_tile(task: TileTask) -> TileResult:
     )
     read = used = outside = 0
     f = task.point_filter
-    for chunk in iter_point_chunks(task.path, task.chunk_points):
+    for chunk in _point_chunks(task):
         keep = point_filter_mask(
             chunk.classification,
             chunk.withheld,
