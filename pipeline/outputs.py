@@ -396,7 +396,13 @@ def write_manifest(
             "sizing": plan.sizing.as_record(),
         },
         "inputs": [
-            {"path": r.path, "points_read": r.points_read, "points_used": r.points_used, "seconds": round(r.seconds, 3)}
+            {
+                "path": r.path,
+                "points_read": r.points_read,
+                "points_used": r.points_used,
+                "seconds": round(r.seconds, 3),
+                "read_tasks": r.read_tasks,
+            }
             for r in tile_results
         ],
         "skipped": summary.skipped,

@@ -189,8 +189,11 @@ def _run_rasters(
     tile_tasks = bin_tiles.tile_tasks(plan, config, staging)
     tile_function = bin_tiles.rasterize_tile_or_skip if skip else bin_tiles.rasterize_tile
     tile_futures = {
-        task.tile_index: runner.submit(
-            tile_function, task, label=f"tile {task.path}", key=f"rasterize-{Path(task.output_dir).name}"
+        task.read_index: runner.submit(
+            tile_function,
+            task,
+            label=f"tile {task.path}" + (f" (COPC read task {task.part})" if task.part else ""),
+            key=f"rasterize-{Path(task.output_dir).name}",
         )
         for task in tile_tasks
     }
@@ -241,7 +244,8 @@ def _run_rasters(
             f"no point is left after filtering (filter.keep_classes = {f.keep_classes}, "
             f"filter.drop_classes = {f.drop_classes}, filter.drop_withheld = {str(f.drop_withheld).lower()})",
         )
-    results.tiles.sort(key=lambda r: r.tile_index)
+    results.tiles = bin_tiles.results_by_file(results.tiles)
+    results.failed = list({f["path"]: f for f in results.failed}.values())  # a split file's failed tasks: once
     order = {cell.id: i for i, cell in enumerate(plan.cells)}
     results.cells.sort(key=lambda r: order[r.cell_id])
     results.written.sort(key=lambda r: order[r.cell_id])

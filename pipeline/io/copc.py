@@ -228,7 +228,9 @@ def _read_all(sources: list) -> laspy.LasData:
                 record.array[name] = converted.points.array[name]
         record.x, record.y, record.z = converted.x, converted.y, converted.z  # rescaled to the first file
         arrays.append(record.array)
-    merged.points = laspy.ScaleAwarePointRecord(np.concatenate(arrays), header.point_format, header.scales, header.offsets)
+    merged.points = laspy.ScaleAwarePointRecord(
+        np.concatenate(arrays), header.point_format, header.scales, header.offsets
+    )
     merged.update_header()
     return merged
 

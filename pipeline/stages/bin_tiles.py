@@ -1,19 +1,30 @@
-"""Stage 1, one task per input tile: decode its points once and bin them into the global grid."""
+"""Stage 1, one task per read task: decode its points once and bin them into the global grid.
+
+A read task (:mod:`pipeline.reads`) is a whole LAS/LAZ file, or a group of a COPC
+file's octree nodes when the file is split. Either way the worker sees the same
+thing: :func:`read_points` yields :class:`~pipeline.io.las.PointChunk` records
+(integer coordinates with scale and offset, class, withheld flag, flight line),
+which is the whole interface between a reader and the binning; another reader
+(e.g. PDAL) only has to yield those.
+"""
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
 
 from pyproj import Transformer
 
 from ..config import Config
 from ..errors import InputDataError
 from ..grid import Grid, PixelWindow
+from ..io.copc import iter_copc_nodes
 from ..io.intermediate import save_tile_statistics
-from ..io.las import iter_point_chunks
+from ..io.las import PointChunk, iter_point_chunks
 from ..plan import SurveyPlan
 from ..rasterize import WATER_CLASS, HeightMapAccumulator, point_filter_mask
+from ..reads import Node
 from ..staging import Staging, input_fingerprint
 from ..survey import source_crs_for_task
 
@@ -29,9 +40,10 @@ class PointFilter:
 
 @dataclass(frozen=True)
 class TileTask:
-    """Decode one tile once and bin its points into the global grid."""
+    """Decode one read task (a tile, or some nodes of a COPC file) once and bin its points into the global grid."""
 
     tile_index: int
+    read_index: int  # plan.reads index: the same as tile_index unless a COPC file is split
     path: str
     window: PixelWindow
     shared_windows: tuple[PixelWindow, ...]
@@ -41,6 +53,8 @@ class TileTask:
     chunk_points: int
     voxel_height: float  # z units
     output_dir: str
+    nodes: tuple[Node, ...] = ()  # COPC chunks to decode; empty: the whole file
+    part: str = ""  # "3/12" for a split COPC file's fourth task (labels)
 
 
 @dataclass(frozen=True)
@@ -53,6 +67,8 @@ class TileResult:
     points_used: int
     points_outside: int
     seconds: float
+    read_index: int = -1
+    read_tasks: int = 1  # tasks the file was read by (after results_by_file)
 
 
 @dataclass(frozen=True)
@@ -65,40 +81,49 @@ class TileFailure:
 
 
 def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileTask]:
-    """One task per tile, in row-major order of their windows so that cells complete early."""
+    """One task per read task of the plan, in row-major order of their windows so that cells complete early.
+
+    A split COPC file's tasks keep their results under ``<file>-<fingerprint>-part<k>``,
+    where the fingerprint also covers the task's nodes: a resumed run finds them again.
+    """
     f = config.filter
     point_filter = PointFilter(tuple(f.drop_classes), tuple(f.keep_classes), f.drop_withheld)
     voxel_height = config.rasterize.voxel_height_m / plan.survey.vertical_unit_m
     grid = plan.grid
     tasks = []
-    for tile, window in zip(plan.survey.tiles, plan.tile_windows):
+    for read_index, (read, window) in enumerate(zip(plan.reads, plan.read_windows)):
+        tile = plan.survey.tiles[read.tile_index]
         source_crs = source_crs_for_task(tile, plan.survey)
-        fingerprint = input_fingerprint(
-            tile.path,
-            window,
-            grid.resolution,
-            grid.col_min,
-            grid.row_top,
-            grid.offset,
-            source_crs,
-            point_filter,
-            voxel_height,
-        )
+        key = (grid.resolution, grid.col_min, grid.row_top, grid.offset, source_crs, point_filter, voxel_height)
+        if read.is_whole_file:
+            fingerprint = input_fingerprint(tile.path, window, *key)
+        else:
+            fingerprint = input_fingerprint(tile.path, window, *key, read.nodes) + f"-part{read.part:03d}"
         tasks.append(
             TileTask(
                 tile_index=tile.index,
+                read_index=read_index,
                 path=tile.path,
                 window=window,
-                shared_windows=plan.shared_windows[tile.index],
+                shared_windows=plan.shared_windows[read_index],
                 grid=grid,
                 source_crs_wkt=source_crs,
                 point_filter=point_filter,
                 chunk_points=config.rasterize.chunk_points,
                 voxel_height=voxel_height,
                 output_dir=str(staging.tile_folder(tile.path, fingerprint)),
+                nodes=read.nodes,
+                part="" if read.is_whole_file else f"{read.part}/{read.parts}",
             )
         )
     return sorted(tasks, key=lambda t: (t.window.row_off, t.window.col_off))
+
+
+def read_points(task: TileTask) -> Iterator[PointChunk]:
+    """The reader interface: a read task's points, chunk by chunk, each point once."""
+    if task.nodes:
+        return iter_copc_nodes(task.path, task.nodes, task.chunk_points)
+    return iter_point_chunks(task.path, task.chunk_points)
 
 
 def rasterize_tile(task: TileTask) -> TileResult:
@@ -119,7 +144,7 @@ def rasterize_tile(task: TileTask) -> TileResult:
     )
     read = used = outside = 0
     f = task.point_filter
-    for chunk in iter_point_chunks(task.path, task.chunk_points):
+    for chunk in read_points(task):
         keep = point_filter_mask(
             chunk.classification,
             chunk.withheld,
@@ -149,6 +174,7 @@ def rasterize_tile(task: TileTask) -> TileResult:
         points_used=used,
         points_outside=outside,
         seconds=time.perf_counter() - started,
+        read_index=task.read_index,
     )
 
 
@@ -158,3 +184,23 @@ def rasterize_tile_or_skip(task: TileTask) -> TileResult | TileFailure:
         return rasterize_tile(task)
     except InputDataError as e:
         return TileFailure(task.tile_index, task.path, e.reason)
+
+
+def results_by_file(results: list[TileResult]) -> list[TileResult]:
+    """One result per file, in tile order: a split file's tasks summed (points, seconds, tasks)."""
+    by_file: dict[int, TileResult] = {}
+    for r in sorted(results, key=lambda r: (r.tile_index, r.read_index)):
+        kept = by_file.get(r.tile_index)
+        by_file[r.tile_index] = (
+            r
+            if kept is None
+            else replace(
+                kept,
+                points_read=kept.points_read + r.points_read,
+                points_used=kept.points_used + r.points_used,
+                points_outside=kept.points_outside + r.points_outside,
+                seconds=kept.seconds + r.seconds,
+                read_tasks=kept.read_tasks + 1,
+            )
+        )
+    return list(by_file.values())

@@ -50,12 +50,16 @@ class CellResult:
 
 
 def merge_tasks(plan: SurveyPlan, tiles: list[TileTask], staging: Staging) -> list[tuple[CellTask, list[int]]]:
-    """One task per planned cell touched by a tile, with the indices of the tiles it needs."""
-    windows = {t.tile_index: t.window for t in tiles}
+    """One task per planned cell touched by a tile, with the indices of the read tasks it needs.
+
+    A cell inside a split COPC file's bounds where no octree node lies needs no read
+    task, and is still merged (empty), as it would be were the file read whole.
+    """
+    windows = {t.read_index: t.window for t in tiles}
     recipes = []
     for cell in plan.cells:
-        touching = [i for i in plan.tiles_of_cell[cell.id] if i in windows]
-        if not touching:
+        touching = [i for i in plan.reads_of_cell[cell.id] if i in windows]
+        if not touching and not plan.tiles_of_cell[cell.id]:
             continue
         task = CellTask(
             cell=cell,
