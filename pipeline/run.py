@@ -160,7 +160,7 @@ class _Rasters:
             self.tiles.append(result)
             if result.points_outside:
                 logger.warning(
-                    "%s: %d points lie outside the bounds its header declares; they were not used",
+                    "%s: %d points lie outside the bounds its header (or, for a split COPC file, its octree nodes) declares; they were not used",
                     result.path,
                     result.points_outside,
                 )

@@ -105,7 +105,7 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
                 read_index=read_index,
                 path=tile.path,
                 window=window,
-                shared_windows=plan.shared_windows[read_index],
+                shared_windows=_outermost(plan.shared_windows[read_index]),
                 grid=grid,
                 source_crs_wkt=source_crs,
                 point_filter=point_filter,
@@ -117,6 +117,19 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
             )
         )
     return sorted(tasks, key=lambda t: (t.window.row_off, t.window.col_off))
+
+
+def _outermost(windows: tuple[PixelWindow, ...]) -> tuple[PixelWindow, ...]:
+    """The windows not inside another one: the same pixels, each listed once where possible.
+
+    A split COPC file's tasks share their whole window with the octree's top task, which
+    holds every other overlap; keys are then gathered once per pixel instead of once per overlap.
+    """
+    kept: list[PixelWindow] = []
+    for window in sorted(set(windows), key=lambda w: -w.height * w.width):
+        if not any(window.intersection(outer) == window for outer in kept):
+            kept.append(window)
+    return tuple(dict.fromkeys(w for w in windows if w in kept))
 
 
 def read_points(task: TileTask) -> Iterator[PointChunk]:
