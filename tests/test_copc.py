@@ -14,7 +14,7 @@ import pytest
 import shapely
 
 from pipeline.config import load_config
-from pipeline.errors import InputDataError
+from pipeline.errors import ConfigError, InputDataError
 from pipeline.io.copc import iter_copc_nodes, read_copc_octree, write_copc
 from pipeline.io.las import read_header
 from pipeline.io.raster import read_raster
@@ -233,3 +233,10 @@ def test_real_tiles_merged_into_one_copc(shared_data, tmp_path, dask_client):
     dsm = [read_raster(tmp_path / name / "dsm.vrt")[0] for name in ("split", "whole", "laz")]
     np.testing.assert_array_equal(dsm[0], dsm[1])
     np.testing.assert_array_equal(dsm[0], dsm[2])
+
+
+def test_copc_split_setting_is_validated():
+    assert load_config().rasterize.copc_split == "auto"
+    assert load_config(overrides=["rasterize.copc_split=true"]).rasterize.copc_split is True
+    with pytest.raises(ConfigError, match=r"rasterize.copc_split = 'yes' is invalid; expected true, false or 'auto'"):
+        load_config(overrides=["rasterize.copc_split=yes"])
