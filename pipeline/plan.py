@@ -285,7 +285,10 @@ def _meets(a: PixelWindow, b: PixelWindow) -> bool:
 
 
 def _read_window(grid: Grid, read: ReadPart, file_window: PixelWindow) -> PixelWindow:
-    """A read task's window: its file's, or its nodes' grown by a pixel (a point on a cube face) inside its file's."""
+    """A read task's window: its file's; a COPC cell task's bounds grown by a pixel (a point on a
+    cube face) inside its file's; none for a COPC top task (it bins nothing)."""
+    if read.role == "top":
+        return PixelWindow(0, 0, 0, 0)
     if read.is_whole_file:
         return file_window
     return grid.window_of_bounds(*read.bounds).expand(1).intersection(file_window)

@@ -188,15 +188,19 @@ def _run_rasters(
     skip = config.survey.on_error == "skip"
     tile_tasks = bin_tiles.tile_tasks(plan, config, staging)
     tile_function = bin_tiles.rasterize_tile_or_skip if skip else bin_tiles.rasterize_tile
-    tile_futures = {
-        task.read_index: runner.submit(
+    tile_futures: dict[int, Any] = {}
+    tops: dict[int, Any] = {}  # a split COPC file's top task: its cell tasks wait for it
+    for task in tile_tasks:  # top tasks come first
+        tile_futures[task.read_index] = runner.submit(
             tile_function,
             task,
+            *([tops[task.tile_index]] if task.role == "cell" and task.tile_index in tops else []),
             label=f"tile {task.path}" + (f" (COPC read task {task.part})" if task.part else ""),
             key=f"rasterize-{Path(task.output_dir).name}",
+            priority=3 if task.role == "top" else 0,
         )
-        for task in tile_tasks
-    }
+        if task.role == "top":
+            tops[task.tile_index] = tile_futures[task.read_index]
     merge_recipes = merge_cells.merge_tasks(plan, tile_tasks, staging)
     merge_futures = {
         task.cell.id: runner.submit(

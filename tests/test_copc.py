@@ -111,17 +111,21 @@ def test_every_node_is_read_by_exactly_one_task(synthetic, cell_m):
     assert set(assigned) == listed and set(assigned.values()) == {1}
     assert sum(read.point_count for read in plan.reads) == synthetic["points"]
     file_window = plan.tile_windows[0]
-    for window in plan.read_windows:
+    roles = Counter(read.role for read in plan.reads)
+    assert roles["top"] == 1 and roles["cell"] == len(plan.reads) - 1
+    # one cell task per cell of the file: the top task hands each its points
+    assert sorted(r.cell for r in plan.reads if r.role == "cell") == sorted(plan.grid.cell_indices_under(file_window))
+    for read, window in zip(plan.reads, plan.read_windows):
+        if read.role == "top":  # it bins nothing: no window, in no cell's merge
+            assert window.is_empty and all(read_index != 0 for r in plan.reads_of_cell.values() for read_index in r)
+            continue
         assert window.intersection(file_window) == window and not window.is_empty
+        # no larger than its cell grown by half a cell (a node centred in it), and a pixel
+        assert window.width <= 2 * plan.grid.cell_px + 2 and window.height <= 2 * plan.grid.cell_px + 2
     # a cell's merge reads only the tasks whose window meets its halo
     for cell in plan.cells:
         for i in plan.reads_of_cell[cell.id]:
             assert not plan.read_windows[i].intersection(cell.halo_window).is_empty
-    # tasks below the top of the octree are no larger than a cell and its neighbours
-    top = max(plan.read_windows, key=lambda w: w.height * w.width)
-    for window in plan.read_windows:
-        if window != top:
-            assert window.width <= 2 * plan.grid.cell_px + 2 and window.height <= 2 * plan.grid.cell_px + 2
 
 
 def test_read_tasks_grow_with_the_cells_the_file_spans(synthetic):

@@ -306,3 +306,29 @@ def _write_file(path, header: laspy.LasHeader, points: np.ndarray, entries, cent
         header.start_of_first_evlr, header.number_of_evlrs = evlr_start, 1
         fh.seek(0)
         header.write_to(fh, ensure_same_size=True)
+
+
+# -- points handed from a COPC file's top task to its cell tasks ------------------------
+
+
+def save_point_chunk(path: str | os.PathLike, chunk: PointChunk, keep: np.ndarray) -> None:
+    """Keep the points ``keep`` of a decoded chunk for another task (``.npz``, the raw fields)."""
+    np.savez(
+        path,
+        X=chunk.X[keep], Y=chunk.Y[keep], Z=chunk.Z[keep],
+        classification=chunk.classification[keep], withheld=chunk.withheld[keep],
+        point_source_id=chunk.point_source_id[keep],
+        scales=np.array(chunk.scales), offsets=np.array(chunk.offsets),
+    )  # fmt: skip
+
+
+def load_point_chunk(path: str | os.PathLike) -> PointChunk:
+    """Points kept by :func:`save_point_chunk`."""
+    with np.load(path) as data:
+        return PointChunk(
+            X=data["X"], Y=data["Y"], Z=data["Z"],
+            scales=tuple(float(v) for v in data["scales"]),  # type: ignore[arg-type]
+            offsets=tuple(float(v) for v in data["offsets"]),  # type: ignore[arg-type]
+            classification=data["classification"], withheld=data["withheld"],
+            point_source_id=data["point_source_id"],
+        )  # fmt: skip

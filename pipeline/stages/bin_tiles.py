@@ -13,18 +13,20 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
+from pathlib import Path
 
+import numpy as np
 from pyproj import Transformer
 
 from ..config import Config
 from ..errors import InputDataError
 from ..grid import Grid, PixelWindow
-from ..io.copc import iter_copc_nodes
+from ..io.copc import iter_copc_nodes, load_point_chunk, save_point_chunk
 from ..io.intermediate import save_tile_statistics
 from ..io.las import PointChunk, iter_point_chunks
 from ..plan import SurveyPlan
 from ..rasterize import WATER_CLASS, HeightMapAccumulator, point_filter_mask
-from ..reads import Node
+from ..reads import Node, cell_of
 from ..staging import Staging, input_fingerprint
 from ..survey import source_crs_for_task
 
@@ -55,6 +57,10 @@ class TileTask:
     output_dir: str
     nodes: tuple[Node, ...] = ()  # COPC chunks to decode; empty: the whole file
     part: str = ""  # "3/12" for a split COPC file's fourth task (labels)
+    role: str = "whole"  # "whole", or a split COPC file's "top" or "cell" task (pipeline.reads)
+    cell: tuple[int, int] | None = None  # a cell task's cell
+    top_dir: str = ""  # a cell task: where its file's top task leaves the points of each cell
+    cells: tuple[tuple[int, int], ...] = ()  # a top task: the cells its file has tasks for
 
 
 @dataclass(frozen=True)
@@ -83,13 +89,16 @@ class TileFailure:
 def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileTask]:
     """One task per read task of the plan, in row-major order of their windows so that cells complete early.
 
-    A split COPC file's tasks keep their results under ``<file>-<fingerprint>-part<k>``,
-    where the fingerprint also covers the task's nodes: a resumed run finds them again.
+    A split COPC file's top task comes first (its cell tasks wait for it). Its tasks keep
+    their results under ``<file>-<fingerprint>-part<k>``, where the fingerprint also covers
+    the task's nodes and cell: a resumed run finds them again.
     """
     f = config.filter
     point_filter = PointFilter(tuple(f.drop_classes), tuple(f.keep_classes), f.drop_withheld)
     voxel_height = config.rasterize.voxel_height_m / plan.survey.vertical_unit_m
     grid = plan.grid
+    top_dirs: dict[int, str] = {}
+    cells: dict[int, list[tuple[int, int]]] = {}
     tasks = []
     for read_index, (read, window) in enumerate(zip(plan.reads, plan.read_windows)):
         tile = plan.survey.tiles[read.tile_index]
@@ -98,7 +107,13 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
         if read.is_whole_file:
             fingerprint = input_fingerprint(tile.path, window, *key)
         else:
-            fingerprint = input_fingerprint(tile.path, window, *key, read.nodes) + f"-part{read.part:03d}"
+            fingerprint = input_fingerprint(tile.path, window, *key, read.nodes, read.cell, top_dirs.get(tile.index))
+            fingerprint += f"-part{read.part:03d}"
+        output_dir = str(staging.tile_folder(tile.path, fingerprint))
+        if read.role == "top":
+            top_dirs[tile.index] = output_dir
+        if read.cell is not None:
+            cells.setdefault(tile.index, []).append(read.cell)
         tasks.append(
             TileTask(
                 tile_index=tile.index,
@@ -111,19 +126,22 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
                 point_filter=point_filter,
                 chunk_points=config.rasterize.chunk_points,
                 voxel_height=voxel_height,
-                output_dir=str(staging.tile_folder(tile.path, fingerprint)),
+                output_dir=output_dir,
                 nodes=read.nodes,
                 part="" if read.is_whole_file else f"{read.part}/{read.parts}",
+                role=read.role,
+                cell=read.cell,
+                top_dir=top_dirs.get(tile.index, "") if read.role == "cell" else "",
             )
         )
-    return sorted(tasks, key=lambda t: (t.window.row_off, t.window.col_off))
+    tasks = [replace(t, cells=tuple(cells[t.tile_index])) if t.role == "top" else t for t in tasks]
+    return sorted(tasks, key=lambda t: (t.role != "top", t.window.row_off, t.window.col_off))
 
 
 def _outermost(windows: tuple[PixelWindow, ...]) -> tuple[PixelWindow, ...]:
     """The windows not inside another one: the same pixels, each listed once where possible.
 
-    A split COPC file's tasks share their whole window with the octree's top task, which
-    holds every other overlap; keys are then gathered once per pixel instead of once per overlap.
+    Keys are then gathered once per pixel instead of once per overlap.
     """
     kept: list[PixelWindow] = []
     for window in sorted(set(windows), key=lambda w: -w.height * w.width):
@@ -133,14 +151,90 @@ def _outermost(windows: tuple[PixelWindow, ...]) -> tuple[PixelWindow, ...]:
 
 
 def read_points(task: TileTask) -> Iterator[PointChunk]:
-    """The reader interface: a read task's points, chunk by chunk, each point once."""
-    if task.nodes:
-        return iter_copc_nodes(task.path, task.nodes, task.chunk_points)
-    return iter_point_chunks(task.path, task.chunk_points)
+    """The reader interface: a read task's points, chunk by chunk, each point decoded once."""
+    if task.role == "whole":
+        return iter_point_chunks(task.path, task.chunk_points)
+    return iter_copc_nodes(task.path, task.nodes, task.chunk_points)
 
 
-def rasterize_tile(task: TileTask) -> TileResult:
-    """Stream one tile's points in chunks into per-pixel statistics."""
+def _points_to_bin(task: TileTask) -> Iterator[tuple[PointChunk, bool]]:
+    """``(chunk, decoded here)``: the task's own points, then those its file's top task handed to its cell."""
+    for chunk in read_points(task):
+        yield chunk, True
+    if task.cell is not None and task.top_dir:
+        handed = Path(task.top_dir) / _handed_name(task.cell)
+        if handed.exists():
+            yield load_point_chunk(handed), False
+
+
+def _handed_name(cell: tuple[int, int]) -> str:
+    return f"cell_{cell[0]}_{cell[1]}.npz"
+
+
+def hand_over_top(task: TileTask, *after: object) -> TileResult:
+    """A split COPC file's top task: decode the octree's top nodes once and leave each cell's points to its task.
+
+    Bins nothing (its window is empty); the points of a cell the file has no task for
+    lie outside the file's bounds and are counted as outside.
+    """
+    started = time.perf_counter()
+    grid, wanted = task.grid, set(task.cells)
+    by_cell: dict[tuple[int, int], list[PointChunk]] = {}
+    read = outside = 0
+    for chunk in read_points(task):
+        x, y, _ = chunk.coordinates()
+        cell_x, cell_y = cell_of(grid, x, y)
+        keys = np.stack([cell_x, cell_y], axis=1)
+        for key in map(tuple, np.unique(keys, axis=0).tolist()):
+            keep = (cell_x == key[0]) & (cell_y == key[1])
+            if key in wanted:
+                by_cell.setdefault(key, []).append(_subset(chunk, keep))
+            else:
+                outside += int(keep.sum())
+        read += len(chunk)
+    Path(task.output_dir).mkdir(exist_ok=True)  # never parents (a cancelled run's staging folder stays deleted)
+    for key, parts in by_cell.items():
+        merged = _concatenate(parts)
+        save_point_chunk(Path(task.output_dir) / _handed_name(key), merged, np.ones(len(merged), bool))
+    return TileResult(
+        tile_index=task.tile_index,
+        path=task.path,
+        output_dir=task.output_dir,
+        window=task.window,
+        points_read=read,
+        points_used=0,
+        points_outside=outside,
+        seconds=time.perf_counter() - started,
+        read_index=task.read_index,
+    )
+
+
+def _subset(chunk: PointChunk, keep: np.ndarray) -> PointChunk:
+    return PointChunk(
+        X=chunk.X[keep], Y=chunk.Y[keep], Z=chunk.Z[keep], scales=chunk.scales, offsets=chunk.offsets,
+        classification=chunk.classification[keep], withheld=chunk.withheld[keep],
+        point_source_id=chunk.point_source_id[keep],
+    )  # fmt: skip
+
+
+def _concatenate(parts: list[PointChunk]) -> PointChunk:
+    def joined(name: str) -> np.ndarray:
+        return np.concatenate([getattr(p, name) for p in parts])
+
+    return PointChunk(
+        X=joined("X"), Y=joined("Y"), Z=joined("Z"), scales=parts[0].scales, offsets=parts[0].offsets,
+        classification=joined("classification"), withheld=joined("withheld"),
+        point_source_id=joined("point_source_id"),
+    )  # fmt: skip
+
+
+def rasterize_tile(task: TileTask, *after: object) -> TileResult:
+    """Stream one read task's points in chunks into per-pixel statistics.
+
+    ``after``: results this task waits for (a COPC cell task: its file's top task).
+    """
+    if task.role == "top":
+        return hand_over_top(task)
     started = time.perf_counter()
     grid = task.grid
     accumulator = HeightMapAccumulator(
@@ -157,7 +251,7 @@ def rasterize_tile(task: TileTask) -> TileResult:
     )
     read = used = outside = 0
     f = task.point_filter
-    for chunk in read_points(task):
+    for chunk, decoded in _points_to_bin(task):
         keep = point_filter_mask(
             chunk.classification,
             chunk.withheld,
@@ -174,7 +268,7 @@ def rasterize_tile(task: TileTask) -> TileResult:
             x, y, z = chunk.coordinates()
             x, y = transformer.transform(x, y)
             n_used, n_outside = accumulator.add(x, y, z, keep, **evidence)
-        read += len(chunk)
+        read += len(chunk) if decoded else 0  # handed-over points were counted by the top task
         used += n_used
         outside += n_outside
     save_tile_statistics(task.output_dir, accumulator.statistics, accumulator.voxel_keys(task.shared_windows))
@@ -191,8 +285,11 @@ def rasterize_tile(task: TileTask) -> TileResult:
     )
 
 
-def rasterize_tile_or_skip(task: TileTask) -> TileResult | TileFailure:
+def rasterize_tile_or_skip(task: TileTask, *after: object) -> TileResult | TileFailure:
     """:func:`rasterize_tile`, reporting a bad tile instead of raising (``on_error = "skip"``)."""
+    failed = [a for a in after if isinstance(a, TileFailure)]
+    if failed:  # a COPC cell task whose file's top task failed
+        return TileFailure(task.tile_index, task.path, failed[0].reason)
     try:
         return rasterize_tile(task)
     except InputDataError as e:
