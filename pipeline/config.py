@@ -81,6 +81,12 @@ class RasterizeConfig:
 
     chunk_points: int = _opt(1_000_000, "Points decoded per chunk; bounds the memory of a tile task.", ge=10_000)
     voxel_height_m: float = _opt(0.5, "Voxel height in metres for the occupied-voxel count (vertical holes).", gt=0)
+    copc_split: bool | str = _opt(
+        "auto",
+        "Read a COPC file as several tasks, its octree nodes grouped by cell: true, false, or 'auto' "
+        "(when the file spans more than one cell).",
+        auto=True,
+    )
 
 
 @dataclass(frozen=True)
@@ -509,12 +515,13 @@ def _validate(key: str, value: Any, kind: Any, rules: dict[str, Any], where: str
     def fail(expected: str) -> ConfigError:
         return ConfigError(f"{where}: {key} = {value!r} is invalid; expected {expected}")
 
-    if get_origin(kind) is types.UnionType:  # float | str: a number, or "auto"
+    if get_origin(kind) is types.UnionType:  # float | str or bool | str: a number or a flag, or "auto"
         if rules.get("auto") and value == AUTO:
             return AUTO
-        if isinstance(value, str):
-            raise fail(f"a number or {AUTO!r}")
-        return _validate(key, value, float, rules, where)
+        other = next(a for a in get_args(kind) if a is not str)
+        if isinstance(value, str) or not _is(value, other):
+            raise fail(f"{'true, false' if other is bool else 'a number'} or {AUTO!r}")
+        return _validate(key, value, other, rules, where)
     if get_origin(kind) is list:
         item_kind = get_args(kind)[0]
         if not isinstance(value, list) or not all(_is(v, item_kind) for v in value):

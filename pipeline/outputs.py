@@ -477,6 +477,7 @@ def _input_entry(result: TileResult, tile: Any, record: dict[str, Any]) -> dict[
         "points_read": result.points_read,
         "points_used": result.points_used,
         "seconds": round(result.seconds, 3),
+        "read_tasks": result.read_tasks,
     }
 
 

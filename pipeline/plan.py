@@ -33,6 +33,7 @@ from .errors import InputDataError
 from .footprint import block_size_px
 from .grid import Cell, Grid, PixelWindow
 from .io.vector import read_survey_area
+from .reads import ReadPart, plan_reads
 from .survey import Survey
 from .tile_grid import TileGrid, grid_survey_area, infer_tile_grid
 
@@ -144,11 +145,18 @@ class SurveyPlan:
         west to east.
     tile_windows : list of PixelWindow
         The grid window of each tile's header bounds (``survey.tiles`` order).
-    shared_windows : dict
-        Tile index -> the overlaps of its window with other tiles' windows (pixels
-        that may receive points from two tiles), in tile order.
     tiles_of_cell : dict
         Cell id -> indices of the tiles whose window meets the cell's halo window.
+    reads : list of ReadPart
+        The stage-1 read tasks (:mod:`pipeline.reads`): one per file, or several
+        for a split COPC file.
+    read_windows : list of PixelWindow
+        The grid window of each read task's bounds (``reads`` order).
+    shared_windows : dict
+        Read index -> the overlaps of its window with other read tasks' windows
+        (pixels that may receive points from two tasks), in read order.
+    reads_of_cell : dict
+        Cell id -> indices of the read tasks whose window meets the cell's halo window.
     """
 
     survey: Survey
@@ -157,6 +165,9 @@ class SurveyPlan:
     tile_windows: list[PixelWindow]
     shared_windows: dict[int, tuple[PixelWindow, ...]]
     tiles_of_cell: dict[str, tuple[int, ...]]
+    reads: list[ReadPart]
+    read_windows: list[PixelWindow]
+    reads_of_cell: dict[str, tuple[int, ...]]
     survey_area: shapely.Geometry
     aoi_given: bool
     block_px: int
@@ -228,6 +239,10 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
         )
         for cell in cells
     }
+    reads = plan_reads(survey, grid, False if config.read.reader == "pdal" else config.rasterize.copc_split)
+    read_windows = [_read_window(grid, read, tile_windows[read.tile_index]) for read in reads]
+    reads_of_core = _tiles_by_cell(grid, read_windows, expand_px=0)
+    reads_of_cell = _of_cells(cells, _tiles_by_cell(grid, read_windows, expand_px=grid.halo_px), read_windows)
     block_px = block_size_px(grid, config.holes.footprint_block_m, survey.horizontal_unit_m)
     pixel_size_m = grid.resolution * survey.horizontal_unit_m
     return SurveyPlan(
@@ -235,8 +250,11 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
         grid=grid,
         cells=cells,
         tile_windows=tile_windows,
-        shared_windows=_shared_windows(tile_windows, tiles_of_core),
+        shared_windows=_shared_windows(read_windows, reads_of_core),
         tiles_of_cell=tiles_of_cell,
+        reads=reads,
+        read_windows=read_windows,
+        reads_of_cell=reads_of_cell,
         survey_area=area.geometry,
         aoi_given=aoi is not None,
         block_px=block_px,
@@ -385,6 +403,26 @@ def _north_west_first(key: tuple[int, int]) -> tuple[int, int]:
 
 def _meets(a: PixelWindow, b: PixelWindow) -> bool:
     return not a.intersection(b).is_empty
+
+
+def _read_window(grid: Grid, read: ReadPart, file_window: PixelWindow) -> PixelWindow:
+    """A read task's window: its file's; a COPC cell task's bounds grown by a pixel (a point on a
+    cube face) inside its file's; none for a COPC top task (it bins nothing)."""
+    if read.role == "top":
+        return PixelWindow(0, 0, 0, 0)
+    if read.is_whole_file:
+        return file_window
+    return grid.window_of_bounds(*read.bounds).expand(1).intersection(file_window)
+
+
+def _of_cells(
+    cells: list[Cell], by_cell: dict[tuple[int, int], list[int]], windows: list[PixelWindow]
+) -> dict[str, tuple[int, ...]]:
+    """Cell id -> the indices of the read tasks whose window meets the cell's halo window."""
+    return {
+        cell.id: tuple(i for i in by_cell[(cell.index_x, cell.index_y)] if _meets(windows[i], cell.halo_window))
+        for cell in cells
+    }
 
 
 def _tiles_by_cell(grid: Grid, windows: list[PixelWindow], *, expand_px: int) -> dict[tuple[int, int], list[int]]:

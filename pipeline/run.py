@@ -200,7 +200,7 @@ class _Rasters:
             self.tiles.append(result)
             if result.points_outside:
                 logger.warning(
-                    "%s: %d points lie outside the bounds its header declares; they were not used",
+                    "%s: %d points lie outside the bounds its header (or, for a split COPC file, its octree nodes) declares; they were not used",
                     result.path,
                     result.points_outside,
                 )
@@ -228,18 +228,22 @@ def _run_rasters(
     skip = config.survey.on_error == "skip"
     tile_tasks = bin_tiles.tile_tasks(plan, config, staging)
     tile_function = bin_tiles.rasterize_tile_or_skip if skip else bin_tiles.rasterize_tile
-    tile_futures = {
-        task.tile_index: runner.submit(
+    tile_futures: dict[int, Any] = {}
+    tops: dict[int, Any] = {}  # a split COPC file's top task: its cell tasks wait for it
+    for task in tile_tasks:  # top tasks come first
+        tile_futures[task.read_index] = runner.submit(
             tile_function,
             task,
-            label=f"tile {task.path}",
+            *([tops[task.tile_index]] if task.role == "cell" and task.tile_index in tops else []),
+            label=f"tile {task.path}" + (f" (COPC read task {task.part})" if task.part else ""),
             key=f"rasterize-{Path(task.output_dir).name}",
+            priority=3 if task.role == "top" else 0,
             adopt=partial(bin_tiles.adopt_result, task),
         )
-        for task in tile_tasks
-    }
+        if task.role == "top":
+            tops[task.tile_index] = tile_futures[task.read_index]
     merge_recipes = merge_cells.merge_tasks(plan, tile_tasks, staging)
-    tile_tasks_by_index = {task.tile_index: task for task in tile_tasks}
+    tile_tasks_by_index = {task.read_index: task for task in tile_tasks}
     merge_futures = {
         task.cell.id: runner.submit(
             merge_cells.merge_cell,
@@ -261,6 +265,7 @@ def _run_rasters(
             priority=-1,  # after the decoding, which the file is then cached for
         )
         for task in tile_tasks
+        if task.role in ("whole", "top")  # once per file, also when a COPC file is split
     ]
     write_futures = [
         runner.submit(
@@ -298,7 +303,8 @@ def _run_rasters(
             f"no point is left after filtering (filter.keep_classes = {f.keep_classes}, "
             f"filter.drop_classes = {f.drop_classes}, filter.drop_withheld = {str(f.drop_withheld).lower()})",
         )
-    results.tiles.sort(key=lambda r: r.tile_index)
+    results.tiles = bin_tiles.results_by_file(results.tiles)
+    results.failed = list({f["path"]: f for f in results.failed}.values())  # a split file's failed tasks: once
     order = {cell.id: i for i, cell in enumerate(plan.cells)}
     results.cells.sort(key=lambda r: order[r.cell_id])
     results.written.sort(key=lambda r: order[r.cell_id])

@@ -12,11 +12,15 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import laspy
 import numpy as np
 
 from ..errors import CRSError, InputDataError
+
+if TYPE_CHECKING:
+    from .copc import CopcOctree
 
 logger = logging.getLogger(__name__)
 
@@ -49,6 +53,7 @@ class TileHeader:
     crs_problem: str | None  # why a CRS record could not be used, if there is one
     file_size: int
     points_by_return: tuple[int, ...] = ()  # the header's per-return counts, as written
+    copc: CopcOctree | None = None  # a COPC file's octree nodes (hierarchy only), for split reads
 
 
 @dataclass(frozen=True)
@@ -138,6 +143,14 @@ def read_header(path: str | os.PathLike) -> TileHeader:
         crs_problem = f"its CRS record cannot be parsed ({e})"
     mins, maxs = header.mins, header.maxs
     _check_bounds(path, mins, maxs, count)
+    copc = None
+    if is_copc:
+        from .copc import read_copc_octree  # io.copc builds on this module
+
+        copc = read_copc_octree(path)
+        listed = int(copc.nodes["point_count"].sum())
+        if listed != count:
+            raise InputDataError(path, f"COPC hierarchy lists {listed:,} points but the header declares {count:,}")
     return TileHeader(
         path=str(path),
         format="COPC" if is_copc else ("LAZ" if compressed else "LAS"),
@@ -150,6 +163,7 @@ def read_header(path: str | os.PathLike) -> TileHeader:
         crs_problem=crs_problem,
         file_size=file_size,
         points_by_return=tuple(int(c) for c in header.number_of_points_by_return),
+        copc=copc,
     )
 
 

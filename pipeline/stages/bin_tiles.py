@@ -1,22 +1,33 @@
-"""Stage 1, one task per input tile: decode its points once and bin them into the global grid."""
+"""Stage 1, one task per read task: decode its points once and bin them into the global grid.
+
+A read task (:mod:`pipeline.reads`) is a whole LAS/LAZ file, or a group of a COPC
+file's octree nodes when the file is split. Either way the worker sees the same
+thing: :func:`read_points` yields :class:`~pipeline.io.las.PointChunk` records
+(integer coordinates with scale and offset, class, withheld flag, flight line),
+which is the whole interface between a reader and the binning; another reader
+(e.g. PDAL) only has to yield those.
+"""
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 
+import numpy as np
 from pyproj import Transformer
 
 from ..config import Config
 from ..errors import InputDataError
 from ..grid import Grid, PixelWindow
 from ..io import pdal_reader
+from ..io.copc import iter_copc_nodes, load_point_chunk, save_point_chunk
 from ..io.intermediate import save_tile_statistics
 from ..io.las import PointChunk, iter_point_chunks
 from ..plan import SurveyPlan
 from ..rasterize import WATER_CLASS, HeightMapAccumulator, point_filter_mask
+from ..reads import Node, cell_of
 from ..staging import Staging, input_fingerprint
 from ..survey import source_crs_for_task
 
@@ -32,9 +43,10 @@ class PointFilter:
 
 @dataclass(frozen=True)
 class TileTask:
-    """Decode one tile once and bin its points into the global grid."""
+    """Decode one read task (a tile, or some nodes of a COPC file) once and bin its points into the global grid."""
 
     tile_index: int
+    read_index: int  # plan.reads index: the same as tile_index unless a COPC file is split
     path: str
     window: PixelWindow
     shared_windows: tuple[PixelWindow, ...]
@@ -44,6 +56,12 @@ class TileTask:
     chunk_points: int
     voxel_height: float  # z units
     output_dir: str
+    nodes: tuple[Node, ...] = ()  # COPC chunks to decode; empty: the whole file
+    part: str = ""  # "3/12" for a split COPC file's fourth task (labels)
+    role: str = "whole"  # "whole", or a split COPC file's "top" or "cell" task (pipeline.reads)
+    cell: tuple[int, int] | None = None  # a cell task's cell
+    top_dir: str = ""  # a cell task: where its file's top task leaves the points of each cell
+    cells: tuple[tuple[int, int], ...] = ()  # a top task: the cells its file has tasks for
     pdal: pdal_reader.PdalRead | None = None  # read through PDAL (read.reader = "pdal"), else laspy
 
 
@@ -57,6 +75,8 @@ class TileResult:
     points_used: int
     points_outside: int
     seconds: float
+    read_index: int = -1
+    read_tasks: int = 1  # tasks the file was read by (after results_by_file)
 
 
 @dataclass(frozen=True)
@@ -69,47 +89,74 @@ class TileFailure:
 
 
 def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileTask]:
-    """One task per tile, in row-major order of their windows so that cells complete early."""
+    """One task per read task of the plan, in row-major order of their windows so that cells complete early.
+
+    A split COPC file's top task comes first (its cell tasks wait for it). Its tasks keep
+    their results under ``<file>-<fingerprint>-part<k>``, where the fingerprint also covers
+    the task's nodes and cell: a resumed run finds them again.
+    """
     f = config.filter
     point_filter = PointFilter(tuple(f.drop_classes), tuple(f.keep_classes), f.drop_withheld)
     voxel_height = config.rasterize.voxel_height_m / plan.survey.vertical_unit_m
     grid = plan.grid
     user_pipeline = _user_pipeline(config)
+    top_dirs: dict[int, str] = {}
+    cells: dict[int, list[tuple[int, int]]] = {}
     tasks = []
-    for tile, window in zip(plan.survey.tiles, plan.tile_windows):
+    for read_index, (read, window) in enumerate(zip(plan.reads, plan.read_windows)):
+        tile = plan.survey.tiles[read.tile_index]
         source_crs = source_crs_for_task(tile, plan.survey)
         pdal = None
-        if config.read.reader == "pdal":
+        if config.read.reader == "pdal":  # PDAL reads whole files (the plan does not split them)
             pdal = pdal_reader.tile_read(user_pipeline, plan.survey.crs_wkt, tile.header, tile.source_crs_wkt)
             source_crs = None if pdal.reprojects else source_crs  # else PDAL's points are in the survey CRS
-        fingerprint = input_fingerprint(
-            tile.path,
-            window,
-            grid.resolution,
-            grid.col_min,
-            grid.row_top,
-            grid.offset,
-            source_crs,
-            point_filter,
-            voxel_height,
-            *(() if pdal is None else (pdal,)),
-        )
+        key: tuple[object, ...] = (grid.resolution, grid.col_min, grid.row_top, grid.offset, source_crs)
+        key += (point_filter, voxel_height) + (() if pdal is None else (pdal,))
+        if read.is_whole_file:
+            fingerprint = input_fingerprint(tile.path, window, *key)
+        else:
+            fingerprint = input_fingerprint(tile.path, window, *key, read.nodes, read.cell, top_dirs.get(tile.index))
+            fingerprint += f"-part{read.part:03d}"
+        output_dir = str(staging.tile_folder(tile.path, fingerprint))
+        if read.role == "top":
+            top_dirs[tile.index] = output_dir
+        if read.cell is not None:
+            cells.setdefault(tile.index, []).append(read.cell)
         tasks.append(
             TileTask(
                 tile_index=tile.index,
+                read_index=read_index,
                 path=tile.path,
                 window=window,
-                shared_windows=plan.shared_windows[tile.index],
+                shared_windows=_outermost(plan.shared_windows[read_index]),
                 grid=grid,
                 source_crs_wkt=source_crs,
                 point_filter=point_filter,
                 chunk_points=config.rasterize.chunk_points,
                 voxel_height=voxel_height,
-                output_dir=str(staging.tile_folder(tile.path, fingerprint)),
+                output_dir=output_dir,
+                nodes=read.nodes,
+                part="" if read.is_whole_file else f"{read.part}/{read.parts}",
+                role=read.role,
+                cell=read.cell,
+                top_dir=top_dirs.get(tile.index, "") if read.role == "cell" else "",
                 pdal=pdal,
             )
         )
-    return sorted(tasks, key=lambda t: (t.window.row_off, t.window.col_off))
+    tasks = [replace(t, cells=tuple(cells[t.tile_index])) if t.role == "top" else t for t in tasks]
+    return sorted(tasks, key=lambda t: (t.role != "top", t.window.row_off, t.window.col_off))
+
+
+def _outermost(windows: tuple[PixelWindow, ...]) -> tuple[PixelWindow, ...]:
+    """The windows not inside another one: the same pixels, each listed once where possible.
+
+    Keys are then gathered once per pixel instead of once per overlap.
+    """
+    kept: list[PixelWindow] = []
+    for window in sorted(set(windows), key=lambda w: -w.height * w.width):
+        if not any(window.intersection(outer) == window for outer in kept):
+            kept.append(window)
+    return tuple(dict.fromkeys(w for w in windows if w in kept))
 
 
 def _user_pipeline(config: Config) -> pdal_reader.UserPipeline | None:
@@ -122,15 +169,97 @@ def _user_pipeline(config: Config) -> pdal_reader.UserPipeline | None:
     return pdal_reader.load_user_pipeline(config.read.pdal_pipeline, streaming=config.read.pdal_streaming)
 
 
-def _point_chunks(task: TileTask) -> Iterator[PointChunk]:
-    """The read dispatch: the tile's points through laspy, or through PDAL and the user's stages."""
-    if task.pdal is None:
+def read_points(task: TileTask) -> Iterator[PointChunk]:
+    """The reader interface: a read task's points, chunk by chunk, each point decoded once.
+
+    laspy for a whole LAS/LAZ file, PDAL (and the user's stages) with ``read.reader =
+    "pdal"``, lazrs on the listed octree nodes for part of a split COPC file.
+    """
+    if task.pdal is not None:
+        return pdal_reader.iter_pdal_chunks(task.path, task.chunk_points, task.pdal)
+    if task.role == "whole":
         return iter_point_chunks(task.path, task.chunk_points)
-    return pdal_reader.iter_pdal_chunks(task.path, task.chunk_points, task.pdal)
+    return iter_copc_nodes(task.path, task.nodes, task.chunk_points)
 
 
-def rasterize_tile(task: TileTask) -> TileResult:
-    """Stream one tile's points in chunks into per-pixel statistics."""
+def _points_to_bin(task: TileTask) -> Iterator[tuple[PointChunk, bool]]:
+    """``(chunk, decoded here)``: the task's own points, then those its file's top task handed to its cell."""
+    for chunk in read_points(task):
+        yield chunk, True
+    if task.cell is not None and task.top_dir:
+        handed = Path(task.top_dir) / _handed_name(task.cell)
+        if handed.exists():
+            yield load_point_chunk(handed), False
+
+
+def _handed_name(cell: tuple[int, int]) -> str:
+    return f"cell_{cell[0]}_{cell[1]}.npz"
+
+
+def hand_over_top(task: TileTask, *after: object) -> TileResult:
+    """A split COPC file's top task: decode the octree's top nodes once and leave each cell's points to its task.
+
+    Bins nothing (its window is empty); the points of a cell the file has no task for
+    lie outside the file's bounds and are counted as outside.
+    """
+    started = time.perf_counter()
+    grid, wanted = task.grid, set(task.cells)
+    by_cell: dict[tuple[int, int], list[PointChunk]] = {}
+    read = outside = 0
+    for chunk in read_points(task):
+        x, y, _ = chunk.coordinates()
+        cell_x, cell_y = cell_of(grid, x, y)
+        keys = np.stack([cell_x, cell_y], axis=1)
+        for key in map(tuple, np.unique(keys, axis=0).tolist()):
+            keep = (cell_x == key[0]) & (cell_y == key[1])
+            if key in wanted:
+                by_cell.setdefault(key, []).append(_subset(chunk, keep))
+            else:
+                outside += int(keep.sum())
+        read += len(chunk)
+    Path(task.output_dir).mkdir(exist_ok=True)  # never parents (a cancelled run's staging folder stays deleted)
+    for key, parts in by_cell.items():
+        merged = _concatenate(parts)
+        save_point_chunk(Path(task.output_dir) / _handed_name(key), merged, np.ones(len(merged), bool))
+    return TileResult(
+        tile_index=task.tile_index,
+        path=task.path,
+        output_dir=task.output_dir,
+        window=task.window,
+        points_read=read,
+        points_used=0,
+        points_outside=outside,
+        seconds=time.perf_counter() - started,
+        read_index=task.read_index,
+    )
+
+
+def _subset(chunk: PointChunk, keep: np.ndarray) -> PointChunk:
+    return PointChunk(
+        X=chunk.X[keep], Y=chunk.Y[keep], Z=chunk.Z[keep], scales=chunk.scales, offsets=chunk.offsets,
+        classification=chunk.classification[keep], withheld=chunk.withheld[keep],
+        point_source_id=chunk.point_source_id[keep],
+    )  # fmt: skip
+
+
+def _concatenate(parts: list[PointChunk]) -> PointChunk:
+    def joined(name: str) -> np.ndarray:
+        return np.concatenate([getattr(p, name) for p in parts])
+
+    return PointChunk(
+        X=joined("X"), Y=joined("Y"), Z=joined("Z"), scales=parts[0].scales, offsets=parts[0].offsets,
+        classification=joined("classification"), withheld=joined("withheld"),
+        point_source_id=joined("point_source_id"),
+    )  # fmt: skip
+
+
+def rasterize_tile(task: TileTask, *after: object) -> TileResult:
+    """Stream one read task's points in chunks into per-pixel statistics.
+
+    ``after``: results this task waits for (a COPC cell task: its file's top task).
+    """
+    if task.role == "top":
+        return hand_over_top(task)
     started = time.perf_counter()
     grid = task.grid
     accumulator = HeightMapAccumulator(
@@ -147,7 +276,7 @@ def rasterize_tile(task: TileTask) -> TileResult:
     )
     read = used = outside = 0
     f = task.point_filter
-    for chunk in _point_chunks(task):
+    for chunk, decoded in _points_to_bin(task):
         keep = point_filter_mask(
             chunk.classification,
             chunk.withheld,
@@ -164,7 +293,7 @@ def rasterize_tile(task: TileTask) -> TileResult:
             x, y, z = chunk.coordinates()
             x, y = transformer.transform(x, y)
             n_used, n_outside = accumulator.add(x, y, z, keep, **evidence)
-        read += len(chunk)
+        read += len(chunk) if decoded else 0  # handed-over points were counted by the top task
         used += n_used
         outside += n_outside
     save_tile_statistics(task.output_dir, accumulator.statistics, accumulator.voxel_keys(task.shared_windows))
@@ -177,19 +306,43 @@ def rasterize_tile(task: TileTask) -> TileResult:
         points_used=used,
         points_outside=outside,
         seconds=time.perf_counter() - started,
+        read_index=task.read_index,
     )
 
 
-def rasterize_tile_or_skip(task: TileTask) -> TileResult | TileFailure:
+def rasterize_tile_or_skip(task: TileTask, *after: object) -> TileResult | TileFailure:
     """:func:`rasterize_tile`, reporting a bad tile instead of raising (``on_error = "skip"``)."""
+    failed = [a for a in after if isinstance(a, TileFailure)]
+    if failed:  # a COPC cell task whose file's top task failed
+        return TileFailure(task.tile_index, task.path, failed[0].reason)
     try:
         return rasterize_tile(task)
     except InputDataError as e:
         return TileFailure(task.tile_index, task.path, e.reason)
 
 
+def results_by_file(results: list[TileResult]) -> list[TileResult]:
+    """One result per file, in tile order: a split file's tasks summed (points, seconds, tasks)."""
+    by_file: dict[int, TileResult] = {}
+    for r in sorted(results, key=lambda r: (r.tile_index, r.read_index)):
+        kept = by_file.get(r.tile_index)
+        by_file[r.tile_index] = (
+            r
+            if kept is None
+            else replace(
+                kept,
+                points_read=kept.points_read + r.points_read,
+                points_used=kept.points_used + r.points_used,
+                points_outside=kept.points_outside + r.points_outside,
+                seconds=kept.seconds + r.seconds,
+                read_tasks=kept.read_tasks + 1,
+            )
+        )
+    return list(by_file.values())
+
+
 def adopt_result(task: TileTask, kept: TileResult | TileFailure) -> TileResult | TileFailure:
-    """A previous run's result of the same tile (same key), pointed at this run's index and folder."""
+    """A previous run's result of the same read task (same key), pointed at this run's indices and folder."""
     if isinstance(kept, TileResult):
-        return dataclasses.replace(kept, tile_index=task.tile_index, output_dir=task.output_dir)
-    return dataclasses.replace(kept, tile_index=task.tile_index)
+        return replace(kept, tile_index=task.tile_index, read_index=task.read_index, output_dir=task.output_dir)
+    return replace(kept, tile_index=task.tile_index)

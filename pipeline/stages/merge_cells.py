@@ -54,17 +54,16 @@ class CellResult:
 
 
 def merge_tasks(plan: SurveyPlan, tiles: list[TileTask], staging: Staging) -> list[tuple[CellTask, list[int]]]:
-    """One task per planned cell, with the indices of the tiles it needs.
+    """One task per planned cell, with the indices of the read tasks it needs.
 
-    A cell that no tile touches is planned only for the survey area (a missing tile
-    of the tile grid): it is merged empty, so that its pixels are holes.
+    A cell that no read task touches is still merged (empty), so that its pixels are
+    holes: a missing tile of the tile grid, or a cell inside a split COPC file's
+    bounds where no octree node lies (as it would be were the file read whole).
     """
-    windows = {t.tile_index: t.window for t in tiles}
+    windows = {t.read_index: t.window for t in tiles}
     recipes = []
     for cell in plan.cells:
-        touching = [i for i in plan.tiles_of_cell[cell.id] if i in windows]
-        if not touching and plan.tiles_of_cell[cell.id]:
-            continue
+        touching = [i for i in plan.reads_of_cell[cell.id] if i in windows]
         task = CellTask(
             cell=cell,
             grid=plan.grid,
