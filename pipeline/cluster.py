@@ -51,6 +51,7 @@ class ClusterStart:
         self._previous_handler: Any = None
         self._restore_lock = threading.Lock()
         self._closed = False
+        self._stopping: threading.Thread | None = None
 
     @classmethod
     def begin(cls, config: Config) -> ClusterStart:
@@ -75,11 +76,31 @@ class ClusterStart:
             self._restore_ctrl_c()
 
     def close(self) -> None:
-        """Stop the client and the workers (waiting for a start still under way); idempotent."""
+        """Stop the client and the workers (waiting for a start still under way); idempotent.
+
+        Waits for a stop begun by :meth:`close_in_background`.
+        """
         self._restore_ctrl_c()
-        if self._closed:
-            return
-        self._closed = True
+        with self._restore_lock:
+            stopping, self._stopping = self._stopping, None
+            if stopping is None and not self._closed:
+                stopping = threading.Thread(target=self._stop)
+                stopping.start()
+            self._closed = True
+        if stopping is not None:
+            stopping.join()
+
+    def close_in_background(self) -> None:
+        """Begin stopping the workers and return at once (the products are written meanwhile)."""
+        self._restore_ctrl_c()
+        with self._restore_lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._stopping = threading.Thread(target=self._stop, name="holefill-cluster-stop", daemon=True)
+            self._stopping.start()
+
+    def _stop(self) -> None:
         try:
             cluster, client = self._future.result()
         except Exception:
@@ -134,8 +155,9 @@ def dask_client(
 ) -> Iterator[Any]:
     """A callable returning the run's client: the given one, a scheduler's, or a local cluster's.
 
-    A local cluster is started at once (or ``start`` is the one already being
-    started) and stopped on exit; the callable waits for its workers.
+    A local cluster is started at once and stopped on exit; ``start``, a cluster
+    the caller is already starting, is only begun to be stopped on exit (the caller
+    calls its :meth:`ClusterStart.close`). The callable waits for the workers.
     """
     if client is not None:
         yield lambda: client
@@ -145,8 +167,14 @@ def dask_client(
         with remote:
             yield lambda: remote
         return
-    assert config is not None or start is not None
-    starting = start or ClusterStart.begin(config)  # type: ignore[arg-type]
+    if start is not None:  # the caller's: stopped here in the background, the caller waits for it
+        try:
+            yield start.client
+        finally:
+            start.close_in_background()
+        return
+    assert config is not None
+    starting = ClusterStart.begin(config)
     try:
         yield starting.client
     finally:
