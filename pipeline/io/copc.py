@@ -28,7 +28,7 @@ from laspy.copc import CopcReader, load_octree_for_query
 from laspy.point.record import PackedPointRecord
 
 from ..errors import InputDataError
-from .las import NEEDED_LAYERS, PointChunk, _class_and_withheld
+from .las import NEEDED_LAYERS, PointChunk, point_chunk
 
 #: One hierarchy entry, as the COPC specification lays it out (32 bytes, little-endian).
 NODE_DTYPE = np.dtype(
@@ -126,13 +126,7 @@ def iter_copc_nodes(
             for batch in _batches(sorted(nodes), chunk_points):
                 records = _decompress(fh, batch, header.point_format, laszip, selection)
                 decoded += len(records)
-                classification, withheld = _class_and_withheld(records)
-                yield PointChunk(
-                    X=records["X"], Y=records["Y"], Z=records["Z"],
-                    scales=scales, offsets=offsets,  # type: ignore[arg-type]
-                    classification=classification, withheld=withheld,
-                    point_source_id=records["point_source_id"],
-                )  # fmt: skip
+                yield point_chunk(records, scales, offsets)  # type: ignore[arg-type]
     except InputDataError:
         raise
     except Exception as e:

@@ -193,14 +193,7 @@ def iter_point_chunks(
                 if n == 0:
                     break
                 decoded += n
-                records = chunk.array
-                classification, withheld = _class_and_withheld(records)
-                yield PointChunk(
-                    X=records["X"], Y=records["Y"], Z=records["Z"],
-                    scales=scales, offsets=offsets,
-                    classification=classification, withheld=withheld,
-                    point_source_id=records["point_source_id"],
-                )  # fmt: skip
+                yield point_chunk(chunk.array, scales, offsets)
     except InputDataError:
         raise
     except Exception as e:
@@ -234,6 +227,17 @@ def _check_bounds(path: Path, mins, maxs, count: int) -> None:
             f"header bounds span {area:.3g} square units for {count:,} points (one point per "
             f"{area / max(count, 1):.3g}): the bounds are implausible",
         )
+
+
+def point_chunk(
+    records: np.ndarray, scales: tuple[float, float, float], offsets: tuple[float, float, float]
+) -> PointChunk:
+    """A :class:`PointChunk` over decoded point records (views, no copy of the coordinates)."""
+    classification, withheld = _class_and_withheld(records)
+    return PointChunk(
+        X=records["X"], Y=records["Y"], Z=records["Z"], scales=scales, offsets=offsets,
+        classification=classification, withheld=withheld, point_source_id=records["point_source_id"],
+    )  # fmt: skip
 
 
 def _class_and_withheld(records: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
