@@ -90,18 +90,16 @@ def run_survey(
         A polygon file of known water (default: ``config.holes.water``).
     progress : bool
         Show a progress bar on stderr.
-    resume : bool
-        Continue an interrupted run of the same inputs and configuration into the same
-        folder: tasks that finished then are not run again.
+    resume, incremental : bool
+        Resume: continue an interrupted run of the same inputs and configuration into
+        the same folder (tasks that finished then are not run again). Incremental: keep
+        the stage results in ``out_dir/work`` and take from the previous run's those of
+        unchanged tiles and cells (a scheduled re-run decodes only new or changed tiles).
     overwrite : bool
         Replace a result of another configuration in ``out_dir`` (refused otherwise).
     cluster : ClusterStart, optional
         A local cluster already being started (the CLI starts it before importing
         this module); default: one started here, unless ``client`` or ``scheduler``.
-    incremental : bool
-        Keep the stage results in ``out_dir/work`` and take from the previous run's
-        those of unchanged tiles and of cells none of whose tiles changed: a scheduled
-        re-run decodes only new or changed tiles.
     """
     started = time.perf_counter()
     out = Path(out_dir).absolute()  # workers of a remote cluster resolve paths on their own machines
@@ -110,42 +108,55 @@ def run_survey(
     with contextlib.ExitStack() as cluster_scope:
         connect = cluster_scope.enter_context(dask_client(client, scheduler, config, start=cluster))
         plan = _plan(inputs, config, aoi)  # the headers are scanned while the workers start
-        water = water or config.holes.water or None
-        water_area = read_survey_area(water, plan.survey.crs, what="water") if water else None
+        water, water_area = _water(water, config, plan)
         timer.lap("scan")
         created_out = not out.exists()
-        staging = Staging.create(
-            out,
-            run_key=run_key(plan, config, aoi, water),
-            resume=resume,
-            incremental=incremental and _holds_result_of(out, config),
-        )
+        reuse = incremental and _holds_result_of(out, config)
+        staging = Staging.create(out, run_key=run_key(plan, config, aoi, water), resume=resume, incremental=reuse)
         try:
             with _Progress(progress) as bar:
                 runner = _Runner(connect(), bar, staging, retries=config.dask.retries)
                 rasters, detected, holes, fills = _run_stages(runner, plan, config, staging, timer, water_area)
             cluster_scope.close()  # the workers stop (and free their memory) before the products are written
-            try:
-                summary = _write_products(
-                    staging, plan, config, rasters, detected, holes, fills, started, timer, runner
-                )
-            except OSError as e:
-                if disk_full(e, staging.root):
-                    raise _disk_full_error(staging, "the products") from None
-                raise
-            flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
-            keep_work = config.output.keep_intermediate or incremental
-            staging.commit(PRODUCTS + flight_files, keep_work=keep_work, replaces=FLIGHTPLAN_PRODUCTS)
+            summary = _publish(
+                staging,
+                (plan, config, rasters, detected, holes, fills),
+                started,
+                timer,
+                runner,
+                keep_work=config.output.keep_intermediate or incremental,
+            )
         except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError):
             # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
             staging.keep_for_resume()
             raise
         except BaseException:
-            staging.remove()
-            if created_out:
-                with contextlib.suppress(OSError):
-                    out.rmdir()  # only if still empty
+            _discard(staging, created_out)
             raise
+    return summary
+
+
+def _discard(staging: Staging, created_out: bool) -> None:
+    """A failed run leaves nothing: its staging folder, and OUT when this run made it (and it is empty)."""
+    staging.remove()
+    if created_out:
+        with contextlib.suppress(OSError):
+            staging.out.rmdir()  # only if still empty
+
+
+def _publish(
+    staging: Staging, results: tuple, started: float, timer: _StageTimer, runner: _Runner, *, keep_work: bool
+) -> RunSummary:
+    """Write the products into the staging folder and move them into OUT, the manifest last."""
+    plan, config, rasters, detected, holes, fills = results
+    try:
+        summary = _write_products(staging, plan, config, rasters, detected, holes, fills, started, timer, runner)
+    except OSError as e:
+        if disk_full(e, staging.root):
+            raise _disk_full_error(staging, "the products") from None
+        raise
+    flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
+    staging.commit(PRODUCTS + flight_files, keep_work=keep_work, replaces=FLIGHTPLAN_PRODUCTS)
     return summary
 
 
@@ -167,6 +178,12 @@ def _run_stages(runner: _Runner, plan: SurveyPlan, config: Config, staging: Stag
 
 
 # -- stages ---------------------------------------------------------------------------
+
+
+def _water(water: str | os.PathLike | None, config: Config, plan: SurveyPlan) -> tuple[Any, Any]:
+    """The file of known water (``--water`` or ``holes.water``) and its polygons in the survey CRS."""
+    water = water or config.holes.water or None
+    return water, read_survey_area(water, plan.survey.crs, what="water") if water else None
 
 
 def _plan(inputs: list[str] | tuple[str, ...], config: Config, aoi: str | os.PathLike | None) -> SurveyPlan:
@@ -225,23 +242,8 @@ def _run_rasters(
     runs as soon as they are done, while other tiles are still decoding; when no
     later stage changes heights, its rasters are written as soon as it is merged.
     """
-    skip = config.survey.on_error == "skip"
     tile_tasks = bin_tiles.tile_tasks(plan, config, staging)
-    tile_function = bin_tiles.rasterize_tile_or_skip if skip else bin_tiles.rasterize_tile
-    tile_futures: dict[int, Any] = {}
-    tops: dict[int, Any] = {}  # a split COPC file's top task: its cell tasks wait for it
-    for task in tile_tasks:  # top tasks come first
-        tile_futures[task.read_index] = runner.submit(
-            tile_function,
-            task,
-            *([tops[task.tile_index]] if task.role == "cell" and task.tile_index in tops else []),
-            label=f"tile {task.path}" + (f" (COPC read task {task.part})" if task.part else ""),
-            key=f"rasterize-{Path(task.output_dir).name}",
-            priority=3 if task.role == "top" else 0,
-            adopt=partial(bin_tiles.adopt_result, task),
-        )
-        if task.role == "top":
-            tops[task.tile_index] = tile_futures[task.read_index]
+    tile_futures = _submit_tiles(runner, tile_tasks, skip=config.survey.on_error == "skip")
     merge_recipes = merge_cells.merge_tasks(plan, tile_tasks, staging)
     tile_tasks_by_index = {task.read_index: task for task in tile_tasks}
     merge_futures = {
@@ -256,17 +258,7 @@ def _run_rasters(
         )
         for task, touching in merge_recipes
     }
-    record_futures = [
-        runner.submit(
-            input_record,
-            task.path,
-            label=f"tile {task.path} (checksum)",
-            key=f"sha256-{Path(task.output_dir).name}",
-            priority=-1,  # after the decoding, which the file is then cached for
-        )
-        for task in tile_tasks
-        if task.role in ("whole", "top")  # once per file, also when a COPC file is split
-    ]
+    record_futures = _submit_checksums(runner, tile_tasks)
     write_futures = [
         runner.submit(
             write_rasters.write_cell_rasters,
@@ -294,6 +286,52 @@ def _run_rasters(
 
     runner.gather([*tile_futures.values(), *merge_futures.values(), *write_futures, *record_futures], collect)
     timer.lap("merge_tail")
+    _check_points_left(results, config)
+    results.tiles = bin_tiles.results_by_file(results.tiles)
+    results.failed = list({f["path"]: f for f in results.failed}.values())  # a split file's failed tasks: once
+    order = {cell.id: i for i, cell in enumerate(plan.cells)}
+    results.cells.sort(key=lambda r: order[r.cell_id])
+    results.written.sort(key=lambda r: order[r.cell_id])
+    return results
+
+
+def _submit_tiles(runner: _Runner, tile_tasks: list[bin_tiles.TileTask], *, skip: bool) -> dict[int, Any]:
+    """Stage 1: one task per read task (a split COPC file's cell tasks wait for its top task), by read index."""
+    tile_function = bin_tiles.rasterize_tile_or_skip if skip else bin_tiles.rasterize_tile
+    tile_futures: dict[int, Any] = {}
+    tops: dict[int, Any] = {}
+    for task in tile_tasks:  # top tasks come first
+        tile_futures[task.read_index] = runner.submit(
+            tile_function,
+            task,
+            *([tops[task.tile_index]] if task.role == "cell" and task.tile_index in tops else []),
+            label=f"tile {task.path}" + (f" (COPC read task {task.part})" if task.part else ""),
+            key=f"rasterize-{Path(task.output_dir).name}",
+            priority=3 if task.role == "top" else 0,
+            adopt=partial(bin_tiles.adopt_result, task),
+        )
+        if task.role == "top":
+            tops[task.tile_index] = tile_futures[task.read_index]
+    return tile_futures
+
+
+def _submit_checksums(runner: _Runner, tile_tasks: list[bin_tiles.TileTask]) -> list[Any]:
+    """Each input file's size, time and SHA-256 for the manifest: once per file, after its decoding."""
+    return [
+        runner.submit(
+            input_record,
+            task.path,
+            label=f"tile {task.path} (checksum)",
+            key=f"sha256-{Path(task.output_dir).name}",
+            priority=-1,  # after the decoding, which the file is then cached for
+        )
+        for task in tile_tasks
+        if task.role in ("whole", "top")  # once per file, also when a COPC file is split
+    ]
+
+
+def _check_points_left(results: _Rasters, config: Config) -> None:
+    """Stop with one line when no tile could be decoded or the filter left no point."""
     if not results.tiles:
         raise InputDataError("INPUT", "no tile could be decoded: every tile failed")
     if not any(r.points_used for r in results.tiles):
@@ -303,12 +341,6 @@ def _run_rasters(
             f"no point is left after filtering (filter.keep_classes = {f.keep_classes}, "
             f"filter.drop_classes = {f.drop_classes}, filter.drop_withheld = {str(f.drop_withheld).lower()})",
         )
-    results.tiles = bin_tiles.results_by_file(results.tiles)
-    results.failed = list({f["path"]: f for f in results.failed}.values())  # a split file's failed tasks: once
-    order = {cell.id: i for i, cell in enumerate(plan.cells)}
-    results.cells.sort(key=lambda r: order[r.cell_id])
-    results.written.sort(key=lambda r: order[r.cell_id])
-    return results
 
 
 def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[CellResult], water, staging: Staging):

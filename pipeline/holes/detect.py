@@ -163,10 +163,9 @@ def detect_cell_holes(
     flight_line : ndarray of int, same shape, optional
         An id of a flight line covering each pixel (e.g. a point_source_id), < 0: unknown.
     coverage : ndarray of int, same shape, optional
-        Per pixel: 2 in a coverage gap (no flight line's swath reaches), 3 in the square of a missing
-        tile (a gap too, counted apart in ``missing_tile_px``), 1 inside a flight line's swath,
-        0 unknown (:meth:`pipeline.holes.coverage.CoverageGaps.classes`). Hole pixels inside and outside
-        a gap are labelled apart: no part straddles a gap's edge (a river crossing a missed strip gives two holes).
+        Per pixel: 2 in a coverage gap (no swath reaches), 3 in a missing tile's square (counted in
+        ``missing_tile_px``), 1 inside a swath, 0 unknown (:meth:`~pipeline.holes.coverage.CoverageGaps.classes`).
+        Hole pixels inside and outside a gap are labelled apart (a river crossing a missed strip: two holes).
     min_area_px : int
         Closed parts (touching neither the core edge nor the AOI boundary) smaller than this are settled
         here as small voids: counted in ``small_void_count``/``small_void_px``, labelled -1, not listed.

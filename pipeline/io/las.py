@@ -12,7 +12,7 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import laspy
 import numpy as np
@@ -143,14 +143,7 @@ def read_header(path: str | os.PathLike) -> TileHeader:
         crs_problem = f"its CRS record cannot be parsed ({e})"
     mins, maxs = header.mins, header.maxs
     _check_bounds(path, mins, maxs, count)
-    copc = None
-    if is_copc:
-        from .copc import read_copc_octree  # io.copc builds on this module
-
-        copc = read_copc_octree(path)
-        listed = int(copc.nodes["point_count"].sum())
-        if listed != count:
-            raise InputDataError(path, f"COPC hierarchy lists {listed:,} points but the header declares {count:,}")
+    copc = _copc_octree(path, count) if is_copc else None
     return TileHeader(
         path=str(path),
         format="COPC" if is_copc else ("LAZ" if compressed else "LAS"),
@@ -165,6 +158,17 @@ def read_header(path: str | os.PathLike) -> TileHeader:
         points_by_return=tuple(int(c) for c in header.number_of_points_by_return),
         copc=copc,
     )
+
+
+def _copc_octree(path: Path, count: int) -> Any:
+    """A COPC file's octree (nodes, offsets, counts), checked against the header's point count."""
+    from .copc import read_copc_octree  # io.copc builds on this module
+
+    copc = read_copc_octree(path)
+    listed = int(copc.nodes["point_count"].sum())
+    if listed != count:
+        raise InputDataError(path, f"COPC hierarchy lists {listed:,} points but the header declares {count:,}")
+    return copc
 
 
 def iter_point_chunks(
