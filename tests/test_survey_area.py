@@ -124,3 +124,21 @@ def test_a_tile_whose_header_cannot_be_read_is_placed_by_its_name(three_by_three
     area = read_layer(tmp_path / "out" / "holes.gpkg", "survey_area")
     skipped = area[area["status"] == "skipped"]
     assert len(skipped) == 1 and skipped.geometry.iloc[0].equals(shapely.box(500_100, 5_000_100, 500_200, 5_000_200))
+
+
+@pytest.mark.realdata
+def test_data_stopping_short_of_its_square_is_missed_coverage(shared_data, tmp_path, dask_client):
+    """IGN's six 50 m tiles: one tile's data stops 8.3 m short of its square's east edge.
+
+    Roofs stand beside the strip, but it lies in a delivered tile's square outside every
+    tile's extent: missed coverage (rule ``missing_tile``), not an occlusion.
+    """
+    names = sorted(p for p in shared_data.glob("ign_tile_770*.laz"))
+    out = tmp_path / "out"
+    run_survey([str(p) for p in names], out, load_config(), client=dask_client)
+    holes = read_layer(out / "holes.gpkg", "holes")
+    assert len(holes) == 1, holes[["area_m2", "cause", "cause_rule"]]
+    hole = holes.iloc[0]
+    assert (hole["cause"], hole["cause_rule"]) == ("missed_coverage", "missing_tile")
+    xmin, _, xmax, _ = hole.geometry.bounds
+    assert 770541 <= xmin and xmax <= 770551 and 300 <= hole["area_m2"] <= 420

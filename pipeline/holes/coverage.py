@@ -28,6 +28,7 @@ __all__ = [
     "IN_GAP",
     "IN_MISSING_TILE",
     "IN_SWATH",
+    "OUTSIDE_TILE_EXTENTS",
     "UNKNOWN",
     "Band",
     "CoverageGaps",
@@ -38,7 +39,10 @@ __all__ = [
 #: Coverage classes of a pixel (:meth:`CoverageGaps.classes`, ``detect_cell_holes(coverage=)``).
 #: ``IN_MISSING_TILE``: in the square of a missing tile of the tile grid (:mod:`pipeline.tile_grid`),
 #: a coverage gap of its own kind.
-UNKNOWN, IN_SWATH, IN_GAP, IN_MISSING_TILE = 0, 1, 2, 3
+#: ``OUTSIDE_TILE_EXTENTS``: in the square of a delivered tile but outside every tile's declared
+#: extent (the tile's data stops short of its square): evidence of missed coverage only, it does
+#: not make a pixel part of the survey area.
+UNKNOWN, IN_SWATH, IN_GAP, IN_MISSING_TILE, OUTSIDE_TILE_EXTENTS = 0, 1, 2, 3, 4
 
 #: Lines whose directions differ by more than this are not neighbours of one gap.
 MAX_PARALLEL_DEG = 5.0
@@ -75,9 +79,11 @@ class CoverageGaps:
     gaps: tuple[tuple[tuple[float, float], float, float, float, float], ...]
     bands: tuple[Band, ...]
     missing_tiles: tuple[PixelWindow, ...] = ()  # squares of missing tiles, in grid pixels
+    tile_squares: tuple[PixelWindow, ...] = ()  # squares of the delivered tiles, in grid pixels
+    tile_extents: tuple[PixelWindow, ...] = ()  # the tiles' header extents, in grid pixels
 
     def __bool__(self) -> bool:
-        return bool(self.gaps or self.bands or self.missing_tiles)
+        return bool(self.gaps or self.bands or self.missing_tiles or self.tile_squares)
 
     def classes(self, window: PixelWindow, *, margin_px: float = 3.0) -> np.ndarray:
         """Per pixel of ``window``: ``IN_GAP``, ``IN_SWATH`` or ``UNKNOWN`` (int8).
@@ -85,7 +91,9 @@ class CoverageGaps:
         A gap is grown by ``margin_px`` across and along track, a band shrunk by as
         much: the margin absorbs the jitter of swath edges, so that a missed strip is
         not cut into a core and slivers along its edges. A gap wins over a band, a
-        missing tile (``IN_MISSING_TILE``, exact pixels) over both.
+        missing tile (``IN_MISSING_TILE``, exact pixels) over both; a pixel in a
+        delivered tile's square but outside every tile's extent is
+        ``OUTSIDE_TILE_EXTENTS`` unless it is in a gap or a missing tile.
         """
         rows = np.arange(window.row_off, window.row_end, dtype=np.float64)[:, None]
         cols = np.arange(window.col_off, window.col_end, dtype=np.float64)[None, :]
@@ -109,7 +117,20 @@ class CoverageGaps:
             overlap = square.intersection(window)
             if not overlap.is_empty:
                 out[overlap.slices_within(window)] = IN_MISSING_TILE
+        if self.tile_squares:
+            uncovered = _union_mask(window, self.tile_squares) & ~_union_mask(window, self.tile_extents)
+            out[uncovered & (out < IN_GAP)] = OUTSIDE_TILE_EXTENTS
         return out
+
+
+def _union_mask(window: PixelWindow, windows: tuple[PixelWindow, ...]) -> np.ndarray:
+    """The pixels of ``window`` inside any of ``windows``."""
+    mask = np.zeros(window.shape, bool)
+    for other in windows:
+        overlap = other.intersection(window)
+        if not overlap.is_empty:
+            mask[overlap.slices_within(window)] = True
+    return mask
 
 
 def line_bands(moments: np.ndarray) -> list[Band]:

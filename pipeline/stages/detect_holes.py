@@ -15,7 +15,7 @@ from ..config import HOLE_CONTEXT_PX
 from ..footprint import BlockMap, aoi_mask, window_union_mask
 from ..grid import Cell, Grid, PixelWindow
 from ..holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
-from ..holes.coverage import IN_GAP, CoverageGaps
+from ..holes.coverage import IN_GAP, IN_MISSING_TILE, OUTSIDE_TILE_EXTENTS, CoverageGaps
 from ..holes.outlines import label_outlines
 from ..holes.walls import Wall, find_walls
 from ..io.intermediate import load_cell_statistics, save_labels
@@ -98,15 +98,27 @@ def detect_tasks(
 
 
 def _with_missing_tiles(plan: SurveyPlan, gaps: CoverageGaps | None) -> CoverageGaps | None:
-    """The coverage gaps with the squares of the tile grid's missing tiles (grid pixels)."""
-    missing = plan.area.missing_tiles if plan.area is not None else ()
-    if not missing:
+    """The coverage gaps with the tile grid's missing tiles and its delivered squares (grid pixels).
+
+    The delivered squares and the tiles' extents tell where a tile's data stops short of its
+    square (``OUTSIDE_TILE_EXTENTS``): a hole there is missed coverage, whatever stands beside it.
+    """
+    area = plan.area
+    if area is None or area.tile_grid is None:
         return gaps
+    tile_grid = area.tile_grid
     half = plan.grid.resolution / 2  # the pixels whose centres lie in the square
-    windows = tuple(
-        plan.grid.window_of_bounds(x0 + half, y0 + half, x1 - half, y1 - half) for x0, y0, x1, y1 in missing
+
+    def inner(bounds: tuple[float, float, float, float]) -> PixelWindow:
+        x0, y0, x1, y1 = bounds
+        return plan.grid.window_of_bounds(x0 + half, y0 + half, x1 - half, y1 - half)
+
+    return replace(
+        gaps or CoverageGaps((), ()),
+        missing_tiles=tuple(inner(b) for b in area.missing_tiles),
+        tile_squares=tuple(inner(tile_grid.square_bounds(s)) for s in tile_grid.squares),
+        tile_extents=tuple(plan.tile_windows),
     )
-    return replace(gaps or CoverageGaps((), ()), missing_tiles=windows)
 
 
 def detect_cell(task: DetectTask) -> DetectResult:
@@ -162,7 +174,7 @@ def _aoi(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray | None) 
         survey_area = window_union_mask(window, task.tile_windows)
     aoi = aoi_mask(window, task.grid, task.blocks, count=stats.count, survey_area=survey_area)
     if task.gaps_inside and coverage is not None:
-        aoi |= survey_area & (coverage >= IN_GAP)
+        aoi |= survey_area & ((coverage == IN_GAP) | (coverage == IN_MISSING_TILE))
     return aoi
 
 
@@ -185,7 +197,8 @@ def _cell_holes(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray, cover
         water_points=stats.water,
         water_mask=water_mask,
         flight_line=stats.source.astype(np.int64) - 1,
-        coverage=coverage,
+        # outside every tile's extent counts as a missing tile's pixel: the delivery stops short there
+        coverage=None if coverage is None else np.where(coverage == OUTSIDE_TILE_EXTENTS, IN_MISSING_TILE, coverage),
         min_area_px=params.min_area_px,
         local_radius_px=HOLE_CONTEXT_PX,
     )
