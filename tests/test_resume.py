@@ -113,7 +113,9 @@ def test_ctrl_c_to_the_process_group_exits_130_in_one_line_and_resumes(survey, r
     """A terminal's Ctrl-C reaches the client and every worker process at once."""
     tiles = str(survey / "tiles")
     out = tmp_path / "out"
-    run = holefill(tiles, "--out", str(out))  # one worker: the run is still decoding when the signal comes
+    # one worker: the run is still decoding when the signal comes; SIGINT as a terminal's foreground
+    # job has it (a test run started in the background of a shell inherits it ignored)
+    run = holefill(tiles, "--out", str(out), preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     wait_for_kept_tiles(out, 1, run)
     os.killpg(run.pid, signal.SIGINT)
     _, err = run.communicate(timeout=60)
