@@ -181,16 +181,6 @@ def aoi_mask(
     return survey_area & inside & (~border | closed | occupied)
 
 
-def window_union_mask(window: PixelWindow, windows: list[PixelWindow] | tuple[PixelWindow, ...]) -> np.ndarray:
-    """Pixels of ``window`` covered by any of ``windows`` (the tiles' survey area)."""
-    mask = np.zeros(window.shape, bool)
-    for other in windows:
-        overlap = other.intersection(window)
-        if not overlap.is_empty:
-            mask[overlap.slices_within(window)] = True
-    return mask
-
-
 def _block_of(grid: Grid, row: int, col: int, block_px: int) -> tuple[int, int]:
     return (grid.col_min + col) // block_px, (grid.row_top - row) // block_px
 

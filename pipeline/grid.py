@@ -256,3 +256,13 @@ def _coordinate_name(value: float) -> str:
     if abs(value - rounded) < 1e-6:
         return str(rounded)
     return f"{value:.2f}".replace(".", "p")
+
+
+def window_union_mask(window: PixelWindow, windows: list[PixelWindow] | tuple[PixelWindow, ...]) -> np.ndarray:
+    """Pixels of ``window`` covered by any of ``windows`` (tile extents, grid squares)."""
+    mask = np.zeros(window.shape, bool)
+    for other in windows:
+        overlap = other.intersection(window)
+        if not overlap.is_empty:
+            mask[overlap.slices_within(window)] = True
+    return mask

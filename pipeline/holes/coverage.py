@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..grid import PixelWindow
+from ..grid import PixelWindow, window_union_mask
 
 __all__ = [
     "IN_GAP",
@@ -118,19 +118,9 @@ class CoverageGaps:
             if not overlap.is_empty:
                 out[overlap.slices_within(window)] = IN_MISSING_TILE
         if self.tile_squares:
-            uncovered = _union_mask(window, self.tile_squares) & ~_union_mask(window, self.tile_extents)
+            uncovered = window_union_mask(window, self.tile_squares) & ~window_union_mask(window, self.tile_extents)
             out[uncovered & (out < IN_GAP)] = OUTSIDE_TILE_EXTENTS
         return out
-
-
-def _union_mask(window: PixelWindow, windows: tuple[PixelWindow, ...]) -> np.ndarray:
-    """The pixels of ``window`` inside any of ``windows``."""
-    mask = np.zeros(window.shape, bool)
-    for other in windows:
-        overlap = other.intersection(window)
-        if not overlap.is_empty:
-            mask[overlap.slices_within(window)] = True
-    return mask
 
 
 def line_bands(moments: np.ndarray) -> list[Band]:

@@ -12,8 +12,8 @@ import numpy as np
 import shapely
 
 from ..config import HOLE_CONTEXT_PX
-from ..footprint import BlockMap, aoi_mask, window_union_mask
-from ..grid import Cell, Grid, PixelWindow
+from ..footprint import BlockMap, aoi_mask
+from ..grid import Cell, Grid, PixelWindow, window_union_mask
 from ..holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
 from ..holes.coverage import IN_GAP, IN_MISSING_TILE, OUTSIDE_TILE_EXTENTS, CoverageGaps
 from ..holes.outlines import label_outlines
