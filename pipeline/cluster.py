@@ -115,8 +115,22 @@ class ClusterStart:
                 self._previous_handler = None
 
 
+def _quiet_event_loop() -> None:
+    """Keep the event loop's own tracebacks off stderr unless distributed logs at INFO (``-vv``).
+
+    Importing distributed configures ``tornado.application`` to log errors: a callback
+    cut short by Ctrl-C or SIGTERM while the client closes then prints a traceback
+    after holefill's one line. A task that fails reaches the user as one line anyway.
+    """
+    if not logging.getLogger("distributed").isEnabledFor(logging.INFO):
+        for name in ("tornado", "tornado.application", "tornado.general", "asyncio"):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
+
+
 def _local_cluster(config: Config) -> tuple[Any, Any]:
     from distributed import Client, LocalCluster
+
+    _quiet_event_loop()
 
     workers = config.dask.workers or os.cpu_count() or 1
     verbose = logging.getLogger("distributed").isEnabledFor(logging.INFO)
@@ -141,6 +155,7 @@ def connect_scheduler(address: str) -> Any:
     """A client of a running scheduler; one line within seconds when it cannot be reached."""
     from distributed import Client
 
+    _quiet_event_loop()
     try:
         return Client(address, timeout=SCHEDULER_TIMEOUT_S)
     except (OSError, TimeoutError) as e:
