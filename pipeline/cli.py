@@ -115,11 +115,6 @@ def _configure_logging(verbose: int, quiet: int, log_format: str = "text") -> No
     os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", logging.getLevelName(max(level, quiet_level)).lower())
     for noisy in ("distributed", "tornado", "asyncio", "numba", "rasterio", "pyogrio", "bokeh"):
         logging.getLogger(noisy).setLevel(max(level, quiet_level))
-    if verbose < 2:
-        # the event loop's own tracebacks (a callback cut short by Ctrl-C while the client
-        # closes) say nothing a user can act on: a failed task reaches the user as one line
-        for loop in ("tornado", "asyncio"):
-            logging.getLogger(loop).setLevel(logging.CRITICAL)
 
 
 config_option = click.option(

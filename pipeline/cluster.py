@@ -83,12 +83,11 @@ class ClusterStart:
         self._restore_ctrl_c()
         with self._restore_lock:
             stopping, self._stopping = self._stopping, None
-            if stopping is None and not self._closed:
-                stopping = threading.Thread(target=self._stop)
-                stopping.start()
-            self._closed = True
+            first, self._closed = not self._closed, True
         if stopping is not None:
             stopping.join()
+        elif first:
+            self._stop()
 
     def close_in_background(self) -> None:
         """Begin stopping the workers and return at once (the products are written meanwhile)."""
