@@ -11,6 +11,7 @@ them per read task (:func:`count_ground_at_zero`); the counts add up over the su
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,12 +56,24 @@ class GroundLevel:
         }
 
 
-def count_ground_at_zero(ground_z: np.ndarray) -> GroundLevel:
-    """Count ground points and those within ``AT_ZERO_TOLERANCE`` of z = 0.
+def count_ground_at_zero(
+    z: np.ndarray, is_ground: np.ndarray, *, scale: float = 1.0, offset: float = 0.0
+) -> GroundLevel:
+    """Count the ground points and those within ``AT_ZERO_TOLERANCE`` of z = 0.
 
     Parameters
     ----------
-    ground_z : ndarray of float64, shape (P,)
-        Heights of the ground-class points the run keeps, in the survey's z units.
+    z : ndarray, shape (P,)
+        Heights ``z * scale + offset`` in the survey's z units: a LAS file's raw
+        integers with its scale and offset (compared as integers, so stage 1 pays
+        about a nanosecond a point), or heights with the defaults.
+    is_ground : ndarray of bool, shape (P,)
+        Ground-class points the run keeps.
     """
-    return GroundLevel(points=len(ground_z), at_zero=int(np.count_nonzero(np.abs(ground_z) <= AT_ZERO_TOLERANCE)))
+    low = (-AT_ZERO_TOLERANCE - offset) / scale
+    high = (AT_ZERO_TOLERANCE - offset) / scale
+    if np.issubdtype(z.dtype, np.integer):  # the integers in [low, high], clipped to the dtype's range
+        info = np.iinfo(z.dtype)
+        low, high = max(math.ceil(low), info.min), min(math.floor(high), info.max)
+    at_zero = is_ground & (z >= low) & (z <= high)
+    return GroundLevel(points=int(np.count_nonzero(is_ground)), at_zero=int(np.count_nonzero(at_zero)))

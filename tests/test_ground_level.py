@@ -13,21 +13,36 @@ from pipeline.run import run_survey
 from .lasfiles import write_points
 
 
+def ground(z):
+    return count_ground_at_zero(np.asarray(z, np.float64), np.ones(len(z), bool))
+
+
 def test_ground_at_zero_is_counted_and_adds_up():
     z = np.array([0.0, 0.05, -0.1, 0.11, -0.3, 12.0])
-    assert count_ground_at_zero(z) == GroundLevel(points=6, at_zero=3)
-    assert count_ground_at_zero(z) + count_ground_at_zero(np.zeros(4)) == GroundLevel(points=10, at_zero=7)
+    assert ground(z) == GroundLevel(points=6, at_zero=3)
+    assert ground(z) + ground(np.zeros(4)) == GroundLevel(points=10, at_zero=7)
+    is_ground = np.array([True, True, False, True, True, True])
+    assert count_ground_at_zero(z, is_ground) == GroundLevel(points=5, at_zero=2)
+
+
+def test_raw_integers_count_as_their_heights():
+    # LAS integers: z = raw * scale + offset; the bounds are taken in integers
+    raw = np.array([-10, 9, 10, 11, 990, -2_000_000_000, 2_000_000_000], np.int32)
+    assert count_ground_at_zero(raw, np.ones(7, bool), scale=0.01) == GroundLevel(points=7, at_zero=3)
+    # an offset far from 0 puts the bounds outside int32: nothing is at zero, and nothing overflows
+    assert count_ground_at_zero(raw, np.ones(7, bool), scale=0.001, offset=6e6).at_zero == 0
+    shifted = np.array([-1000, -1001, -999, -1011], np.int32)  # 10.00, 9.99, 10.01, 9.89 - 10
+    assert count_ground_at_zero(shifted, np.ones(4, bool), scale=0.01, offset=10.0).at_zero == 3
 
 
 def test_normalised_needs_nearly_all_ground_at_zero_and_enough_of_it():
     rng = np.random.default_rng(0)
-    assert count_ground_at_zero(rng.normal(0.0, 0.01, 5000)).normalised
+    assert ground(rng.normal(0.0, 0.01, 5000)).normalised
     # ground near sea level is no normalised survey (AHN3 Delft: 0.35 +- 0.28 m)
-    assert not count_ground_at_zero(rng.normal(0.35, 0.28, 5000)).normalised
+    assert not ground(rng.normal(0.35, 0.28, 5000)).normalised
     # nor one tile of polder at 0 among tiles of hills: the survey's share decides
-    hills = count_ground_at_zero(rng.normal(40.0, 5.0, 5000))
-    assert not (count_ground_at_zero(np.zeros(5000)) + hills).normalised
-    assert not count_ground_at_zero(np.zeros(MIN_GROUND_POINTS - 1)).normalised
+    assert not (ground(np.zeros(5000)) + ground(rng.normal(40.0, 5.0, 5000))).normalised
+    assert not ground(np.zeros(MIN_GROUND_POINTS - 1)).normalised
     assert not GroundLevel().normalised
 
 

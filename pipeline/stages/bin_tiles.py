@@ -293,12 +293,12 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
             n_used, n_outside = accumulator.add(
                 chunk.X, chunk.Y, chunk.Z, keep, scales=chunk.scales, offsets=chunk.offsets, **evidence
             )
-            ground += count_ground_at_zero(chunk.Z[is_ground] * chunk.scales[2] + chunk.offsets[2])
+            ground += count_ground_at_zero(chunk.Z, is_ground, scale=chunk.scales[2], offset=chunk.offsets[2])
         else:
             x, y, z = chunk.coordinates()
             x, y = transformer.transform(x, y)
             n_used, n_outside = accumulator.add(x, y, z, keep, **evidence)
-            ground += count_ground_at_zero(z[is_ground])
+            ground += count_ground_at_zero(z, is_ground)
         read += len(chunk) if decoded else 0  # handed-over points were counted by the top task
         used += n_used
         outside += n_outside
