@@ -22,10 +22,13 @@ _BASE: dict[str, Any] = dict(
 CAUSE_SCENES: dict[str, dict[str, Any]] = {
     # three lakes, 20-80 m across, in rolling terrain with buildings and trees
     "lakes": dict(width_m=400.0, height_m=300.0, water=False, lakes=3),
-    # a 12 m river whose water falls west to east, 500 m long
-    "river_fall_2": dict(width_m=500.0, height_m=200.0, water_width_m=12.0, river_fall_m_per_km=2.0),
-    "river_fall_5": dict(width_m=500.0, height_m=200.0, water_width_m=12.0, river_fall_m_per_km=5.0),
-    "river_fall_10": dict(width_m=500.0, height_m=200.0, water_width_m=12.0, river_fall_m_per_km=10.0),
+    # a 12 m river whose water falls west to east, 500 m long (and the same river flat: the control);
+    # 300 m along track, as every scene here: the bands of the flight lines need length / width
+    # >= 1.4 (holes/coverage.py) before a hole can count as inside a swath (level_rim)
+    "river_flat": dict(width_m=500.0, height_m=300.0, water_width_m=12.0),
+    "river_fall_2": dict(width_m=500.0, height_m=300.0, water_width_m=12.0, river_fall_m_per_km=2.0),
+    "river_fall_5": dict(width_m=500.0, height_m=300.0, water_width_m=12.0, river_fall_m_per_km=5.0),
+    "river_fall_10": dict(width_m=500.0, height_m=300.0, water_width_m=12.0, river_fall_m_per_km=10.0),
     # a N-S canal between rows of 10-20 m houses; 10 % side overlap: the canal is seen by one
     # line, off nadir, so the houses' scan shadows fall on the street and the water
     "canal": dict(width_m=300.0, height_m=300.0, water=False, canal=True, side_overlap=0.1),
