@@ -56,13 +56,11 @@ def accuracy(score, true_cause):
         # the houses' shadows on the street are mostly one pixel wide: sampling gaps at the
         # default 4-spacing width (3 m), not holes, so a fifth of the true hole pixels are not listed
         ("canal", 0.75, "water", ["water"]),
-        # the same 500 m river, flat: water (level_rim) ...
+        # the same 500 m river, flat (level_rim), and falling 1-5 m over the scene (river_rim)
         ("river_flat", 0.9, "water", ["water"]),
-        # ... and falling 1-5 m over the scene: today's rules call it unknown (level_rim needs 70 %
-        # of the rim in one 0.5 m height window); the rule for sloped rivers is to come
-        ("river_fall_2", 0.9, "water", []),
-        ("river_fall_5", 0.9, "water", []),
-        ("river_fall_10", 0.9, "water", []),
+        ("river_fall_2", 0.9, "water", ["water"]),
+        ("river_fall_5", 0.9, "water", ["water"]),
+        ("river_fall_10", 0.9, "water", ["water"]),
     ],
 )
 def test_causes_of_the_cause_scenes(tmp_path, dask_client, name, min_iou, made_for, causes):
