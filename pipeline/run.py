@@ -31,6 +31,7 @@ from .cluster import ClusterStart, dask_client
 from .config import Config, config_key, to_dict
 from .errors import DiskFullError, HolefillError, InputDataError, OutputError, TaskError
 from .ground_level import NO_TERRAIN, GroundLevel
+from .holes.coverage import CoverageGaps
 from .io.checksums import input_record, output_records
 from .io.flightplan_files import plan_flights
 from .io.vector import read_survey_area
@@ -349,7 +350,7 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
     params = plan.hole_params
     blocks = merge_cells.footprint_blocks(cells, plan, config)
     line_moments = merge_cells.survey_line_moments(cells)
-    gaps = merge_cells.survey_coverage_gaps(line_moments)
+    gaps = _void_gaps(runner, plan, cells, merge_cells.survey_coverage_gaps(line_moments))
     tasks = detect_holes.detect_tasks(plan, params, cells, blocks, water, staging, gaps)
     futures = [
         runner.submit(
@@ -370,6 +371,26 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
     holes = link_holes.link_cells(detected, plan, config, params, line_moments)
     link_holes.keep_hole_set(holes, str(staging.hole_catalog))
     return detected, holes
+
+
+def _void_gaps(runner: _Runner, plan: SurveyPlan, cells: list[CellResult], gaps: CoverageGaps) -> CoverageGaps:
+    """The coverage gaps that are mostly empty: a pass over the cells' counts, only when there is a gap."""
+    logger.debug("flight-line bands %s; coverage gaps %s", gaps.bands, gaps.gaps)
+    if not gaps.gaps:
+        return gaps
+    digest = hashlib.sha1(repr(gaps.gaps).encode()).hexdigest()[:12]
+    futures = [
+        runner.submit(
+            merge_cells.count_gap_voids, task, label=f"cell {r.cell_id} (check gaps)", key=f"gaps-{digest}-{r.cell_id}"
+        )
+        for task, r in zip(merge_cells.gap_void_tasks(cells, plan, gaps), cells)
+    ]
+    counts: list[Any] = []
+    runner.gather(futures, counts.append)
+    kept = merge_cells.survey_void_gaps(gaps, counts)
+    logger.debug("coverage gaps (pixels, empty) in the gap and its flanks: %s", [c.tolist() for c in sum(counts)])
+    logger.debug("coverage gaps: %d of %d empty between measured flanks, kept", len(kept.gaps), len(gaps.gaps))
+    return kept
 
 
 def _run_fill(

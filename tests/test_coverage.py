@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.grid import PixelWindow
-from pipeline.holes.coverage import IN_GAP, IN_SWATH, UNKNOWN, coverage_gaps
+from pipeline.holes.coverage import IN_GAP, IN_SWATH, UNKNOWN, coverage_gaps, keep_void_gaps
 from pipeline.holes.flight_lines import line_moments, merge_line_moments
 
 
@@ -46,3 +46,33 @@ def test_touching_lines_leave_no_gap():
     ids[:, 160:] = 2
     gaps = coverage_gaps(line_moments(ids, row_off=0, col_off=0))
     assert len(gaps.bands) == 3 and not gaps.gaps
+
+
+def _checked(ids: np.ndarray, empty: np.ndarray, cuts: int = 1):
+    """The gaps of ``ids`` checked against the empty pixels, counted over ``cuts`` x ``cuts`` windows."""
+    gaps = coverage_gaps(line_moments(ids, row_off=0, col_off=0))
+    h, w = ids.shape
+    rows, cols = np.linspace(0, h, cuts + 1).astype(int), np.linspace(0, w, cuts + 1).astype(int)
+    counts = sum(
+        gaps.void_counts(PixelWindow(r0, c0, r1 - r0, c1 - c0), empty[r0:r1, c0:c1])
+        for r0, r1 in zip(rows[:-1], rows[1:])
+        for c0, c1 in zip(cols[:-1], cols[1:])
+    )
+    return gaps, keep_void_gaps(gaps, counts)
+
+
+def test_a_missed_strip_is_kept_whatever_the_windows():
+    ids = _lines()
+    gaps, kept = _checked(ids, ids < 0)
+    assert kept.gaps == gaps.gaps and len(kept.gaps) == 1
+    assert _checked(ids, ids < 0, cuts=3)[1].gaps == kept.gaps
+
+
+def test_a_lake_on_the_seam_of_two_lines_opens_no_gap():
+    # two touching bands; a lake across their seam takes pixels from both and narrows them
+    ids = np.zeros((200, 160), np.int64)
+    ids[:, 80:] = 1
+    lake = (np.arange(200)[:, None] - 100) ** 2 / 40**2 + (np.arange(160)[None, :] - 80) ** 2 / 12**2 < 1
+    ids[lake] = -1
+    gaps, kept = _checked(ids, lake)
+    assert gaps.gaps and not kept.gaps  # a sliver of "gap" opened, and it is mostly measured ground

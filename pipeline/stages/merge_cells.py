@@ -17,9 +17,9 @@ import numpy as np
 from ..config import Config
 from ..footprint import BlockMap, footprint_map, occupied_blocks
 from ..grid import Cell, Grid, PixelWindow
-from ..holes.coverage import CoverageGaps, coverage_gaps
+from ..holes.coverage import CoverageGaps, coverage_gaps, keep_void_gaps
 from ..holes.flight_lines import line_moments, merge_line_moments
-from ..io.intermediate import load_tile_shared_keys, load_tile_statistics, save_cell_statistics
+from ..io.intermediate import load_cell_statistics, load_tile_shared_keys, load_tile_statistics, save_cell_statistics
 from ..plan import SurveyPlan
 from ..rasterize import merge_statistics, shared_pixel_mask
 from ..staging import Staging
@@ -155,3 +155,29 @@ def survey_line_moments(results: list[CellResult]) -> np.ndarray:
 def survey_coverage_gaps(moments: np.ndarray) -> CoverageGaps:
     """The gaps between the flight lines' swaths, from the survey's line moments."""
     return coverage_gaps(moments)
+
+
+@dataclass(frozen=True)
+class GapVoidTask:
+    """Count, over one cell's core, the pixels of each coverage gap and the empty ones."""
+
+    window: PixelWindow  # the cell's core
+    statistics_path: str
+    gaps: CoverageGaps
+
+
+def gap_void_tasks(results: list[CellResult], plan: SurveyPlan, gaps: CoverageGaps) -> list[GapVoidTask]:
+    """One task per merged cell: the gaps are checked against the pixels before detection splits holes at them."""
+    cells = plan.cell_by_id()
+    return [GapVoidTask(cells[r.cell_id].window, r.statistics_path, gaps) for r in results]
+
+
+def count_gap_voids(task: GapVoidTask) -> np.ndarray:
+    """Per gap: the core's pixels inside it and the empty ones (:meth:`CoverageGaps.void_counts`)."""
+    count = load_cell_statistics(task.statistics_path, names=("count",)).crop(task.window).count
+    return task.gaps.void_counts(task.window, count == 0)
+
+
+def survey_void_gaps(gaps: CoverageGaps, counts: list[np.ndarray]) -> CoverageGaps:
+    """Gather: the gaps mostly empty over the survey (the cells' :func:`count_gap_voids` summed)."""
+    return keep_void_gaps(gaps, np.sum(counts, axis=0) if counts else np.zeros((len(gaps.gaps), 3, 2), np.int64))
