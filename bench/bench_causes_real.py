@@ -60,6 +60,8 @@ def relabel_water(source: Path, target: Path) -> int:
 
     las = laspy.read(source)
     water = np.asarray(las.classification) == 9
+    if not water.any():
+        return 0
     classes = np.asarray(las.classification).copy()
     classes[water] = 1
     las.classification = classes
@@ -132,6 +134,7 @@ def run_all(paths: list[Path], out_root: Path) -> dict[str, dict[str, list]]:
                 if relabel_water(path, copy):
                     run_survey([str(copy)], out_root / "withheld" / path.name, config, client=client)
                     labelled[path.name]["withheld"] = label_run(path.name, out_root / "withheld" / path.name)
+                    _check_same_holes(path.name, labelled[path.name])
                 else:  # nothing withheld: the same input, the same run
                     labelled[path.name]["withheld"] = labelled[path.name]["default"]
             except Exception as e:
@@ -139,6 +142,13 @@ def run_all(paths: list[Path], out_root: Path) -> dict[str, dict[str, list]]:
                 continue
             print(f"{path.name}: {time.perf_counter() - started:.1f} s", flush=True)
     return labelled
+
+
+def _check_same_holes(name: str, runs: dict[str, list]) -> None:
+    """Relabelling a class changes no height: both runs must list the same holes."""
+    shapes = [sorted((h.hole_id, round(h.area_m2, 3)) for h in runs[run]) for run in RUNS]
+    if shapes[0] != shapes[1]:
+        print(f"{name}: WARNING: the runs list different holes ({len(shapes[0])} and {len(shapes[1])})", flush=True)
 
 
 def report(labelled: dict[str, dict[str, list]]) -> dict:
