@@ -35,13 +35,16 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
+import shapely
+from affine import Affine
 from scipy import ndimage
 
 from .io.las import iter_point_chunks
 from .io.raster import geometry_mask, read_raster
 from .io.vector import read_layer
+from .rasterize import WATER_CLASS
 
-WATER_CLASS = 9
+#: ASPRS class of buildings.
 BUILDING_CLASS = 6
 #: Truth labels scored: water, a building's shadow, or neither. A hole of a survey with
 #: water but no water evidence without a building beside it is "unverified" (not scored).
@@ -95,13 +98,16 @@ class HoleTruth:
 
 def point_evidence(
     path: str | os.PathLike,
-    transform,
+    transform: Affine,
     shape: tuple[int, int],
     *,
     drop_classes: tuple[int, ...] = (7, 18),
     chunk_points: int = 1_000_000,
 ) -> PointEvidence:
-    """Bin one file's points on the lattice of ``transform`` (a north-up affine) and ``shape``."""
+    """Bin one file's points on the lattice of ``transform`` (north up) and ``shape``.
+
+    The run's own filter by default: noise classes and withheld points are left out.
+    """
     rows, cols = shape
     n = rows * cols
     count = np.zeros(n, np.int64)
@@ -112,7 +118,8 @@ def point_evidence(
         x, y, z = chunk.coordinates()
         col = np.floor((x - transform.c) / transform.a).astype(np.int64)
         row = np.floor((y - transform.f) / transform.e).astype(np.int64)
-        keep = (row >= 0) & (row < rows) & (col >= 0) & (col < cols) & ~np.isin(chunk.classification, drop_classes)
+        inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+        keep = inside & ~np.isin(chunk.classification, drop_classes) & ~chunk.withheld
         pixel = row[keep] * cols + col[keep]
         cls, zk = chunk.classification[keep], z[keep]
         count += np.bincount(pixel, minlength=n)
@@ -175,7 +182,7 @@ def label_holes(
     run_dir: str | os.PathLike,
     las_path: str | os.PathLike,
     *,
-    water_polygons=None,
+    water_polygons: shapely.Geometry | None = None,
     water_known: bool = True,
     rules: TruthRules | None = None,
 ) -> list[HoleTruth]:
