@@ -562,6 +562,13 @@ def _report(summary) -> None:
             f"{holes['small_voids']} small voids under {holes['min_area_m2']:g} m2 or sampling gaps; "
             f"{holes['vertical_hole_groups']} vertical holes, {holes['walls']} walls",
         )
+    if summary.heights.get("heights") == "above_ground":
+        _note(
+            f"heights are above the ground ({summary.heights['ground_points_at_zero']:,} of "
+            f"{summary.heights['ground_points']:,} ground points at z = 0): the DSM is a height-above-ground model"
+        )
+    if "not_planned" in summary.flightplan:
+        _note(f"no re-flight plan: {summary.flightplan['not_planned']}", level="warning")
     if summary.reused_tasks:
         _note(f"incremental: {summary.reused_tasks} results of unchanged tiles and cells reused")
     for item in summary.skipped:

@@ -189,9 +189,17 @@ class CausesConfig:
         ge=0,
         le=1,
     )
+    water_max_slope: float = _opt(
+        0.02,
+        "river_rim rule: steepest fall of the rim along the hole (rise over run); rivers fall 0.01-1 %.",
+        ge=0,
+    )
+    river_min_elongation: float = _opt(
+        2.0, "river_rim rule: least length / width of a hole whose rim falls more than water_flat_tolerance.", ge=1
+    )
     water_min_rim_area_m2: float = _opt(
         50.0,
-        "level_rim and flat_low_rim rules: smallest hole (m2) called water from its rim alone.",
+        "level_rim, river_rim and flat_low_rim rules: smallest hole (m2) called water from its rim alone.",
         ge=0,
     )
     low_quantile: float = _opt(0.05, "Quantile of the ring heights taken as the ring's low level.", ge=0, le=1)

@@ -85,6 +85,7 @@ class RunSummary:
     resumed_tasks: int = 0  # tasks an interrupted run had finished, not run again
     point_files: list[str] = field(default_factory=list)  # points/*.laz (output.points)
     reused_tasks: int = 0  # results of unchanged tiles and cells taken from the previous run (incremental)
+    heights: dict[str, Any] = field(default_factory=dict)  # elevations or above the ground (pipeline.ground_level)
 
     @property
     def points_per_second(self) -> float:
@@ -436,6 +437,7 @@ def write_manifest(
         "inputs": [_input_entry(r, headers[r.path], inputs.get(r.path, {})) for r in tile_results],
         "skipped": summary.skipped,
         "survey_area": _survey_area_record(plan),
+        "heights": summary.heights,
         "outputs": {
             "dsm_vrt": "dsm.vrt" if summary.dsm_tiles else None,
             "dsm_tiles": summary.dsm_tiles,

@@ -30,6 +30,7 @@ from . import __version__
 from .cluster import ClusterStart, dask_client
 from .config import Config, config_key, to_dict
 from .errors import DiskFullError, HolefillError, InputDataError, OutputError, TaskError
+from .ground_level import NO_TERRAIN, GroundLevel
 from .io.checksums import input_record, output_records
 from .io.flightplan_files import plan_flights
 from .io.vector import read_survey_area
@@ -457,10 +458,14 @@ def _write_products(
     write_survey_layers(gpkg, plan, rasters.tiles, rasters.cells, rasters.written, skipped)
     hole_summary = write_hole_layers(gpkg, plan, config, holes, detected, fills) if holes is not None else {}
     vrt = staging.product("dsm.vrt")
-    flight_summary = {}
+    flight_summary: dict[str, Any] = {}
+    heights = sum((r.ground for r in rasters.tiles), GroundLevel())
     if holes is not None and config.flightplan.enabled and vrt.exists():
-        centroid = plan.survey_area.centroid
-        flight_summary = plan_flights(gpkg, vrt, config, staging.root, home=(centroid.x, centroid.y))
+        if heights.normalised:  # safe heights need the terrain, which these heights have taken out
+            flight_summary = {"not_planned": NO_TERRAIN}
+        else:
+            centroid = plan.survey_area.centroid
+            flight_summary = plan_flights(gpkg, vrt, config, staging.root, home=(centroid.x, centroid.y))
         timer.lap("flightplan")
     summary = RunSummary(
         flightplan=flight_summary,
@@ -477,6 +482,7 @@ def _write_products(
         skipped=skipped,
         dsm_tiles=sorted(os.path.relpath(r.paths["dsm"], staging.root) for r in rasters.written if r.paths),
         point_files=rasters.points,
+        heights=heights.as_record(),
     )
     timer.seconds["outputs"] = time.perf_counter() - t0
     products = [name for name in PRODUCTS if name not in ("manifest.json", "report.html")]

@@ -88,6 +88,7 @@ def test_rule_order_is_one_table():
         "strip",
         "level_rim",
         "flat_low_rim",
+        "river_rim",
     ]
 
 

@@ -413,6 +413,49 @@ def test_cause_lake_with_trees_on_the_shore_is_still_water():
     assert cause["cause"] == "water", cause
 
 
+def river_scene(n=200, fall_per_px=0.01, north_bank_m=0.0, seed=6):
+    """A meandering river flowing east, its surface falling ``fall_per_px`` per pixel; banks rise away."""
+    rng = np.random.default_rng(seed)
+    r, c = np.mgrid[:n, :n]
+    centre = n / 2 + 15 * np.sin(2 * np.pi * c / 120)
+    offset = r - centre
+    river = np.abs(offset) < 6
+    water_level = 20.0 - fall_per_px * c
+    bank = np.maximum(np.abs(offset) - 6, 0)
+    z = water_level + 0.3 + 0.15 * bank + np.where(offset < 0, north_bank_m, 0.0) + rng.normal(0, 0.03, (n, n))
+    count = np.where(river, 0, 5).astype(np.uint32)
+    return count, z
+
+
+@pytest.mark.parametrize("fall_per_px", [0.0, 0.002, 0.01])
+def test_cause_sloped_river_is_water_by_its_rim(fall_per_px):
+    # the rim falls along the course and matches across the banks: a river reach (0 to 1 %)
+    count, z = river_scene(fall_per_px=fall_per_px)
+    cause, _ = classify(count, z, zmin=z)
+    assert cause["cause"] == "water", cause
+    if fall_per_px >= 0.01:
+        assert cause["rule"] == "river_rim", cause
+
+
+def test_cause_river_rim_needs_level_banks_a_gentle_fall_and_a_long_hole():
+    # one bank 1 m above the other: water is level across
+    count, z = river_scene(north_bank_m=1.0)
+    assert classify(count, z, zmin=z)[0]["cause"] != "water"
+    # a reach falling 5 %: a road or a field, not a river
+    count, z = river_scene(fall_per_px=0.05)
+    assert classify(count, z, zmin=z)[0]["cause"] != "water"
+    # a round void on a 1.8 % slope: its rim falls 0.9 m across, and a pond cannot slope
+    rng = np.random.default_rng(7)
+    n = 120
+    r, c = np.mgrid[:n, :n]
+    z = 30.0 + 0.018 * c + rng.normal(0, 0.03, (n, n))
+    count = np.where(np.hypot(r - n / 2, c - n / 2) < 25, 0, 5).astype(np.uint32)
+    assert classify(count, z, zmin=z)[0]["cause"] != "water"
+    # the same void on a 0.5 % slope falls 0.25 m across: a level pond
+    z = 30.0 + 0.005 * c + rng.normal(0, 0.03, (n, n))
+    assert classify(count, z, zmin=z)[0]["cause"] == "water"
+
+
 def test_cause_water_points_and_water_mask():
     count, z, zmin = lake_scene(n=96, rx=20, ry=14)
     z = z + 0.02 * np.arange(96)[None, :] * 40  # a tilted rim: geometry alone says no water

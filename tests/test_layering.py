@@ -9,6 +9,7 @@ import pytest
 
 KERNELS = [
     "pipeline.grid",
+    "pipeline.ground_level",
     "pipeline.rasterize",
     "pipeline.config",
     "pipeline.footprint",

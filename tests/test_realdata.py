@@ -110,7 +110,13 @@ def test_dtm_keeps_only_ground(shared_data, tmp_path, dask_client):
 
 
 @pytest.mark.parametrize(
-    "name, crs", [("ahn3_delft_1.laz", "EPSG:28992"), ("lidr_topography.laz", None), ("ign_corse_water.laz", None)]
+    "name, crs",
+    [
+        ("ahn3_delft_1.laz", "EPSG:28992"),
+        ("lidr_topography.laz", None),
+        ("ign_corse_water.laz", None),
+        ("ign_bridge_0299_6802.laz", None),  # river_rim: the ring plane's slopes along and across the hole
+    ],
 )
 def test_real_holes_and_causes_do_not_depend_on_cell_size(shared_data, tmp_path, dask_client, name, crs):
     """The same holes (area, place) with the same causes, with cells of 50 m, 250 m and 1000 m."""
@@ -126,3 +132,15 @@ def test_real_holes_and_causes_do_not_depend_on_cell_size(shared_data, tmp_path,
         )
     assert found[50], name
     assert found[50] == found[250] == found[1000]
+
+
+def test_decimated_river_reach_is_water_by_its_sloped_rim(shared_data, tmp_path, dask_client):
+    """IGN's decimated Brittany tile: no water class, no flight lines; the open reach's rim is a gentle plane."""
+    out = tmp_path / "bridge"
+    run(shared_data, ["ign_bridge_0299_6802.laz"], out, dask_client)
+    holes = read_layer(out / "holes.gpkg", "holes")
+    water = holes[holes["cause"] == "water"]
+    assert list(water["cause_rule"]) == ["river_rim"]
+    reach = water.geometry.iloc[0]
+    assert 299_700 < reach.centroid.x < 299_800 and 6_801_720 < reach.centroid.y < 6_801_780
+    assert set(holes["cause"]) <= {"water", "unknown"}  # the reaches under trees: no evidence either way

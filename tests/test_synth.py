@@ -16,19 +16,24 @@ import numpy as np
 import pytest
 import shapely
 
+from pipeline.io.vector import read_layer
 from pipeline.synth import (
     CLASS_BUILDING,
     CLASS_GROUND,
     CLASS_HIGH_VEGETATION,
+    RIVER_BANK_HEIGHT_M,
     Buildings,
     HoleCause,
+    SurfaceKind,
     SurveySpec,
     Trees,
     build_scene,
     flight_lines,
     generate_survey,
     preset,
+    write_truth,
 )
+from pipeline.synth.scenes import cause_scene
 
 # Default-density survey small enough for tests: 320 m x 120 m, ~300k points.
 SMALL = dict(width_m=320.0, height_m=120.0, tile_size_m=80.0)
@@ -350,6 +355,11 @@ def test_presets():
         (dict(pulse_spacing_m=0.6), "too sparse"),
         (dict(las_version="1.3"), "las_version"),
         (dict(side_overlap=1.0), "side_overlap"),
+        (dict(river_fall_m_per_km=-1.0), "river_fall_m_per_km"),
+        (dict(river_fall_m_per_km=float("nan")), "river_fall_m_per_km"),
+        (dict(lakes=-1), "lakes"),
+        (dict(lakes=1.5), "lakes"),
+        (dict(canal=1), "canal"),
     ],
 )
 def test_invalid_specs_are_rejected(fields, message):
@@ -374,3 +384,182 @@ def test_sensor_must_clear_the_scene(tmp_path):
         warnings.simplefilter("ignore")
         with pytest.raises(ValueError, match="flight_altitude_m"):
             generate_survey(tmp_path, preset("unit", flight_altitude_m=20.0, missed_line=None))
+
+
+# -- water bodies and missed strips of the cause scenes ---------------------------------
+
+
+def water_pixel_uv(survey, cause=HoleCause.WATER):
+    """Local (u, v) of the centres of the truth pixels of a cause."""
+    spec = survey.spec
+    rows, cols = np.nonzero(survey.hole_cause == cause)
+    return (cols + 0.5) * spec.resolution, spec.height_m - (rows + 0.5) * spec.resolution
+
+
+@pytest.mark.parametrize("fall", [2.0, 5.0, 10.0])
+def test_a_sloped_river_falls_west_to_east_with_its_banks(tmp_path, fall):
+    spec = cause_scene(f"river_fall_{fall:g}")
+    survey = generate_survey(tmp_path, spec)
+    river = survey.scene.river
+    assert river.fall == pytest.approx(fall / 1000.0)
+    # the truth DSM is the water level over the water: a pixel holds the highest of its fine cells
+    u, v = water_pixel_uv(survey)
+    inside = np.abs(river.offset(u, v)) < river.half_width - spec.resolution
+    rows, cols = np.nonzero(survey.hole_cause == HoleCause.WATER)
+    level = survey.truth_dsm[rows, cols][inside]
+    expected = river.level(u[inside])
+    assert np.all(np.abs(level - expected) <= fall / 1000.0 * spec.resolution / 2 + 1e-4)
+    slope = np.polyfit(u[inside], level, 1)[0]
+    assert slope == pytest.approx(-fall / 1000.0, rel=0.01)
+    # the banks follow the water: the shore is 0.3 m above the local level all along the river
+    along = np.linspace(0.0, spec.width_m, 50)
+    for side in (-1.0, 1.0):
+        shore_v = river.centerline_v(along) + side * (river.half_width + 1e-6)
+        shore = survey.scene.ground_height(along, shore_v) - river.level(along)
+        assert np.allclose(shore, RIVER_BANK_HEIGHT_M, atol=1e-6)
+    # the water stays under the terrain beside it everywhere
+    assert np.all(river.level(along) < survey.scene.terrain.height(along, river.centerline_v(along)) - 0.99)
+
+
+def test_lakes_are_water_with_a_flat_level_and_a_contour_shore(tmp_path):
+    survey = generate_survey(tmp_path, cause_scene("lakes"))
+    spec, scene = survey.spec, survey.scene
+    lakes = scene.lakes
+    assert scene.river is None and len(lakes) == 3
+    assert np.all((20.0 <= 2 * lakes.semi_minor) & (2 * lakes.semi_major <= 80.0))
+    # inside the extent with their banks, clear of each other's banks
+    reach = lakes.reach
+    assert np.all((lakes.center_u - reach >= 0) & (lakes.center_u + reach <= spec.width_m))
+    assert np.all((lakes.center_v - reach >= 0) & (lakes.center_v + reach <= spec.height_m))
+    gaps = np.hypot(*(np.subtract.outer(c, c) for c in (lakes.center_u, lakes.center_v))) - np.add.outer(reach, reach)
+    assert np.all(gaps[~np.eye(3, dtype=bool)] >= 0)
+    # every water pixel is a lake's, its truth DSM that lake's level
+    u, v = water_pixel_uv(survey)
+    assert len(u) > 3 * 200 / 4
+    rows, cols = np.nonzero(survey.hole_cause == HoleCause.WATER)
+    near = np.zeros(len(u), dtype=bool)
+    for index in range(len(lakes)):
+        _, radius = lakes._radial(index, u, v)
+        at_lake = radius < 1.0 + spec.resolution / lakes.semi_minor[index]
+        near |= at_lake
+        full = radius < 1.0 - spec.resolution / lakes.semi_minor[index]
+        assert np.all(survey.truth_dsm[rows[full], cols[full]] == np.float32(lakes.water_level[index]))
+        # the shore is a contour line 0.3 m above the water
+        ring = lakes.polygons(step_deg=4.0)[index]
+        centre = np.array([lakes.center_u[index], lakes.center_v[index]])
+        shore = centre + (ring - centre) * 1.0001
+        heights = scene.ground_height(shore[:, 0], shore[:, 1]) - lakes.water_level[index]
+        assert np.allclose(heights, RIVER_BANK_HEIGHT_M, atol=0.01)
+    assert np.all(near)
+    # no building or tree stands in a lake or on its shore
+    waters = shapely.union_all([p for _, p in survey.water_polygons()])
+    assert not any(footprint.intersects(waters) for footprint in survey.building_footprints())
+    trees = shapely.points(scene.trees.center_u + spec.x_min, scene.trees.center_v + spec.y_min)
+    assert not np.any(shapely.dwithin(trees, waters, scene.trees.crown_radius))
+    with pytest.raises(ValueError, match="SurveySpec.lakes: only"):
+        build_scene(preset("unit", lakes=20))
+
+
+def test_a_canal_runs_between_quay_walls_and_rows_of_tall_houses(tmp_path):
+    survey = generate_survey(tmp_path, cause_scene("canal"))
+    spec, scene = survey.spec, survey.scene
+    canal = scene.canal
+    assert 8.0 <= 2 * canal.half_width <= 15.0 and 1.5 <= canal.quay_height <= 2.0 and 3.0 <= canal.street <= 6.0
+    # water exactly over the canal, every pixel column across it water from south to north
+    u, v = water_pixel_uv(survey)
+    assert np.all(np.abs(u - canal.center_u) < canal.half_width + spec.resolution)
+    columns = np.flatnonzero(
+        np.abs((np.arange(spec.shape[1]) + 0.5) * spec.resolution - canal.center_u) < canal.half_width - 1
+    )
+    assert len(columns) >= 2 and np.all(survey.hole_cause[:, columns] == HoleCause.WATER)
+    assert np.all(survey.truth_dsm[:, columns] == np.float32(canal.water_level))
+    # quay walls: the street beside the water is flat at the quay top
+    v_line = np.linspace(0.0, spec.height_m, 40)
+    for side in (-1.0, 1.0):
+        street_u = canal.center_u + side * (canal.half_width + canal.street / 2)
+        assert np.allclose(scene.ground_height(np.full(40, street_u), v_line), canal.quay_z)
+    # a row of 10-20 m houses along each quay, facades a street's width from the water
+    houses = scene.buildings
+    facade = np.abs(houses.center_u - canal.center_u) - houses.half_length
+    row = np.isclose(facade, canal.half_width + canal.street)
+    for side in (-1.0, 1.0):
+        mine = row & (np.sign(houses.center_u - canal.center_u) == side)
+        assert mine.sum() >= spec.height_m / 20
+        height = houses.ridge_z[mine] - canal.quay_z
+        assert np.all((height >= 10.0 - 1e-9) & (height <= 20.0 + 1e-9))
+        # side by side along the whole quay: gaps of at most 3 m
+        south, north = houses.center_v[mine] - houses.half_width[mine], houses.center_v[mine] + houses.half_width[mine]
+        order = np.argsort(south)
+        assert np.all(south[order][1:] - north[order][:-1] <= 3.0 + 1e-9)
+        assert south.min() <= 0.0 and north.max() >= spec.height_m - 16.0
+    # other buildings and trees keep out of the canal's zone
+    others = ~row
+    assert np.all(
+        np.abs(houses.center_u[others] - canal.center_u) - houses.bounding_radius[others] > canal.flat_half_width
+    )
+    # the houses' scan shadows fall on the street between the facades and the water
+    occluded_u, _ = water_pixel_uv(survey, HoleCause.OCCLUSION)
+    on_street = np.abs(occluded_u - canal.center_u) < canal.half_width + canal.street
+    assert on_street.sum() > 0
+    names = [name for name, _ in survey.water_polygons()]
+    assert names == ["canal"]
+
+
+def test_cause_scenes_with_water_bodies_do_not_depend_on_tiling(tmp_path):
+    spec = preset(
+        "unit", width_m=320.0, height_m=240.0, tile_size_m=80.0, lakes=1, canal=True, river_fall_m_per_km=10.0,
+        missed_line=None,
+    )  # fmt: skip
+    big = generate_survey(tmp_path / "t80", spec)
+    small = generate_survey(tmp_path / "t48", dataclasses.replace(spec, tile_size_m=48.0))
+    assert big.scene.lakes is not None and big.scene.canal is not None and big.scene.river is not None
+    for name in ("truth_dsm", "hole_cause", "point_count", "visible_fraction"):
+        assert np.array_equal(getattr(big, name), getattr(small, name)), name
+    assert np.array_equal(sorted_points(big), sorted_points(small))
+    # and any window of the scene is sampled exactly as the whole
+    scene, cell = big.scene, 0.5
+    whole = scene.rasterize(-20, -10, 360, 340, cell)
+    part = scene.rasterize(95, 133, 77, 61, cell)
+    for name in ("surface", "hard_surface", "kind", "object_index"):
+        assert np.array_equal(getattr(part, name), getattr(whole, name)[143:204, 115:192]), name
+    assert {SurfaceKind.WATER, SurfaceKind.BUILDING} <= set(np.unique(whole.kind))
+    # the truth names every water body
+    water = read_layer(write_truth(big, tmp_path / "truth")["water"], "water")
+    assert list(water["name"]) == ["river", "lake 1", "canal"]
+    lakes = big.scene.lakes
+    assert water.geometry.iloc[1].area == pytest.approx(math.pi * lakes.semi_major[0] * lakes.semi_minor[0], rel=0.01)
+
+
+def missed_strip_u(survey):
+    """The local eastings (west, east) of the pixel columns outside every flown swath."""
+    spec = survey.spec
+    centres = (np.arange(spec.shape[1]) + 0.5) * spec.resolution
+    outside = np.ones(len(centres), dtype=bool)
+    for line in survey.flight_lines:
+        if line.flown:
+            outside &= ~line.covers(centres)
+    columns = np.flatnonzero(outside)
+    assert len(columns) and np.all(np.diff(columns) == 1)
+    return columns[0] * spec.resolution, (columns[-1] + 1) * spec.resolution
+
+
+@pytest.mark.parametrize("name, along", [("strip_across_tiles", False), ("strip_along_tile_edge", True)])
+def test_missed_strips_across_tiles_and_along_a_tile_edge(tmp_path, name, along):
+    survey = generate_survey(tmp_path, cause_scene(name))
+    spec = survey.spec
+    west, east = missed_strip_u(survey)
+    assert east - west > 60.0  # a strip most of a swath wide, running the whole height
+    edges = np.arange(0.0, spec.width_m + 1, spec.tile_size_m)
+    inside = edges[(edges > west) & (edges < east)]
+    assert len(inside) == (1 if along else 0)
+    # across: it crosses every tile row inside one tile column; along: the tiles' header bounds
+    # on both sides of the edge stop at the strip, so it lies between the tiles' extents
+    assert spec.height_m / spec.tile_size_m >= 3
+    x_west, x_east = spec.x_min + west, spec.x_min + east
+    for path in survey.tiles:
+        with laspy.open(path) as reader:
+            x0, x1 = reader.header.mins[0], reader.header.maxs[0]
+        beside = x1 <= x_west + spec.resolution or x0 >= x_east - spec.resolution
+        assert beside or not along, path.name
+    strip = survey.hole_cause[:, round(west / spec.resolution) : round(east / spec.resolution)]
+    assert np.mean(strip == HoleCause.MISSED_COVERAGE) > 0.95

@@ -35,6 +35,7 @@ RULES: tuple[tuple[str, str], ...] = (
     ("strip", "missed_coverage"),
     ("level_rim", "water"),
     ("flat_low_rim", "water"),
+    ("river_rim", "water"),
 )
 
 CAUSE_DTYPE = np.dtype([("cause", "U16"), ("rule", "U16")])
@@ -72,8 +73,10 @@ class CauseRules:
         ``flat_low_rim`` rule (``water_flat_tolerance`` in z units).
     water_max_below_fraction
         ``level_rim`` rule (with ``water_flat_tolerance`` and ``water_min_flat_fraction``).
+    water_max_slope, river_min_elongation
+        ``river_rim`` rule (with ``water_flat_tolerance``); ``water_max_slope`` is rise over run.
     water_min_rim_area_m2, pixel_area_m2
-        Both rim-only water rules (``level_rim``, ``flat_low_rim``) need a hole of at
+        The rim-only water rules (``level_rim``, ``river_rim``, ``flat_low_rim``) need a hole of at
         least this area: a small void with a flat rim is as often a dropout on dark or
         wet ground as water.
     low_quantile, high_quantile
@@ -100,6 +103,8 @@ class CauseRules:
     water_min_flat_fraction: float
     water_min_low_fraction: float
     water_max_below_fraction: float
+    water_max_slope: float
+    river_min_elongation: float
     water_min_rim_area_m2: float
     low_quantile: float
     high_quantile: float
@@ -184,11 +189,21 @@ def classify_causes(stats: HoleStats, rules: CauseRules) -> np.ndarray:
        come from two or more lines each holding at least ``strip_min_line_share`` of
        it, the two most common holding at least ``strip_two_line_share``, and the
        elongation needed is ``strip_min_elongation_with_lines``.
-    6. ``water`` / ``flat_low_rim``: at least ``water_min_flat_fraction`` of the ring
+    6. ``water`` / ``level_rim``: the hole lies in a known swath (a line flew over it
+       and got nothing back), at least ``water_min_flat_fraction`` of its ring lies in
+       one height window ``water_flat_tolerance`` wide and at most
+       ``water_max_below_fraction`` below it (a shore is a contour line).
+    7. ``water`` / ``flat_low_rim``: at least ``water_min_flat_fraction`` of the ring
        lies within ``water_flat_tolerance`` above the low level and at least
        ``water_min_low_fraction`` of it is at the local minimum (``ring_low_px``).
-       Like ``level_rim``, only for holes of at least ``water_min_rim_area_m2``.
-    7. ``unknown`` / ``none`` (``no_ring`` when no measured pixel borders the hole).
+       Like ``level_rim`` and ``river_rim``, only for holes of at least ``water_min_rim_area_m2``.
+    8. ``water`` / ``river_rim``: the hole is in no coverage gap and its ring is a
+       plane (scatter at most ``water_flat_tolerance``) that matches across the hole
+       (cross-axis fall over its width at most ``water_flat_tolerance``) and falls
+       along it no steeper than ``water_max_slope``; a fall over its length above
+       ``water_flat_tolerance`` needs a hole at least ``river_min_elongation`` long
+       for its width (water is level across; only a river's course falls).
+    9. ``unknown`` / ``none`` (``no_ring`` when no measured pixel borders the hole).
 
     Parameters
     ----------
@@ -270,6 +285,7 @@ def _rule_conditions(stats: HoleStats, ring: _RingEvidence, rules: CauseRules) -
     large_enough_for_rim_water = stats["area_px"] * rules.pixel_area_m2 >= rules.water_min_rim_area_m2
     strip_shape = (shape["fill"] >= rules.strip_min_fill) & (shape["length_px"] >= rules.strip_min_length_px)
     in_swath = stats["swath_px"] / area1 >= 0.5  # the lines flew over it: not a gap in coverage
+    in_gap = stats["gap_px"] / area1 >= rules.gap_min_fraction  # no line flew over it
     strip = strip_shape & ~in_swath & (shape["elongation"] >= rules.strip_min_elongation)
     if len(stats.line_hist):
         has_lines, between_two_lines = _between_two_lines(stats, ring.size, rules)
@@ -291,11 +307,30 @@ def _rule_conditions(stats: HoleStats, ring: _RingEvidence, rules: CauseRules) -
         & in_swath
         & (ring.level_frac >= rules.water_min_flat_fraction)
         & (ring.below_frac <= rules.water_max_below_fraction),
+        "river_rim": ring.has_ring & large_enough_for_rim_water & ~in_gap & _river_rim(shape, ring_fit, rules),
         "flat_low_rim": ring.has_ring
         & large_enough_for_rim_water
         & (ring.flat_frac >= rules.water_min_flat_fraction)
         & (ring.low_frac >= rules.water_min_low_fraction),
     }
+
+
+def _river_rim(shape: np.ndarray, ring_fit: np.ndarray, rules: CauseRules) -> np.ndarray:
+    """Whether each ring is a water surface's rim that may fall along the hole: a lake or a river reach.
+
+    Heights in z units, slopes in z per pixel (:func:`ring_metrics`); the falls over
+    the hole's width and length are compared with ``water_flat_tolerance``.
+    """
+    tolerance = rules.water_flat_tolerance
+    along = np.nan_to_num(ring_fit["along_slope"], nan=np.inf)
+    across = np.nan_to_num(ring_fit["cross_slope"], nan=np.inf)
+    falls_along = along * shape["length_px"] > tolerance
+    return (
+        (np.nan_to_num(ring_fit["plane_residual_std"], nan=np.inf) <= tolerance)
+        & (across * shape["width_px"] <= tolerance)
+        & (along / rules.pixel_size <= rules.water_max_slope)
+        & (~falls_along | (shape["elongation"] >= rules.river_min_elongation))
+    )
 
 
 def _between_two_lines(stats: HoleStats, ring_size: np.ndarray, rules: CauseRules) -> tuple[np.ndarray, np.ndarray]:

@@ -328,12 +328,19 @@ RING_DTYPE = np.dtype(
         ("std_z", np.float64),  # standard deviation of ring heights
         ("plane_slope", np.float64),  # gradient of the least-squares plane through the ring (z per pixel)
         ("plane_residual_std", np.float64),  # scatter of ring heights about that plane
+        ("along_slope", np.float64),  # |gradient| along the hole's long axis (z per pixel): a river's fall
+        ("cross_slope", np.float64),  # |gradient| across it: banks at one height have none
     ]
 )
 
 
 def ring_metrics(stats: HoleStats) -> np.ndarray:
     """Height statistics of each row's ring, from its (mergeable) co-moments.
+
+    The least-squares plane through the ring heights gives the slope and the scatter;
+    its gradient split along and across the hole's long axis (from the hole's own
+    moments) tells a river, whose rim falls along its course and matches across its
+    banks, from a slope the hole merely lies on.
 
     Parameters
     ----------
@@ -359,6 +366,10 @@ def ring_metrics(stats: HoleStats) -> np.ndarray:
     out["plane_slope"] = np.where(n > 0, np.hypot(gr, gc), np.nan)
     residual = zz - gr * rz - gc * cz
     out["plane_residual_std"] = np.where(n > 0, np.sqrt(np.maximum(residual, 0.0)), np.nan)
+    # the hole's long axis: the major eigenvector of its pixel covariance, at angle phi from the row axis
+    phi = 0.5 * np.arctan2(2.0 * stats["m2_rc"], stats["m2_rr"] - stats["m2_cc"])
+    out["along_slope"] = np.where(n > 0, np.abs(gr * np.cos(phi) + gc * np.sin(phi)), np.nan)
+    out["cross_slope"] = np.where(n > 0, np.abs(gc * np.cos(phi) - gr * np.sin(phi)), np.nan)
     return out
 
 

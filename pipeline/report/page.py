@@ -163,6 +163,8 @@ def _warnings(manifest: dict[str, Any], inputs: ReportInputs | None) -> str:
         for hole, reason in (plan.get("holes_not_planned") or {}).items()
         if "is not re-flown" not in reason
     }
+    if "not_planned" in plan:
+        items.append(f"no re-flight plan: {_e(plan['not_planned'])}")
     if unplanned:
         sample = "; ".join(f"hole {h}: {r}" for h, r in list(unplanned.items())[:5])
         items.append(f"{len(unplanned):,} hole(s) to re-fly could not be planned ({_e(sample)})")
@@ -325,6 +327,8 @@ def _fill_section(fill: dict[str, Any], inputs: ReportInputs | None) -> list[str
 def _flight_section(plan: dict[str, Any]) -> list[str]:
     if not plan:
         return []
+    if "not_planned" in plan:
+        return ["<h2>Re-flight plan</h2>", f"<p>None: {_e(plan['not_planned'])}.</p>"]
     rows = [
         ["holes planned / listed", f"{plan['holes_planned']} / {plan['holes']}"],
         ["patterns, lanes, sorties", f"{plan['patterns']}, {plan['lanes']}, {plan['sorties']}"],
@@ -352,6 +356,7 @@ def _survey_section(manifest: dict[str, Any]) -> list[str]:
                 ["tiles read", f"{summary['tiles']:,}"],
                 ["points read / used", f"{summary['points_read']:,} / {summary['points_used']:,}"],
                 ["CRS", manifest["crs"]["name"]],
+                ["heights", _heights_text(manifest.get("heights", {}))],
                 ["pixel size (CRS units)", f"{grid['resolution']:g}"],
                 ["grid", f"{grid['width']:,} x {grid['height']:,} pixels, {summary['cells']} cells"],
                 ["empty pixels", f"{summary['empty_pixels']:,}"],
@@ -361,3 +366,13 @@ def _survey_section(manifest: dict[str, Any]) -> list[str]:
         "<h3>Time by stage (s)</h3>",
         _table(["stage", "seconds", ""], timing_rows, raw_last=True),
     ]
+
+
+def _heights_text(heights: dict[str, Any]) -> str:
+    """The manifest's ``heights`` in words (:mod:`pipeline.ground_level`)."""
+    if heights.get("heights") == "above_ground":
+        return (
+            f"above the ground: {heights['ground_points_at_zero']:,} of {heights['ground_points']:,} ground "
+            "points lie at z = 0, so the DSM is a height-above-ground model"
+        )
+    return "elevations"

@@ -21,6 +21,7 @@ from pyproj import Transformer
 from ..config import Config
 from ..errors import InputDataError
 from ..grid import Grid, PixelWindow
+from ..ground_level import GROUND_CLASS, GroundLevel, count_ground_at_zero
 from ..io import pdal_reader
 from ..io.copc import iter_copc_nodes, load_point_chunk, save_point_chunk
 from ..io.intermediate import save_tile_statistics
@@ -77,6 +78,7 @@ class TileResult:
     seconds: float
     read_index: int = -1
     read_tasks: int = 1  # tasks the file was read by (after results_by_file)
+    ground: GroundLevel = GroundLevel()  # ground-class points binned, and those at z = 0
 
 
 @dataclass(frozen=True)
@@ -275,6 +277,7 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
         Transformer.from_crs(task.source_crs_wkt, grid.crs_wkt, always_xy=True) if task.source_crs_wkt else None
     )
     read = used = outside = 0
+    ground = GroundLevel()
     f = task.point_filter
     for chunk, decoded in _points_to_bin(task):
         keep = point_filter_mask(
@@ -285,14 +288,17 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
             drop_withheld=f.drop_withheld,
         )
         evidence = {"water": chunk.classification == WATER_CLASS, "source": chunk.point_source_id}
+        is_ground = keep & (chunk.classification == GROUND_CLASS)
         if transformer is None:
             n_used, n_outside = accumulator.add(
                 chunk.X, chunk.Y, chunk.Z, keep, scales=chunk.scales, offsets=chunk.offsets, **evidence
             )
+            ground += count_ground_at_zero(chunk.Z, is_ground, scale=chunk.scales[2], offset=chunk.offsets[2])
         else:
             x, y, z = chunk.coordinates()
             x, y = transformer.transform(x, y)
             n_used, n_outside = accumulator.add(x, y, z, keep, **evidence)
+            ground += count_ground_at_zero(z, is_ground)
         read += len(chunk) if decoded else 0  # handed-over points were counted by the top task
         used += n_used
         outside += n_outside
@@ -307,6 +313,7 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
         points_outside=outside,
         seconds=time.perf_counter() - started,
         read_index=task.read_index,
+        ground=ground,
     )
 
 
@@ -336,6 +343,7 @@ def results_by_file(results: list[TileResult]) -> list[TileResult]:
                 points_outside=kept.points_outside + r.points_outside,
                 seconds=kept.seconds + r.seconds,
                 read_tasks=kept.read_tasks + 1,
+                ground=kept.ground + r.ground,
             )
         )
     return list(by_file.values())

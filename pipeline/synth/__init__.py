@@ -23,8 +23,13 @@ survey can be generated tile by tile with bounded memory:
 * terrain: ``BASE_HEIGHT_M`` plus a few sinusoids of random direction and
   wavelength (100-450 m) whose amplitudes add up to ``terrain_relief_m / 2``;
 * one river crossing the scene west to east (a meandering band of constant
-  N-S width, flat water surface 1 m below the lowest terrain along its centre
-  line, banks blended down to it over ``RIVER_BANK_WIDTH_M``);
+  N-S width, water surface 1 m below the lowest terrain along its centre
+  line, flat or falling eastward by ``river_fall_m_per_km``, banks blended
+  down to it over ``RIVER_BANK_WIDTH_M``);
+* optionally (``lakes``) elliptic lakes 20-80 m across with flat water, the
+  terrain blended down to a shore just above it, and (``canal``) a straight
+  N-S canal between quay walls with a street and a row of tall houses along
+  each quay (:mod:`.water_bodies`); every water body's pixels are water in the truth;
 * buildings: rotated rectangles (random orientation, sides 10-40 m, total
   height 6-25 m), half with flat roofs, half with gable roofs whose ridge runs
   along the long side; they never overlap each other, the river or its banks;
@@ -74,6 +79,8 @@ Modules, in the order of the simulation
 ``scene``
     The analytic scene (:class:`Terrain`, :class:`River`, :class:`Buildings`,
     :class:`Trees`, :class:`Scene`) and its sampling on a window of the fine grid.
+``water_bodies``
+    :class:`Lakes` and :class:`Canal`: still water, its shores and quays.
 ``draw``
     :func:`build_scene`: the random scene of a spec.
 ``flight``
@@ -110,6 +117,7 @@ from .spec import (
 )
 from .survey import SyntheticSurvey, generate_survey, write_truth
 from .tiles import write_tile
+from .water_bodies import Canal, Lakes
 
 __all__ = [
     "BASE_HEIGHT_M",
@@ -124,8 +132,10 @@ __all__ = [
     "RIVER_BANK_WIDTH_M",
     "SURVEY_START_GPS_TIME",
     "Buildings",
+    "Canal",
     "FlightLine",
     "HoleCause",
+    "Lakes",
     "River",
     "Scene",
     "SceneRaster",

@@ -10,10 +10,14 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .spec import RIVER_BANK_HEIGHT_M, RIVER_BANK_WIDTH_M, SurfaceKind
+
+if TYPE_CHECKING:
+    from .water_bodies import Canal, Lakes
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,12 +71,25 @@ class Terrain:
         return self.base_height - total, self.base_height + total
 
 
+def blend_to_shore(ground: np.ndarray, distance: np.ndarray, level: np.ndarray, bank_width: float) -> np.ndarray:
+    """Ground blended down to ``level + RIVER_BANK_HEIGHT_M`` at a shore ``distance`` metres away.
+
+    A smoothstep over ``bank_width``: the ground is untouched farther out and at the
+    bank top on the shore, so the shore is a contour line just above the water.
+    """
+    t = np.clip(distance / bank_width, 0.0, 1.0)
+    smooth = t * t * (3.0 - 2.0 * t)
+    bank_top = level + RIVER_BANK_HEIGHT_M
+    return bank_top + (ground - bank_top) * smooth
+
+
 @dataclass(frozen=True, eq=False)
 class River:
     """A west-east river: water where ``|v - centre(u)| < half_width``.
 
     The centre line is ``center_v + meander_amplitude * sin(2 pi u / meander_wavelength + phase)``;
-    the water surface is flat at ``water_level``. Being a band of constant N-S
+    the water surface is ``water_level - fall * u`` (:meth:`level`: flat when ``fall`` is 0,
+    else falling west to east; the bed and banks follow it). Being a band of constant N-S
     width it is an exact polygon (see :meth:`polygon`).
     """
 
@@ -83,6 +100,11 @@ class River:
     half_width: float
     water_level: float
     bank_width: float = RIVER_BANK_WIDTH_M
+    fall: float = 0.0  # metres of water-surface fall per metre eastward
+
+    def level(self, u: np.ndarray) -> np.ndarray:
+        """Water surface height at eastings ``u`` (``water_level`` at ``u = 0``)."""
+        return self.water_level - self.fall * np.asarray(u, dtype=np.float64)
 
     def centerline_v(self, u: np.ndarray) -> np.ndarray:
         return self.center_v + self.meander_amplitude * np.sin(
@@ -99,11 +121,8 @@ class River:
     def shape_ground(self, ground: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Blend terrain down to just above the water level near the river (the banks)."""
         distance = np.abs(self.offset(u, v)) - self.half_width
-        t = np.clip(distance / self.bank_width, 0.0, 1.0)
-        smooth = t * t * (3.0 - 2.0 * t)
-        bank_top = self.water_level + RIVER_BANK_HEIGHT_M
-        shaped = bank_top + (ground - bank_top) * smooth
-        return np.where(distance < 0, self.water_level - 1.0, shaped)
+        level = self.level(u)
+        return np.where(distance < 0, level - 1.0, blend_to_shore(ground, distance, level, self.bank_width))
 
     @property
     def max_slope(self) -> float:
@@ -256,7 +275,7 @@ class SceneRaster:
 
 @dataclass(frozen=True, eq=False)
 class Scene:
-    """An analytic scene: terrain, an optional river, buildings and trees, in local coordinates."""
+    """An analytic scene in local coordinates: terrain, an optional river, buildings, trees, lakes and a canal."""
 
     width_m: float
     height_m: float
@@ -264,19 +283,52 @@ class Scene:
     river: River | None
     buildings: Buildings
     trees: Trees
+    lakes: Lakes | None = None
+    canal: Canal | None = None
 
     def ground_height(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Bare-earth height (river bed under water)."""
-        ground = self.terrain.height(u, v)
+        """Bare-earth height (river and lake beds under water; the quay top under a canal)."""
+        return self._shape_ground(self.terrain.height(u, v), u, v)
+
+    def _shape_ground(self, ground: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Terrain heights shaped by the water bodies: beds, banks, shores and quays."""
         if self.river is not None:
             ground = self.river.shape_ground(ground, u, v)
+        if self.lakes is not None:
+            ground = self.lakes.shape_ground(ground, u, v)
+        if self.canal is not None:
+            ground = self.canal.shape_ground(ground, u, v)
         return ground
+
+    def water_level(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where ``(u, v)`` is water (any water body) and the water surface there (NaN elsewhere)."""
+        shape = np.broadcast_shapes(np.shape(u), np.shape(v))
+        water = np.zeros(shape, dtype=bool)
+        level = np.full(shape, np.nan)
+        if self.river is not None:
+            river = self.river.is_water(u, v)
+            level[river] = np.broadcast_to(self.river.level(u), shape)[river]
+            water |= river
+        if self.lakes is not None:
+            lake = self.lakes.is_water(u, v)
+            level[lake] = self.lakes.level(u, v)[lake]
+            water |= lake
+        if self.canal is not None:
+            canal = self.canal.is_water(u, v)
+            level[canal] = self.canal.water_level
+            water |= canal
+        return water, level
 
     def height_range(self) -> tuple[float, float]:
         """Bounds of every surface in the scene, for the occlusion padding."""
         low, high = self.terrain.height_range
         if self.river is not None:
-            low = min(low, self.river.water_level - 1.0)
+            # the water falls eastward; the padding reaches a bank width beyond the extent
+            low = min(low, float(self.river.level(np.asarray(self.width_m + RIVER_BANK_WIDTH_M))) - 1.0)
+        if self.lakes is not None and len(self.lakes):
+            low = min(low, float(self.lakes.water_level.min()) - 1.0)
+        if self.canal is not None:
+            low = min(low, self.canal.water_level)
         if len(self.buildings):
             high = max(high, float(self.buildings.ridge_z.max()))
         if len(self.trees):
@@ -291,9 +343,7 @@ class Scene:
         """
         u = (np.arange(column0, column0 + n_columns) + 0.5) * cell
         v = (np.arange(row0, row0 + n_rows) + 0.5) * cell
-        surface = self.terrain.height_grid(u, v)
-        if self.river is not None:
-            surface = self.river.shape_ground(surface, u[None, :], v[:, None])
+        surface = self._shape_ground(self.terrain.height_grid(u, v), u[None, :], v[:, None])
         kind = np.zeros(surface.shape, dtype=np.uint8)
         object_index = np.full(surface.shape, -1, dtype=np.int32)
         u_lo, u_hi, v_lo, v_hi = u[0] - cell, u[-1] + cell, v[0] - cell, v[-1] + cell
@@ -341,10 +391,10 @@ class Scene:
                 kind[rows, columns][take] = SurfaceKind.TREE
                 object_index[rows, columns][take] = index
 
-        if self.river is not None:
-            water = self.river.is_water(u[None, :], v[:, None])
-            surface[water] = self.river.water_level
-            hard_surface[water] = self.river.water_level
+        if self.river is not None or self.lakes is not None or self.canal is not None:
+            water, level = self.water_level(u[None, :], v[:, None])
+            surface[water] = level[water]
+            hard_surface[water] = level[water]
             kind[water] = SurfaceKind.WATER
             object_index[water] = -1
         return SceneRaster(column0, row0, surface, hard_surface, kind, object_index)

@@ -12,6 +12,16 @@ import affine
 BASE_HEIGHT_M = 50.0
 #: Width over which the terrain is blended down to the water level beside the river.
 RIVER_BANK_WIDTH_M = 15.0
+#: Lakes' water ellipses span this many metres (min, max) across.
+LAKE_SIZE_M = (20.0, 80.0)
+#: Canal width, quay height above the water and street width (min, max), metres.
+CANAL_WIDTH_M = (8.0, 15.0)
+CANAL_QUAY_HEIGHT_M = (1.5, 2.0)
+CANAL_STREET_M = (3.0, 6.0)
+#: Canal-side buildings: height, depth (E-W) and frontage (N-S), metres (min, max).
+CANAL_HOUSE_HEIGHT_M = (10.0, 20.0)
+CANAL_HOUSE_DEPTH_M = (10.0, 20.0)
+CANAL_HOUSE_FRONTAGE_M = (6.0, 16.0)
 #: Height of the top of a river bank above the water surface.
 RIVER_BANK_HEIGHT_M = 0.3
 #: Pulse positions are jittered uniformly by up to this fraction of the spacing.
@@ -86,6 +96,17 @@ class SurveySpec:
         Whether a river crosses the scene west to east.
     water_width_m : float
         N-S width of the river.
+    river_fall_m_per_km : float
+        Fall of the river's water surface from west to east (m per km; real
+        rivers fall 0.1-3 m/km); the bed and the banks follow it. 0: flat.
+    lakes : int
+        Lakes to place (ellipses 20-80 m across, flat water, the terrain blended
+        down to a shore just above the water), clear of the river, the canal
+        and each other, inside the extent; too many for the extent is an error.
+    canal : bool
+        A straight N-S canal 8-15 m wide across the scene: flat water, quay walls
+        1.5-2 m high, a 3-6 m street, and a row of 10-20 m tall buildings along
+        each quay, whose scan shadows can fall on the street and the water.
     flight_altitude_m : float
         Sensor height above ``BASE_HEIGHT_M``.
     scan_angle_deg : float
@@ -124,6 +145,9 @@ class SurveySpec:
     tree_density: float = 25.0
     water: bool = True
     water_width_m: float = 20.0
+    river_fall_m_per_km: float = 0.0
+    lakes: int = 0
+    canal: bool = False
     # acquisition
     flight_altitude_m: float = 300.0
     scan_angle_deg: float = 20.0
@@ -151,6 +175,12 @@ class SurveySpec:
         for name in ("terrain_relief_m", "building_density", "tree_density", "water_width_m", "noise_m"):
             if not getattr(self, name) >= 0:
                 fail(name, f"must be >= 0, got {getattr(self, name)!r}")
+        if not (math.isfinite(self.river_fall_m_per_km) and 0 <= self.river_fall_m_per_km <= 100):
+            fail("river_fall_m_per_km", f"must be in [0, 100] m/km, got {self.river_fall_m_per_km!r}")
+        if isinstance(self.lakes, bool) or not isinstance(self.lakes, int) or self.lakes < 0:
+            fail("lakes", f"must be a whole number >= 0, got {self.lakes!r}")
+        if not isinstance(self.canal, bool):
+            fail("canal", f"must be true or false, got {self.canal!r}")
         if not 0 < self.scan_angle_deg < 60:
             fail("scan_angle_deg", f"must be in (0, 60), got {self.scan_angle_deg!r}")
         if not 0 <= self.side_overlap < 1:

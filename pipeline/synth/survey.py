@@ -90,6 +90,24 @@ class SyntheticSurvey:
         ring = self.scene.river.polygon(0.0, self.spec.width_m) + (self.spec.x_min, self.spec.y_min)
         return shapely.Polygon(ring)
 
+    def water_polygons(self) -> list[tuple[str, Any]]:
+        """Every water body's outline over the extent as (name, shapely Polygon in CRS coordinates).
+
+        The river (as :meth:`water_polygon`), then ``lake 1``, ``lake 2`` ... and ``canal``.
+        """
+        if self.scene is None:
+            return []
+        import shapely
+
+        origin = (self.spec.x_min, self.spec.y_min)
+        named = [] if self.scene.river is None else [("river", self.water_polygon())]
+        if self.scene.lakes is not None:
+            for index, ring in enumerate(self.scene.lakes.polygons(), start=1):
+                named.append((f"lake {index}", shapely.Polygon(ring + origin)))
+        if self.scene.canal is not None:
+            named.append(("canal", shapely.Polygon(self.scene.canal.polygon(0.0, self.spec.height_m) + origin)))
+        return named
+
     def building_footprints(self) -> list[Any]:
         """Building footprints as shapely Polygons in CRS coordinates (same order as ``scene.buildings``)."""
         if self.scene is None:
@@ -284,7 +302,7 @@ def write_truth(survey: SyntheticSurvey, folder: str | os.PathLike) -> dict[str,
 
     Files: ``truth_dsm.tif`` (highest surface per pixel), ``truth_hole_cause.tif``
     (``HoleCause`` codes), ``survey_area.gpkg`` (the planned rectangle: the AOI) and
-    ``water.gpkg`` (the river polygon, when there is water).
+    ``water.gpkg`` (the river, lake and canal polygons, when there is water).
 
     Returns
     -------
@@ -321,7 +339,13 @@ def write_truth(survey: SyntheticSurvey, folder: str | os.PathLike) -> dict[str,
             crs_wkt=crs,
         ),  # fmt: skip
     }
-    water = survey.water_polygon()
-    if water is not None and not water.is_empty:
-        paths["water"] = write_layer(folder / "water.gpkg", "water", [{"name": "river"}], [water], crs_wkt=crs)
+    waters = [(name, polygon) for name, polygon in survey.water_polygons() if not polygon.is_empty]
+    if waters:
+        paths["water"] = write_layer(
+            folder / "water.gpkg",
+            "water",
+            [{"name": name} for name, _ in waters],
+            [polygon for _, polygon in waters],
+            crs_wkt=crs,
+        )
     return paths
