@@ -105,3 +105,18 @@ def test_bad_cause_thresholds_are_refused(override, words):
         load_config(overrides=[override])
     for word in words:
         assert word in str(info.value)
+
+
+def test_a_straight_void_is_no_strip_where_the_flight_lines_bands_are_known():
+    # with bands, a missed strip is a coverage gap checked against the pixels; a straight void
+    # that is none (a canal along the seam of two lines) is not missed coverage
+    rng = np.random.default_rng(5)
+    n = 200
+    z = 50 + rng.normal(0, 0.05, (n, n))
+    count = np.ones((n, n), np.uint32)
+    count[90:102, :] = 0
+    _, _, catalog = run(count, z, cell_px=64, min_area_px=10)
+    rules = rules_for(load_config())
+    assert big_hole_cause(catalog, rules)["rule"] == "strip"
+    causes = classify_causes(catalog.stats, rules, bands_known=True)
+    assert causes[np.argmax(catalog.holes["area_px"])]["cause"] != "missed_coverage"

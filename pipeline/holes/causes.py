@@ -156,7 +156,7 @@ def _thresholds(causes: CausesConfig) -> dict[str, float]:
     return {name: getattr(causes, name) for name in CONFIG_KEYS if name not in _DERIVED}
 
 
-def classify_causes(stats: HoleStats, rules: CauseRules) -> np.ndarray:
+def classify_causes(stats: HoleStats, rules: CauseRules, *, bands_known: bool = False) -> np.ndarray:
     """Why each hole is there: occlusion, water, missed coverage or unknown.
 
     The rules of ``RULES`` are tried in order and the first that holds wins (the
@@ -188,7 +188,10 @@ def classify_causes(stats: HoleStats, rules: CauseRules) -> np.ndarray:
        strip_min_elongation``); where flight-line ids were given, its ring must also
        come from two or more lines each holding at least ``strip_min_line_share`` of
        it, the two most common holding at least ``strip_two_line_share``, and the
-       elongation needed is ``strip_min_elongation_with_lines``.
+       elongation needed is ``strip_min_elongation_with_lines``. Not where the flight
+       lines' bands are known (``bands_known``): a missed strip between them is then a
+       coverage gap, checked against the pixels (:func:`pipeline.holes.coverage.keep_void_gaps`),
+       and a straight void that is no such gap (a canal along the seam of two lines) is not one.
     6. ``water`` / ``level_rim``: the hole lies in a known swath (a line flew over it
        and got nothing back), at least ``water_min_flat_fraction`` of its ring lies in
        one height window ``water_flat_tolerance`` wide and at most
@@ -211,6 +214,8 @@ def classify_causes(stats: HoleStats, rules: CauseRules) -> np.ndarray:
         Per-hole (merged) statistics; per-part statistics work too.
     rules : CauseRules
         The thresholds, in survey units.
+    bands_known : bool
+        Whether two or more flight lines' bands were found (:func:`pipeline.holes.coverage.line_bands`).
 
     Returns
     -------
@@ -222,6 +227,8 @@ def classify_causes(stats: HoleStats, rules: CauseRules) -> np.ndarray:
         return out
     ring = _RingEvidence.of(stats, rules)
     holds = _rule_conditions(stats, ring, rules)
+    if bands_known:
+        holds["strip"] = np.zeros(len(stats), bool)
     conditions = [holds[rule] for rule, _ in RULES]
     out["cause"] = np.select(conditions, [cause for _, cause in RULES], default="unknown")
     out["rule"] = np.select(conditions, [rule for rule, _ in RULES], default="none")

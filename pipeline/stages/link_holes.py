@@ -15,6 +15,7 @@ import numpy as np
 
 from ..config import Config
 from ..holes import CauseRules, HoleCatalog, classify_causes, link_holes, ring_metrics, shape_metrics
+from ..holes.coverage import line_bands
 from ..holes.flight_lines import axial_mean, line_azimuths
 from ..io.intermediate import save_object
 from ..plan import HoleParams, SurveyPlan
@@ -51,7 +52,7 @@ def link_cells(
         pixel_size_m=plan.grid.resolution * plan.survey.horizontal_unit_m,
         vertical_unit_m=plan.survey.vertical_unit_m,
     )
-    causes = classify_causes(catalog.stats, rules)
+    causes = classify_causes(catalog.stats, rules, bands_known=len(line_bands(line_moments)) >= 2)
     directions = line_azimuths(line_moments)
     azimuths = strip_azimuths(catalog.stats.line_hist, causes["cause"] == "missed_coverage", directions)
     return HoleSet(
