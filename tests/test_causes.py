@@ -65,13 +65,18 @@ def test_a_changed_config_key_changes_a_cause():
     assert big_hole_cause(catalog, narrow)["cause"] != "occlusion"
 
 
-def test_a_changed_strip_key_changes_missed_coverage():
+def strip_catalog():
+    """A 12 px straight void across a flat 200 px field: a strip."""
     rng = np.random.default_rng(5)
     n = 200
     z = 50 + rng.normal(0, 0.05, (n, n))
     count = np.ones((n, n), np.uint32)
     count[90:102, :] = 0
-    _, _, catalog = run(count, z, cell_px=64, min_area_px=10)
+    return run(count, z, cell_px=64, min_area_px=10)[2]
+
+
+def test_a_changed_strip_key_changes_missed_coverage():
+    catalog = strip_catalog()
     assert big_hole_cause(catalog, rules_for(load_config()))["cause"] == "missed_coverage"
     longer = rules_for(load_config(overrides=["causes.strip_min_length_px=500"]))
     assert big_hole_cause(catalog, longer)["cause"] != "missed_coverage"
@@ -110,12 +115,7 @@ def test_bad_cause_thresholds_are_refused(override, words):
 def test_a_straight_void_is_no_strip_where_the_flight_lines_bands_are_known():
     # with bands, a missed strip is a coverage gap checked against the pixels; a straight void
     # that is none (a canal along the seam of two lines) is not missed coverage
-    rng = np.random.default_rng(5)
-    n = 200
-    z = 50 + rng.normal(0, 0.05, (n, n))
-    count = np.ones((n, n), np.uint32)
-    count[90:102, :] = 0
-    _, _, catalog = run(count, z, cell_px=64, min_area_px=10)
+    catalog = strip_catalog()
     rules = rules_for(load_config())
     assert big_hole_cause(catalog, rules)["rule"] == "strip"
     causes = classify_causes(catalog.stats, rules, bands_known=True)
