@@ -350,7 +350,8 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
     params = plan.hole_params
     blocks = merge_cells.footprint_blocks(cells, plan, config)
     line_moments = merge_cells.survey_line_moments(cells)
-    gaps = _void_gaps(runner, plan, cells, merge_cells.survey_coverage_gaps(line_moments))
+    gaps = detect_holes.with_tile_grid(plan, merge_cells.survey_coverage_gaps(line_moments))
+    gaps = _void_gaps(runner, plan, cells, gaps)
     tasks = detect_holes.detect_tasks(plan, params, cells, blocks, water, staging, gaps)
     futures = [
         runner.submit(
@@ -374,11 +375,11 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
 
 
 def _void_gaps(runner: _Runner, plan: SurveyPlan, cells: list[CellResult], gaps: CoverageGaps) -> CoverageGaps:
-    """The coverage gaps that are mostly empty: a pass over the cells' counts, only when there is a gap."""
+    """The coverage gaps and extent strips empty beside measured flanks: a pass over the cells' counts, if any."""
     logger.debug("flight-line bands %s; coverage gaps %s", gaps.bands, gaps.gaps)
-    if not gaps.gaps:
+    if not (gaps.gaps or gaps.extent_strips):
         return gaps
-    digest = hashlib.sha1(repr(gaps.gaps).encode()).hexdigest()[:12]
+    digest = hashlib.sha1(repr((gaps.gaps, gaps.extent_strips)).encode()).hexdigest()[:12]
     futures = [
         runner.submit(
             merge_cells.count_gap_voids, task, label=f"cell {r.cell_id} (check gaps)", key=f"gaps-{digest}-{r.cell_id}"
@@ -389,7 +390,13 @@ def _void_gaps(runner: _Runner, plan: SurveyPlan, cells: list[CellResult], gaps:
     runner.gather(futures, counts.append)
     kept = merge_cells.survey_void_gaps(gaps, counts)
     logger.debug("coverage gaps (pixels, empty) in the gap and its flanks: %s", [c.tolist() for c in sum(counts)])
-    logger.debug("coverage gaps: %d of %d empty between measured flanks, kept", len(kept.gaps), len(gaps.gaps))
+    logger.debug(
+        "coverage gaps: %d of %d, extent strips: %d of %d empty beside measured flanks, kept",
+        len(kept.gaps),
+        len(gaps.gaps),
+        len(kept.extent_strips),
+        len(gaps.extent_strips),
+    )
     return kept
 
 

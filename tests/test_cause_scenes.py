@@ -9,6 +9,7 @@ right for at least 95 % of the holes of that true cause where the rules get it t
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -88,5 +89,19 @@ def test_causes_of_the_cause_scenes(tmp_path, dask_client, name, min_iou, made_f
 )
 def test_water_on_the_seam_of_two_flight_lines_is_water(tmp_path, dask_client, name, seed):
     score, _ = run_scene(tmp_path, dask_client, name, seed)
+    assert "missed_coverage" not in score.confusion.get("water", {}), score.confusion
+    assert accuracy(score, "water") >= 0.95, score.confusion
+
+
+def test_a_river_along_a_tile_edge_is_water_not_a_tile_stopping_short(tmp_path, dask_client):
+    # seed 1 of the 200 m high river scene: the river follows the tile-row edge at 100 m, so the
+    # tiles' header extents stop at its banks; the strip between extent and square is water, with
+    # the river on the flank inside the extent: not data stopping short of its square
+    spec = dataclasses.replace(cause_scene("river_flat", 1), height_m=200.0)
+    survey = generate_survey(tmp_path / "tiles", spec)
+    truth = write_truth(survey, tmp_path)
+    out = tmp_path / "out"
+    run_survey([str(tmp_path / "tiles")], out, load_config(), client=dask_client)
+    score = score_holes(out / "holes.gpkg", truth["hole_cause"], min_area_px=4)
     assert "missed_coverage" not in score.confusion.get("water", {}), score.confusion
     assert accuracy(score, "water") >= 0.95, score.confusion

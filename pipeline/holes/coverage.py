@@ -34,6 +34,7 @@ __all__ = [
     "Band",
     "CoverageGaps",
     "coverage_gaps",
+    "extent_strips",
     "keep_void_gaps",
     "line_bands",
 ]
@@ -94,6 +95,8 @@ class CoverageGaps:
     missing_tiles: tuple[PixelWindow, ...] = ()  # squares of missing tiles, in grid pixels
     tile_squares: tuple[PixelWindow, ...] = ()  # squares of the delivered tiles, in grid pixels
     tile_extents: tuple[PixelWindow, ...] = ()  # the tiles' header extents, in grid pixels
+    #: where a tile's extent stops short of its square: (strip, flank inside the extent), see :func:`extent_strips`
+    extent_strips: tuple[tuple[PixelWindow, PixelWindow], ...] = ()
 
     def __bool__(self) -> bool:
         return bool(self.gaps or self.bands or self.missing_tiles or self.tile_squares)
@@ -106,7 +109,8 @@ class CoverageGaps:
         not cut into a core and slivers along its edges. A gap wins over a band, a
         missing tile (``IN_MISSING_TILE``, exact pixels) over both; a pixel in a
         delivered tile's square but outside every tile's extent is
-        ``OUTSIDE_TILE_EXTENTS`` unless it is in a gap or a missing tile.
+        ``OUTSIDE_TILE_EXTENTS`` (in one of the ``extent_strips``) unless it is in a gap or a
+        missing tile.
         """
         rows = np.arange(window.row_off, window.row_end, dtype=np.float64)[:, None]
         cols = np.arange(window.col_off, window.col_end, dtype=np.float64)[None, :]
@@ -122,25 +126,33 @@ class CoverageGaps:
             overlap = square.intersection(window)
             if not overlap.is_empty:
                 out[overlap.slices_within(window)] = IN_MISSING_TILE
-        if self.tile_squares:
-            uncovered = window_union_mask(window, self.tile_squares) & ~window_union_mask(window, self.tile_extents)
+        if self.extent_strips:
+            strips = [strip for strip, _ in self.extent_strips]
+            uncovered = window_union_mask(window, strips) & ~window_union_mask(window, self.tile_extents)
             out[uncovered & (out < IN_GAP)] = OUTSIDE_TILE_EXTENTS
         return out
 
     def void_counts(self, window: PixelWindow, empty: np.ndarray) -> np.ndarray:
-        """Per gap, for the gap and its two flanks: the pixels of ``window`` and the empty ones.
+        """Per gap and per extent strip, for it and its flanks: the pixels of ``window`` and the empty ones.
 
-        int64, shape (gaps, 3, 2): region (gap, low flank, high flank) x (pixels, empty).
-        Sums over windows that tile the grid are the survey's (:func:`keep_void_gaps`).
+        int64, shape (gaps + strips, 3, 2): region (gap or strip, low flank, high flank) x
+        (pixels, empty); a strip has one flank, inside its tile's extent (the third region
+        is empty). Sums over windows that tile the grid are the survey's (:func:`keep_void_gaps`).
         """
         rows = np.arange(window.row_off, window.row_end, dtype=np.float64)[:, None]
         cols = np.arange(window.col_off, window.col_end, dtype=np.float64)[None, :]
-        counts = np.zeros((len(self.gaps), 3, 2), np.int64)
+        counts = np.zeros((len(self.gaps) + len(self.extent_strips), 3, 2), np.int64)
         for i, (direction, lo, hi, a_lo, a_hi) in enumerate(self.gaps):
             regions = ((lo, hi), (lo - GAP_FLANK_PX, lo), (hi, hi + GAP_FLANK_PX))
             for j, (r_lo, r_hi) in enumerate(regions):
                 inside = _in_gap((direction, r_lo, r_hi, a_lo, a_hi), rows, cols, 0.0)
                 counts[i, j] = np.count_nonzero(inside), np.count_nonzero(inside & empty)
+        for i, pair in enumerate(self.extent_strips, start=len(self.gaps)):
+            for j, region in enumerate(pair):
+                overlap = region.intersection(window)
+                if not overlap.is_empty:
+                    part = empty[overlap.slices_within(window)]
+                    counts[i, j] = part.size, np.count_nonzero(part)
         return counts
 
 
@@ -157,16 +169,59 @@ def _in_gap(
 
 
 def keep_void_gaps(gaps: CoverageGaps, counts: np.ndarray) -> CoverageGaps:
-    """The gaps that are empty between measured flanks (:meth:`CoverageGaps.void_counts` summed over the survey).
+    """The gaps and extent strips that are empty beside measured flanks (:meth:`CoverageGaps.void_counts`, summed).
 
-    At least ``GAP_MIN_VOID_SHARE`` of a gap's pixels are empty and at most
-    ``GAP_MAX_FLANK_VOID_SHARE`` of each flank's.
+    At least ``GAP_MIN_VOID_SHARE`` of a gap's (a strip's) pixels are empty and at most
+    ``GAP_MAX_FLANK_VOID_SHARE`` of each flank's. A tile's data stopping short of its
+    square along a river or a lake shore leaves the water in the strip and on the flank.
     """
     pixels, empty = counts[..., 0].astype(np.float64), counts[..., 1].astype(np.float64)
     share = np.divide(empty, pixels, out=np.zeros_like(empty), where=pixels > 0)
     flanks_measured = (share[:, 1] <= GAP_MAX_FLANK_VOID_SHARE) & (share[:, 2] <= GAP_MAX_FLANK_VOID_SHARE)
     keep = (pixels[:, 0] > 0) & (share[:, 0] >= GAP_MIN_VOID_SHARE) & flanks_measured
-    return dataclasses.replace(gaps, gaps=tuple(g for g, k in zip(gaps.gaps, keep) if k))
+    n = len(gaps.gaps)
+    return dataclasses.replace(
+        gaps,
+        gaps=tuple(g for g, k in zip(gaps.gaps, keep[:n]) if k),
+        extent_strips=tuple(s for s, k in zip(gaps.extent_strips, keep[n:]) if k),
+    )
+
+
+def extent_strips(
+    squares: tuple[PixelWindow, ...], extents: tuple[PixelWindow, ...], flank_px: int = round(GAP_FLANK_PX)
+) -> tuple[tuple[PixelWindow, PixelWindow], ...]:
+    """Where each tile's extent stops short of its square: (strip, flank) per side.
+
+    ``squares[i]`` is the square of the tile whose header extent is ``extents[i]``. A side
+    strip spans the extent along that side, from the extent's edge to the square's; its
+    flank is the ``flank_px`` just inside the extent there. Strips that other tiles'
+    extents cover whole are left out.
+    """
+    out = []
+    for sq, ex in zip(squares, extents):
+        if ex.is_empty:
+            continue
+        sides = (
+            (
+                PixelWindow(sq.row_off, ex.col_off, ex.row_off - sq.row_off, ex.width),
+                PixelWindow(ex.row_off, ex.col_off, flank_px, ex.width),
+            ),
+            (
+                PixelWindow(ex.row_end, ex.col_off, sq.row_end - ex.row_end, ex.width),
+                PixelWindow(ex.row_end - flank_px, ex.col_off, flank_px, ex.width),
+            ),
+            (
+                PixelWindow(ex.row_off, sq.col_off, ex.height, ex.col_off - sq.col_off),
+                PixelWindow(ex.row_off, ex.col_off, ex.height, flank_px),
+            ),
+            (
+                PixelWindow(ex.row_off, ex.col_end, ex.height, sq.col_end - ex.col_end),
+                PixelWindow(ex.row_off, ex.col_end - flank_px, ex.height, flank_px),
+            ),
+        )
+        out += [(strip, flank.intersection(ex)) for strip, flank in sides if not strip.is_empty]
+    # a strip another tile's extent covers whole is no place where data stops short
+    return tuple((strip, flank) for strip, flank in out if not window_union_mask(strip, extents).all())
 
 
 def line_bands(moments: np.ndarray) -> list[Band]:

@@ -15,7 +15,7 @@ from ..config import HOLE_CONTEXT_PX
 from ..footprint import BlockMap, aoi_mask
 from ..grid import Cell, Grid, PixelWindow, window_union_mask
 from ..holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
-from ..holes.coverage import IN_GAP, IN_MISSING_TILE, OUTSIDE_TILE_EXTENTS, CoverageGaps
+from ..holes.coverage import IN_GAP, IN_MISSING_TILE, OUTSIDE_TILE_EXTENTS, CoverageGaps, extent_strips
 from ..holes.outlines import label_outlines
 from ..holes.walls import Wall, find_walls
 from ..io.intermediate import load_cell_statistics, save_labels
@@ -75,7 +75,6 @@ def detect_tasks(
     polygon = plan.aoi_given or plan.tile_grid is not None
     area_wkb = shapely.to_wkb(plan.area_without(failed)) if polygon else None
     water_wkb = shapely.to_wkb(water) if water is not None else None
-    gaps = _with_missing_tiles(plan, gaps)
     tasks = []
     for result in merged:
         cell = cells[result.cell_id]
@@ -97,11 +96,13 @@ def detect_tasks(
     return tasks
 
 
-def _with_missing_tiles(plan: SurveyPlan, gaps: CoverageGaps | None) -> CoverageGaps | None:
+def with_tile_grid(plan: SurveyPlan, gaps: CoverageGaps) -> CoverageGaps:
     """The coverage gaps with the tile grid's missing tiles and its delivered squares (grid pixels).
 
     The delivered squares and the tiles' extents tell where a tile's data stops short of its
-    square (``OUTSIDE_TILE_EXTENTS``): a hole there is missed coverage, whatever stands beside it.
+    square (``OUTSIDE_TILE_EXTENTS``, :func:`pipeline.holes.coverage.extent_strips`): a hole
+    there is missed coverage, once the strip is found empty beside a measured flank
+    (:func:`pipeline.holes.coverage.keep_void_gaps`).
     """
     area = plan.area
     if area is None or area.tile_grid is None:
@@ -113,11 +114,13 @@ def _with_missing_tiles(plan: SurveyPlan, gaps: CoverageGaps | None) -> Coverage
         x0, y0, x1, y1 = bounds
         return plan.grid.window_of_bounds(x0 + half, y0 + half, x1 - half, y1 - half)
 
+    squares = tuple(inner(tile_grid.square_bounds(s)) for s in tile_grid.squares)  # one per tile, in tile order
     return replace(
-        gaps or CoverageGaps((), ()),
+        gaps,
         missing_tiles=tuple(inner(b) for b in area.missing_tiles),
-        tile_squares=tuple(inner(tile_grid.square_bounds(s)) for s in tile_grid.squares),
+        tile_squares=squares,
         tile_extents=tuple(plan.tile_windows),
+        extent_strips=extent_strips(squares, tuple(plan.tile_windows)),
     )
 
 

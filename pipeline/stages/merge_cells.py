@@ -180,4 +180,6 @@ def count_gap_voids(task: GapVoidTask) -> np.ndarray:
 
 def survey_void_gaps(gaps: CoverageGaps, counts: list[np.ndarray]) -> CoverageGaps:
     """Gather: the gaps mostly empty over the survey (the cells' :func:`count_gap_voids` summed)."""
-    return keep_void_gaps(gaps, np.sum(counts, axis=0) if counts else np.zeros((len(gaps.gaps), 3, 2), np.int64))
+    return keep_void_gaps(
+        gaps, np.sum(counts, axis=0) if counts else np.zeros((len(gaps.gaps) + len(gaps.extent_strips), 3, 2), np.int64)
+    )
