@@ -559,7 +559,7 @@ def _report(summary) -> None:
         types = ", ".join(f"{n} {kind}" for kind, n in holes["parts_by_type"].items())
         _note(
             f"{holes['listed']} holes ({holes['area_m2']:,.0f} m2): {causes or 'none'}; parts by type: {types or 'none'}; "
-            f"{holes['small_voids']} small voids under {holes['min_area_m2']:g} m2 or sampling gaps; "
+            f"{holes['small_voids']} small voids under {holes['min_area_m2']:.3g} m2 or sampling gaps; "
             f"{holes['vertical_hole_groups']} vertical holes, {holes['walls']} walls",
         )
     if summary.heights.get("heights") == "above_ground":

@@ -118,7 +118,7 @@ def _cards(manifest: dict[str, Any]) -> str:
     if holes:
         cards += [
             (_area(holes.get("aoi_area_m2", 0.0)), "survey area"),
-            (f"{holes['listed']:,}", f"holes ≥ {holes['min_area_m2']:g} m²"),
+            (f"{holes['listed']:,}", f"holes ≥ {holes['min_area_m2']:.3g} m²"),
             (_area(holes["area_m2"]), "in holes"),
         ]
     if fill:
@@ -252,7 +252,7 @@ def _holes_section(
     ]
     return [
         "<h2>Holes</h2>",
-        f"<p>{holes['listed']:,} holes of at least {holes['min_area_m2']:g} m², {holes['area_m2']:,.0f} m² in all; "
+        f"<p>{holes['listed']:,} holes of at least {holes['min_area_m2']:.3g} m², {holes['area_m2']:,.0f} m² in all; "
         f"{holes['small_voids']:,} smaller voids ({holes['small_void_area_m2']:,.0f} m²) counted, not listed. "
         f"Survey area (AOI): {aoi:,.0f} m².</p>",
         "<h3>By cause</h3>",
