@@ -27,8 +27,26 @@ def _median(values: list[float]) -> str:
 
 def markdown(paths: list[Path]) -> str:
     """RMSE tables per model from fill_eval.json reports, pooled again over the surveys of all of them."""
+    surveys = _load_surveys(paths)
+    lines = []
+    for model in dict.fromkeys(s["model"] for s in surveys):
+        rows = [s for s in surveys if s["model"] == model]
+        done = [s for s in rows if not s["skipped"]]
+        methods = list(dict.fromkeys(m for s in rows for m in s["methods"]))
+        columns = methods + [a for a in ALTERNATIVE_COLUMNS if any(a in s["alternatives"] for s in rows)]
+        lines += _survey_table(model, rows, columns)
+        lines += [
+            "",
+            f"### {model.upper()}: pooled over {len(done)} surveys ({sum(s['n_holes'] for s in done)} holes)",
+            "",
+        ]
+        lines += _pooled_table(done, columns) + _relief_table(done, columns) + _targets(done)
+    return "\n".join(lines)
+
+
+def _load_surveys(paths: list[Path]) -> list[dict]:
+    """The surveys of the reports, with their errors also in metres (``m``, ``rmse_m``)."""
     import json
-    import math
 
     from pipeline.survey import scan_survey
 
@@ -43,90 +61,101 @@ def markdown(paths: list[Path]) -> str:
             r["m"] = {k: r[k] * factor for k in ("rmse", "mae", "bias", "max_abs") if r.get(k) is not None}
         for h in s["holes"]:
             h["rmse_m"] = {k: v * factor for k, v in h["rmse"].items() if v is not None}
-    lines = []
-    for model in dict.fromkeys(s["model"] for s in surveys):
-        rows = [s for s in surveys if s["model"] == model]
-        done = [s for s in rows if not s["skipped"]]
-        methods = list(dict.fromkeys(m for s in rows for m in s["methods"]))
-        columns = methods + [a for a in ALTERNATIVE_COLUMNS if any(a in s["alternatives"] for s in rows)]
-        lines += [f"### {model.upper()}: RMSE per survey (z units), scored pixels", ""]
+    return surveys
+
+
+def _survey_table(model: str, rows: list[dict], columns: list[str]) -> list[str]:
+    """RMSE per survey and method, the best alternative in bold, and the target ratios."""
+    lines = [f"### {model.upper()}: RMSE per survey (z units), scored pixels", ""]
+    lines.append(
+        "| survey | px (m) | holes | scored px | "
+        + " | ".join(columns)
+        + " | default / best alt. | MLS / IDW | MLS / IDW, no cause |"
+    )
+    lines.append("|---" * (len(columns) + 7) + "|")
+    for s in rows:
+        if s["skipped"]:
+            lines.append(f"| {s['survey']} | {s['resolution_m'] or '-'} | {s['n_holes']} | skipped: {s['skipped']} |")
+            continue
+        alternatives = [s["alternatives"][a]["rmse"] for a in columns if s["alternatives"].get(a, {}).get("rmse")]
+        best = min(alternatives, default=None)
+        values = []
+        for c in columns:
+            r = (s["methods"].get(c) or s["alternatives"].get(c) or {}).get("rmse")
+            text = "-" if r is None else f"{r:.3f}"
+            values.append(f"**{text}**" if r is not None and r == best else text)
+        ratios = [s["default_vs_best_alternative"], s["mls_vs_idw"], s.get("mls_vs_idw_nocause")]
         lines.append(
-            "| survey | px (m) | holes | scored px | "
-            + " | ".join(columns)
-            + " | default / best alt. | MLS / IDW | MLS / IDW, no cause |"
+            f"| {s['survey']} | {s['resolution_m']:g} | {s['n_holes']} | {s['scored_px']} | "
+            + " | ".join(values + ["-" if r is None else f"{r:.2f}" for r in ratios])
+            + " |"
         )
-        lines.append("|---" * (len(columns) + 7) + "|")
-        for s in rows:
-            if s["skipped"]:
-                lines.append(
-                    f"| {s['survey']} | {s['resolution_m'] or '-'} | {s['n_holes']} | skipped: {s['skipped']} |"
-                )
-                continue
-            alternatives = [s["alternatives"][a]["rmse"] for a in columns if s["alternatives"].get(a, {}).get("rmse")]
-            best = min(alternatives, default=None)
-            values = []
-            for c in columns:
-                r = (s["methods"].get(c) or s["alternatives"].get(c) or {}).get("rmse")
-                text = "-" if r is None else f"{r:.3f}"
-                values.append(f"**{text}**" if r is not None and r == best else text)
-            ratios = [s["default_vs_best_alternative"], s["mls_vs_idw"], s.get("mls_vs_idw_nocause")]
-            lines.append(
-                f"| {s['survey']} | {s['resolution_m']:g} | {s['n_holes']} | {s['scored_px']} | "
-                + " | ".join(values + ["-" if r is None else f"{r:.2f}" for r in ratios])
-                + " |"
-            )
-        lines += [
-            "",
-            f"### {model.upper()}: pooled over {len(done)} surveys ({sum(s['n_holes'] for s in done)} holes)",
-            "",
-        ]
-        lines.append("| method | RMSE (m) | MAE (m) | max (m) | bias (m) | scored px | unfilled px |")
-        lines.append("|---|---|---|---|---|---|---|")
-        for name in columns:
-            scores = [r for s in done if (r := s["methods"].get(name) or s["alternatives"].get(name)) and r.get("n_px")]
-            n = sum(r["n_px"] for r in scores)
-            if not n:
-                continue
-            rmse = math.sqrt(sum(r["m"]["rmse"] ** 2 * r["n_px"] for r in scores) / n)
-            mae = sum(r["m"]["mae"] * r["n_px"] for r in scores) / n
-            bias = sum(r["m"]["bias"] * r["n_px"] for r in scores) / n
-            top = max(r["m"]["max_abs"] for r in scores)
-            unfilled = sum(r["n_unfilled"] for r in scores)
-            lines.append(f"| {name} | {rmse:.3f} | {mae:.3f} | {top:.2f} | {bias:+.3f} | {n} | {unfilled} |")
-        lines += ["", "RMSE (m) pooled over holes by the relief (m) of the reference under them (max - min):", ""]
-        lines.append("| relief | holes | px | " + " | ".join(columns) + " |")
-        lines.append("|---" * (len(columns) + 3) + "|")
-        for label, test in (("< 2.5", lambda r: r < 2.5), (">= 2.5", lambda r: r >= 2.5)):
-            holes = [
-                h for s in done for h in s["holes"] if h["relief"] is not None and test(h["relief"] * s["z_unit_m"])
-            ]
-            cells = []
-            for c in columns:
-                scored = [(h["rmse_m"][c], h["n_px"]) for h in holes if c in h["rmse_m"]]
-                n = sum(w for _, w in scored)
-                cells.append(f"{math.sqrt(sum(r * r * w for r, w in scored) / n):.3f}" if n else "-")
-            lines.append(f"| {label} | {len(holes)} | {sum(h['n_px'] for h in holes)} | " + " | ".join(cells) + " |")
-        ratios = [s["default_vs_best_alternative"] for s in done if s["default_vs_best_alternative"] is not None]
-        mls = [s["mls_vs_idw"] for s in done if s["mls_vs_idw"] is not None]
-        nocause = [s["mls_vs_idw_nocause"] for s in done if s.get("mls_vs_idw_nocause") is not None]
-        stages = [s["methods"]["default"].get("stage_seconds", {}) for s in done if "default" in s["methods"]]
-        rasterize = sum(t.get("rasterize") or 0 for t in stages)
-        fill = sum(t.get("fill") or 0 for t in stages)
-        lines += [
-            "",
-            f"default RMSE <= 0.85 x best alternative's: {sum(r <= 0.85 for r in ratios)} of {len(ratios)} surveys "
-            f"(median ratio {_median(ratios)}); MLS RMSE <= 0.5 x IDW's: "
-            f"{sum(r <= 0.5 for r in mls)} of {len(mls)} (median {_median(mls)})"
-            + (
-                f", both by_cause = false: {sum(r <= 0.5 for r in nocause)} of {len(nocause)} "
-                f"(median {_median(nocause)}); "
-                if nocause
-                else "; "
-            )
-            + f"default runs: rasterize {rasterize:.1f} s, fill {fill:.1f} s in all (fill / rasterize {fill / rasterize if rasterize else math.nan:.2f})",
-            "",
-        ]
-    return "\n".join(lines)
+    return lines
+
+
+def _pooled_table(done: list[dict], columns: list[str]) -> list[str]:
+    """Errors per method pooled over the scored pixels of every survey, in metres."""
+    import math
+
+    lines = [
+        "| method | RMSE (m) | MAE (m) | max (m) | bias (m) | scored px | unfilled px |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name in columns:
+        scores = [r for s in done if (r := s["methods"].get(name) or s["alternatives"].get(name)) and r.get("n_px")]
+        n = sum(r["n_px"] for r in scores)
+        if not n:
+            continue
+        rmse = math.sqrt(sum(r["m"]["rmse"] ** 2 * r["n_px"] for r in scores) / n)
+        mae = sum(r["m"]["mae"] * r["n_px"] for r in scores) / n
+        bias = sum(r["m"]["bias"] * r["n_px"] for r in scores) / n
+        top = max(r["m"]["max_abs"] for r in scores)
+        unfilled = sum(r["n_unfilled"] for r in scores)
+        lines.append(f"| {name} | {rmse:.3f} | {mae:.3f} | {top:.2f} | {bias:+.3f} | {n} | {unfilled} |")
+    return lines
+
+
+def _relief_table(done: list[dict], columns: list[str]) -> list[str]:
+    """RMSE pooled over holes by the relief of the reference under them."""
+    import math
+
+    lines = ["", "RMSE (m) pooled over holes by the relief (m) of the reference under them (max - min):", ""]
+    lines.append("| relief | holes | px | " + " | ".join(columns) + " |")
+    lines.append("|---" * (len(columns) + 3) + "|")
+    for label, test in (("< 2.5", lambda r: r < 2.5), (">= 2.5", lambda r: r >= 2.5)):
+        holes = [h for s in done for h in s["holes"] if h["relief"] is not None and test(h["relief"] * s["z_unit_m"])]
+        cells = []
+        for c in columns:
+            scored = [(h["rmse_m"][c], h["n_px"]) for h in holes if c in h["rmse_m"]]
+            n = sum(w for _, w in scored)
+            cells.append(f"{math.sqrt(sum(r * r * w for r, w in scored) / n):.3f}" if n else "-")
+        lines.append(f"| {label} | {len(holes)} | {sum(h['n_px'] for h in holes)} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _targets(done: list[dict]) -> list[str]:
+    """The issue's targets counted over the surveys, and the default runs' stage times."""
+    import math
+
+    ratios = [s["default_vs_best_alternative"] for s in done if s["default_vs_best_alternative"] is not None]
+    mls = [s["mls_vs_idw"] for s in done if s["mls_vs_idw"] is not None]
+    nocause = [s["mls_vs_idw_nocause"] for s in done if s.get("mls_vs_idw_nocause") is not None]
+    stages = [s["methods"]["default"].get("stage_seconds", {}) for s in done if "default" in s["methods"]]
+    rasterize = sum(t.get("rasterize") or 0 for t in stages)
+    fill = sum(t.get("fill") or 0 for t in stages)
+    return [
+        "",
+        f"default RMSE <= 0.85 x best alternative's: {sum(r <= 0.85 for r in ratios)} of {len(ratios)} surveys "
+        f"(median ratio {_median(ratios)}); MLS RMSE <= 0.5 x IDW's: "
+        f"{sum(r <= 0.5 for r in mls)} of {len(mls)} (median {_median(mls)})"
+        + (
+            f", both by_cause = false: {sum(r <= 0.5 for r in nocause)} of {len(nocause)} (median {_median(nocause)}); "
+            if nocause
+            else "; "
+        )
+        + f"default runs: rasterize {rasterize:.1f} s, fill {fill:.1f} s in all (fill / rasterize {fill / rasterize if rasterize else math.nan:.2f})",
+        "",
+    ]
 
 
 def main() -> None:

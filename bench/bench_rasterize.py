@@ -91,7 +91,7 @@ def time_holefill(tiles_dir: Path, out: Path, workers: int, overrides: list[str]
     return time.perf_counter() - started, summary.points_read, peaks, summary.stage_seconds
 
 
-def main() -> None:
+def _arguments() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--size-m", type=float, default=1500.0, help="side of the square survey (m); ~11 points/m2")
     parser.add_argument("--tile-m", type=float, default=250.0, help="LAZ tile side (m)")
@@ -108,7 +108,11 @@ def main() -> None:
         "--with-holes", action="store_true",
         help="time the whole run, hole detection included (default: stage 1 + DSM output, holes.enabled=false)",
     )  # fmt: skip
-    args = parser.parse_args()
+    return parser.parse_args()
+
+
+def _survey(args: argparse.Namespace) -> tuple[Path, Path]:
+    """The benchmark survey's folder and its completion marker, generated once."""
 
     spec = preset(
         "bench", width_m=args.size_m, height_m=args.size_m, tile_size_m=args.tile_m, las_version=args.las_version
@@ -124,6 +128,12 @@ def main() -> None:
         print(
             f"generated {synthetic.n_points:,} points in {len(synthetic.tiles)} tiles in {time.perf_counter() - t0:.1f} s"
         )
+    return survey_dir, marker
+
+
+def main() -> None:
+    args = _arguments()
+    survey_dir, marker = _survey(args)
     info = json.loads(marker.read_text())
     tiles = sorted(str(p) for p in survey_dir.glob("*.laz"))
     size_mb = sum(Path(t).stat().st_size for t in tiles) / 1e6
