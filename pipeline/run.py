@@ -359,14 +359,7 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
         )
         for task in tasks
     ]
-    handle = runner.bar.add("find holes", total=len(futures))
-    detected: list[detect_holes.DetectResult] = []
-
-    def collect(result: detect_holes.DetectResult) -> None:
-        detected.append(result)
-        runner.bar.advance(handle)
-
-    runner.gather(futures, collect)
+    detected: list[detect_holes.DetectResult] = runner.gather_all(futures, "find holes")
     order = {r.cell_id: i for i, r in enumerate(cells)}
     detected.sort(key=lambda d: order[d.cell_holes.cell.id])
     holes = link_holes.link_cells(detected, plan, config, params, line_moments)
@@ -386,8 +379,7 @@ def _void_gaps(runner: _Runner, plan: SurveyPlan, cells: list[CellResult], gaps:
         )
         for task, r in zip(merge_cells.gap_void_tasks(cells, plan, gaps), cells)
     ]
-    counts: list[Any] = []
-    runner.gather(futures, counts.append)
+    counts = runner.gather_all(futures, "check coverage gaps")
     kept = merge_cells.survey_void_gaps(gaps, counts)
     logger.debug("coverage gaps (pixels, empty) in the gap and its flanks: %s", [c.tolist() for c in sum(counts)])
     logger.debug(
@@ -414,13 +406,8 @@ def _run_fill(
         )
         for task in tasks
     ]
-    handle = runner.bar.add("fill holes", total=len(futures))
-
-    def collect(result: list[fill_holes.HoleFill]) -> None:
-        fills.extend(result)
-        runner.bar.advance(handle)
-
-    runner.gather(futures, collect)
+    for cell_fills_of_task in runner.gather_all(futures, "fill holes"):
+        fills.extend(cell_fills_of_task)
     fills.sort(key=lambda f: f.hole_id)
     cell_fills = write_rasters.cell_fills(plan, holes, sources, fills, params)
     write_futures = [
@@ -432,13 +419,7 @@ def _run_fill(
         )
         for task in write_rasters.write_tasks(plan, config, merged, staging, cell_fills)
     ]
-    write_bar = runner.bar.add("write rasters", total=len(write_futures))
-
-    def collect_written(result: WriteResult) -> None:
-        rasters.written.append(result)
-        runner.bar.advance(write_bar)
-
-    runner.gather(write_futures, collect_written)
+    rasters.written += runner.gather_all(write_futures, "write rasters")
     order = {cell.id: i for i, cell in enumerate(plan.cells)}
     rasters.written.sort(key=lambda r: order[r.cell_id])
     return fills
@@ -455,14 +436,7 @@ def _run_points(runner: _Runner, plan: SurveyPlan, config: Config, rasters: _Ras
         )
         for task in write_points.points_tasks(plan, config, rasters.tiles, rasters.written, staging)
     ]
-    handle = runner.bar.add("write point clouds", total=len(futures))
-    results: list[write_points.PointsResult] = []
-
-    def collect(result: write_points.PointsResult) -> None:
-        results.append(result)
-        runner.bar.advance(handle)
-
-    runner.gather(futures, collect)
+    results: list[write_points.PointsResult] = runner.gather_all(futures, "write point clouds")
     return write_points.gather_points(results, rasters.written, staging.root)
 
 
@@ -620,6 +594,18 @@ class _Runner:
         except BaseException:
             self.client.cancel(pending)
             raise
+
+    def gather_all(self, futures: list[Any], bar_label: str) -> list[Any]:
+        """Every result, in completion order, with a progress bar ``bar_label``."""
+        handle = self.bar.add(bar_label, total=len(futures))
+        results: list[Any] = []
+
+        def collect(result: Any) -> None:
+            results.append(result)
+            self.bar.advance(handle)
+
+        self.gather(futures, collect)
+        return results
 
     def _result(self, future: Any) -> Any:
         try:
