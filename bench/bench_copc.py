@@ -44,14 +44,8 @@ from pipeline.run import run_survey
 from pipeline.survey import scan_survey
 from pipeline.synth import generate_survey, preset
 
-
-def decode_laz(path: str, chunk_points: int) -> int:
-    """Baseline task: laspy + lazrs decoding every point (every layer) of a LAZ file."""
-    total = 0
-    with laspy.open(path, laz_backend=laspy.LazBackend.Lazrs) as reader:
-        for chunk in reader.chunk_iterator(chunk_points):
-            total += len(chunk)
-    return total
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_rasterize import decode_tile as decode_laz  # the baseline: laspy + lazrs, every layer, in chunks
 
 
 def decode_nodes(path: str, nodes: tuple, chunk_points: int) -> int:
