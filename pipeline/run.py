@@ -375,13 +375,15 @@ def _void_gaps(runner: _Runner, plan: SurveyPlan, cells: list[CellResult], gaps:
     digest = hashlib.sha1(repr((gaps.gaps, gaps.extent_strips)).encode()).hexdigest()[:12]
     futures = [
         runner.submit(
-            merge_cells.count_gap_voids, task, label=f"cell {r.cell_id} (check gaps)", key=f"gaps-{digest}-{r.cell_id}"
+            merge_cells.count_gap_voids,
+            task,
+            label=f"cell {task.cell_id} (check gaps)",
+            key=f"gaps-{digest}-{task.cell_id}",
         )
-        for task, r in zip(merge_cells.gap_void_tasks(cells, plan, gaps), cells)
+        for task in merge_cells.gap_void_tasks(cells, plan, gaps)
     ]
     counts = runner.gather_all(futures, "check coverage gaps")
     kept = merge_cells.survey_void_gaps(gaps, counts)
-    logger.debug("coverage gaps (pixels, empty) in the gap and its flanks: %s", [c.tolist() for c in sum(counts)])
     logger.debug(
         "coverage gaps: %d of %d, extent strips: %d of %d empty beside measured flanks, kept",
         len(kept.gaps),

@@ -76,3 +76,11 @@ def test_a_lake_on_the_seam_of_two_lines_opens_no_gap():
     ids[lake] = -1
     gaps, kept = _checked(ids, lake)
     assert gaps.gaps and not kept.gaps  # a sliver of "gap" opened, and it is mostly measured ground
+
+
+def test_only_the_windows_a_gap_reaches_are_checked():
+    gaps = coverage_gaps(line_moments(_lines(), row_off=0, col_off=0))  # the gap: columns 80-160
+    assert gaps.checked_near(PixelWindow(0, 64, 64, 64))
+    assert gaps.checked_near(PixelWindow(100, 158, 20, 20))  # its flank only
+    assert not gaps.checked_near(PixelWindow(0, 0, 64, 64))
+    assert not gaps.checked_near(PixelWindow(0, 170, 64, 64))

@@ -93,13 +93,12 @@ class CoverageGaps:
     gaps: tuple[tuple[tuple[float, float], float, float, float, float], ...]
     bands: tuple[Band, ...]
     missing_tiles: tuple[PixelWindow, ...] = ()  # squares of missing tiles, in grid pixels
-    tile_squares: tuple[PixelWindow, ...] = ()  # squares of the delivered tiles, in grid pixels
     tile_extents: tuple[PixelWindow, ...] = ()  # the tiles' header extents, in grid pixels
     #: where a tile's extent stops short of its square: (strip, flank inside the extent), see :func:`extent_strips`
     extent_strips: tuple[tuple[PixelWindow, PixelWindow], ...] = ()
 
     def __bool__(self) -> bool:
-        return bool(self.gaps or self.bands or self.missing_tiles or self.tile_squares)
+        return bool(self.gaps or self.bands or self.missing_tiles or self.extent_strips)
 
     def classes(self, window: PixelWindow, *, margin_px: float = 3.0) -> np.ndarray:
         """Per pixel of ``window``: ``IN_GAP``, ``IN_SWATH`` or ``UNKNOWN`` (int8).
@@ -131,6 +130,22 @@ class CoverageGaps:
             uncovered = window_union_mask(window, strips) & ~window_union_mask(window, self.tile_extents)
             out[uncovered & (out < IN_GAP)] = OUTSIDE_TILE_EXTENTS
         return out
+
+    def checked_near(self, window: PixelWindow) -> bool:
+        """Whether a gap (with its flanks) or an extent strip may reach into ``window`` (bounding boxes)."""
+        corners_r = np.array([window.row_off, window.row_off, window.row_end, window.row_end], np.float64)
+        corners_c = np.array([window.col_off, window.col_end, window.col_off, window.col_end], np.float64)
+        for (dr, dc), lo, hi, a_lo, a_hi in self.gaps:  # the window's extent in the gap's frame
+            along = corners_r * dr + corners_c * dc
+            across = corners_c * dr - corners_r * dc
+            if (
+                along.max() >= a_lo
+                and along.min() <= a_hi
+                and across.max() >= lo - GAP_FLANK_PX
+                and across.min() <= hi + GAP_FLANK_PX
+            ):
+                return True
+        return any(not region.intersection(window).is_empty for pair in self.extent_strips for region in pair)
 
     def void_counts(self, window: PixelWindow, empty: np.ndarray) -> np.ndarray:
         """Per gap and per extent strip, for it and its flanks: the pixels of ``window`` and the empty ones.

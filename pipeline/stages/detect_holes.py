@@ -118,7 +118,6 @@ def with_tile_grid(plan: SurveyPlan, gaps: CoverageGaps) -> CoverageGaps:
     return replace(
         gaps,
         missing_tiles=tuple(inner(b) for b in area.missing_tiles),
-        tile_squares=squares,
         tile_extents=tuple(plan.tile_windows),
         extent_strips=extent_strips(squares, tuple(plan.tile_windows)),
     )

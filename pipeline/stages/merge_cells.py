@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +25,8 @@ from ..plan import SurveyPlan
 from ..rasterize import merge_statistics, shared_pixel_mask
 from ..staging import Staging
 from .bin_tiles import TileFailure, TileResult, TileTask
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -161,15 +164,17 @@ def survey_coverage_gaps(moments: np.ndarray) -> CoverageGaps:
 class GapVoidTask:
     """Count, over one cell's core, the pixels of each coverage gap and the empty ones."""
 
+    cell_id: str
     window: PixelWindow  # the cell's core
     statistics_path: str
     gaps: CoverageGaps
 
 
 def gap_void_tasks(results: list[CellResult], plan: SurveyPlan, gaps: CoverageGaps) -> list[GapVoidTask]:
-    """One task per merged cell: the gaps are checked against the pixels before detection splits holes at them."""
+    """One task per merged cell a gap or strip reaches: they are checked before detection splits holes at them."""
     cells = plan.cell_by_id()
-    return [GapVoidTask(cells[r.cell_id].window, r.statistics_path, gaps) for r in results]
+    tasks = [GapVoidTask(r.cell_id, cells[r.cell_id].window, r.statistics_path, gaps) for r in results]
+    return [task for task in tasks if gaps.checked_near(task.window)]
 
 
 def count_gap_voids(task: GapVoidTask) -> np.ndarray:
@@ -180,6 +185,6 @@ def count_gap_voids(task: GapVoidTask) -> np.ndarray:
 
 def survey_void_gaps(gaps: CoverageGaps, counts: list[np.ndarray]) -> CoverageGaps:
     """Gather: the gaps mostly empty over the survey (the cells' :func:`count_gap_voids` summed)."""
-    return keep_void_gaps(
-        gaps, np.sum(counts, axis=0) if counts else np.zeros((len(gaps.gaps) + len(gaps.extent_strips), 3, 2), np.int64)
-    )
+    total = np.sum(counts, axis=0) if counts else np.zeros((len(gaps.gaps) + len(gaps.extent_strips), 3, 2), np.int64)
+    logger.debug("coverage gaps, then extent strips: (pixels, empty) in each and its flanks: %s", total.tolist())
+    return keep_void_gaps(gaps, total)
