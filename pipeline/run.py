@@ -466,7 +466,7 @@ def _write_products(
     heights = sum((r.ground for r in rasters.tiles), GroundLevel())
     if holes is not None and config.flightplan.enabled and vrt.exists():
         if heights.normalised:  # safe heights need the terrain, which these heights have taken out
-            flight_summary = {"not_planned": NO_TERRAIN}
+            flight_summary = {"not_planned": NO_TERRAIN} if hole_summary.get("listed") else {}
         else:
             centroid = plan.survey_area.centroid
             flight_summary = plan_flights(gpkg, vrt, config, staging.root, home=(centroid.x, centroid.y))
