@@ -202,9 +202,35 @@ class CausesConfig:
         "level_rim, river_rim and flat_low_rim rules: smallest hole (m2) called water from its rim alone.",
         ge=0,
     )
+    occlusion_min_blocked_fraction: float = _opt(
+        0.5,
+        "line_of_sight rule (occlusion): share of the hole's swept pixels that no line saw unobstructed.",
+        ge=0,
+        le=1,
+    )
     low_quantile: float = _opt(0.05, "Quantile of the ring heights taken as the ring's low level.", ge=0, le=1)
     high_quantile: float = _opt(
         0.95, "Quantile of the ring heights taken as its high level (step = high - low level).", ge=0, le=1
+    )
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """The sensor's geometry: flight lines, trajectories, swaths and lines of sight (docs/holes.md)."""
+
+    enabled: bool = _opt(
+        True, "Reconstruct the flight lines and judge causes by swath and line of sight (needs GPS times)."
+    )
+    nominal_fov_deg: float = _opt(
+        40.0,
+        "Full scan angle assumed where a line has neither multiple returns nor scan angles (reported as assumed).",
+        gt=0,
+        lt=180,
+    )
+    sight_reach_m: float = _opt(
+        50.0,
+        "How far (m) from a void its lines of sight are followed: obstacles up to reach / tan(scan angle) tall.",
+        gt=0,
     )
 
 
@@ -280,7 +306,7 @@ class FlightPlanConfig:
     causes: list[str] = _opt(
         ["missed_coverage"],
         "Hole causes that are re-flown; the others are listed, not flown.",
-        item_choices=("occlusion", "water", "missed_coverage", "unknown"),
+        item_choices=("occlusion", "water", "missed_coverage", "no_return", "unknown"),
     )
     min_area_m2: float = _opt(25.0, "Holes smaller than this (m2) are not re-flown.", ge=0)
     altitude_agl_m: float = _opt(
@@ -362,6 +388,7 @@ class Config:
     rasterize: RasterizeConfig = field(default_factory=RasterizeConfig)
     holes: HolesConfig = field(default_factory=HolesConfig)
     causes: CausesConfig = field(default_factory=CausesConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
     dask: DaskConfig = field(default_factory=DaskConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     survey: SurveyConfig = field(default_factory=SurveyConfig)

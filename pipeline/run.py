@@ -168,7 +168,7 @@ def _run_stages(runner: _Runner, plan: SurveyPlan, config: Config, staging: Stag
     rasters = _run_rasters(runner, plan, config, staging, timer, write=not filling)
     detected, holes, fills = None, None, None
     if config.holes.enabled:
-        detected, holes = _run_holes(runner, plan, config, rasters.cells, water_area, staging)
+        detected, holes = _run_holes(runner, plan, config, rasters, water_area, staging)
         timer.lap("holes")
     if holes is not None and filling:
         fills = _run_fill(runner, plan, config, holes, rasters, staging)
@@ -345,14 +345,26 @@ def _check_points_left(results: _Rasters, config: Config) -> None:
         )
 
 
-def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[CellResult], water, staging: Staging):
-    """Detection (per cell) on the footprint gathered from stage 2, then linking on the client."""
+def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, rasters: _Rasters, water, staging: Staging):
+    """Detection (per cell) on the footprint gathered from stage 2, then linking on the client.
+
+    Where the flight lines' trajectories account for the survey's points, their swaths and
+    lines of sight replace the bands of pixels between which coverage gaps were sought.
+    """
     params = plan.hole_params
+    cells = rasters.cells
     blocks = merge_cells.footprint_blocks(cells, plan, config)
     line_moments = merge_cells.survey_line_moments(cells)
-    gaps = detect_holes.with_tile_grid(plan, merge_cells.survey_coverage_gaps(line_moments))
+    geometry = detect_holes.sensor_geometry(rasters.tiles, plan, config) if config.sensor.enabled else None
+    sight = None
+    if geometry is not None and geometry.complete:
+        logger.debug("flight lines: %s", [(g.line, g.part, g.method, round(g.flying_height)) for g in geometry.lines])
+        sight = detect_holes.sight_inputs(plan, cells, geometry, config.sensor.sight_reach_m)
+        gaps = detect_holes.with_tile_grid(plan, merge_cells.survey_coverage_gaps(line_moments[:0]))
+    else:
+        gaps = detect_holes.with_tile_grid(plan, merge_cells.survey_coverage_gaps(line_moments))
     gaps = _void_gaps(runner, plan, cells, gaps)
-    tasks = detect_holes.detect_tasks(plan, params, cells, blocks, water, staging, gaps)
+    tasks = detect_holes.detect_tasks(plan, params, cells, blocks, water, staging, gaps, sight)
     futures = [
         runner.submit(
             detect_holes.detect_cell, task, label=f"cell {task.cell.id} (find holes)", key=f"detect-{task.cell.id}"
@@ -362,7 +374,7 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, cells: list[Ce
     detected: list[detect_holes.DetectResult] = runner.gather_all(futures, "find holes")
     order = {r.cell_id: i for i, r in enumerate(cells)}
     detected.sort(key=lambda d: order[d.cell_holes.cell.id])
-    holes = link_holes.link_cells(detected, plan, config, params, line_moments)
+    holes = link_holes.link_cells(detected, plan, config, params, line_moments, geometry)
     link_holes.keep_hole_set(holes, str(staging.hole_catalog))
     return detected, holes
 

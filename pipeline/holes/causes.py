@@ -21,7 +21,7 @@ from .stats import HoleStats, _hist_quantiles, ring_metrics, shape_metrics
 __all__ = ["CAUSE_DTYPE", "CAUSES", "CONFIG_KEYS", "RULES", "CauseRules", "classify_causes"]
 
 #: Causes :func:`classify_causes` can return.
-CAUSES: tuple[str, ...] = ("occlusion", "water", "missed_coverage", "unknown")
+CAUSES: tuple[str, ...] = ("occlusion", "water", "missed_coverage", "no_return", "unknown")
 
 #: The rules in the order they are tried (the first that holds wins): (rule, cause).
 #: A hole no rule claims is ``unknown`` / ``none`` (``no_ring`` without any measured neighbour).
@@ -30,13 +30,17 @@ RULES: tuple[tuple[str, str], ...] = (
     ("missing_tile", "missed_coverage"),
     ("coverage_gap", "missed_coverage"),
     ("water_points", "water"),
+    ("line_of_sight", "occlusion"),
     ("jumps", "occlusion"),
     ("shadow", "occlusion"),
     ("strip", "missed_coverage"),
     ("level_rim", "water"),
     ("flat_low_rim", "water"),
     ("river_rim", "water"),
+    ("seen", "no_return"),
 )
+#: The rules that judge a hole from its rim alone, where the sensor's lines of sight are not known.
+RIM_ONLY_RULES = ("jumps", "shadow", "strip")
 
 CAUSE_DTYPE = np.dtype([("cause", "U16"), ("rule", "U16")])
 
@@ -62,6 +66,8 @@ class CauseRules:
         ``coverage_gap`` and ``missing_tile`` rules.
     occlusion_min_jump_fraction
         ``jumps`` rule.
+    occlusion_min_blocked_fraction
+        ``line_of_sight`` rule.
     shadow_min_high_fraction, shadow_min_residual_ratio, max_terrain_slope
         ``shadow`` rule.
     max_shadow_ratio
@@ -89,6 +95,7 @@ class CauseRules:
     gap_min_fraction: float
     water_min_point_fraction: float
     occlusion_min_jump_fraction: float
+    occlusion_min_blocked_fraction: float
     shadow_min_high_fraction: float
     shadow_min_residual_ratio: float
     max_terrain_slope: float
@@ -156,7 +163,9 @@ def _thresholds(causes: CausesConfig) -> dict[str, float]:
     return {name: getattr(causes, name) for name in CONFIG_KEYS if name not in _DERIVED}
 
 
-def classify_causes(stats: HoleStats, rules: CauseRules, *, bands_known: bool = False) -> np.ndarray:
+def classify_causes(
+    stats: HoleStats, rules: CauseRules, *, bands_known: bool = False, sight_known: bool = False
+) -> np.ndarray:
     """Why each hole is there: occlusion, water, missed coverage or unknown.
 
     The rules of ``RULES`` are tried in order and the first that holds wins (the
@@ -216,6 +225,12 @@ def classify_causes(stats: HoleStats, rules: CauseRules, *, bands_known: bool = 
         The thresholds, in survey units.
     bands_known : bool
         Whether two or more flight lines' bands were found (:func:`pipeline.holes.coverage.line_bands`).
+    sight_known : bool
+        Whether the flight lines' trajectories account for the survey (``gap_px`` is then "outside
+        every swath", ``blocked_px`` and ``seen_px`` are measured): the causes come from the
+        sensor's geometry (``line_of_sight``, ``seen``) and the rim-only rules (``RIM_ONLY_RULES``)
+        are off; ``river_rim`` and ``level_rim`` then ask for an elongated hole (a river's or a
+        canal's course: a level rim alone is no evidence of water).
 
     Returns
     -------
@@ -229,6 +244,14 @@ def classify_causes(stats: HoleStats, rules: CauseRules, *, bands_known: bool = 
     holds = _rule_conditions(stats, ring, rules)
     if bands_known:
         holds["strip"] = np.zeros(len(stats), bool)
+    if sight_known:
+        for rule in RIM_ONLY_RULES:
+            holds[rule] = np.zeros(len(stats), bool)
+        elongated = shape_metrics(stats)["elongation"] >= rules.river_min_elongation
+        holds["river_rim"] &= elongated
+        holds["level_rim"] &= elongated
+    else:
+        holds["line_of_sight"] = holds["seen"] = np.zeros(len(stats), bool)
     conditions = [holds[rule] for rule, _ in RULES]
     out["cause"] = np.select(conditions, [cause for _, cause in RULES], default="unknown")
     out["rule"] = np.select(conditions, [rule for rule, _ in RULES], default="none")
@@ -300,7 +323,11 @@ def _rule_conditions(stats: HoleStats, ring: _RingEvidence, rules: CauseRules) -
             strip_shape & ~in_swath & between_two_lines & (shape["elongation"] >= rules.strip_min_elongation_with_lines)
         )
         strip = np.where(has_lines, strip_with_lines, strip)
+    swept = np.maximum((stats["blocked_px"] + stats["seen_px"]).astype(np.float64), 1.0)
     return {
+        "line_of_sight": (stats["blocked_px"] > 0)
+        & (stats["blocked_px"] / swept >= rules.occlusion_min_blocked_fraction),
+        "seen": stats["seen_px"] > 0,
         "water_mask": stats["water_mask_px"] / area1 >= rules.water_min_mask_fraction,
         "missing_tile": stats["missing_tile_px"] / area1 >= rules.gap_min_fraction,
         "coverage_gap": stats["gap_px"] / area1 >= rules.gap_min_fraction,

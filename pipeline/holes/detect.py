@@ -15,6 +15,7 @@ import numpy.typing as npt
 import scipy.ndimage as ndi
 
 from ..grid import Cell, PixelWindow
+from ..sensor.sight import BLOCKED, SEEN
 from ._kernels import _NO_LINE, RingSums, _coo_counts, _perimeter_flat, hole_pixel_sums, ring_sums
 from .stats import HEIGHT_HIST_DTYPE, LINE_HIST_DTYPE, SHARED_RING_DTYPE, HoleStats, _empty_columns
 
@@ -111,7 +112,7 @@ class CellHoles:
 
 
 #: The arrays of :func:`detect_cell_holes`, in the order of its parameters.
-_INPUTS = ("count", "zmax", "zmin", "aoi", "water_points", "water_mask", "flight_line", "coverage")
+_INPUTS = ("count", "zmax", "zmin", "aoi", "water_points", "water_mask", "flight_line", "coverage", "sight")
 
 
 def detect_cell_holes(
@@ -131,6 +132,7 @@ def detect_cell_holes(
     water_mask: np.ndarray | None = None,
     flight_line: np.ndarray | None = None,
     coverage: np.ndarray | None = None,
+    sight: np.ndarray | None = None,
     min_area_px: int = 0,
 ) -> CellHoles:
     """Find, classify and measure the hole parts of one cell.
@@ -166,6 +168,9 @@ def detect_cell_holes(
         Per pixel: 2 in a coverage gap (no swath reaches), 3 in a missing tile's square (counted in
         ``missing_tile_px``), 1 inside a swath, 0 unknown (:meth:`~pipeline.holes.coverage.CoverageGaps.classes`).
         Hole pixels inside and outside a gap are labelled apart (a river crossing a missed strip: two holes).
+    sight : ndarray of uint8, same shape, optional
+        Per hole pixel, whether the sensor could see it (:func:`pipeline.sensor.sight.sight_classes`):
+        counted in ``blocked_px`` (hidden from every line that swept it) and ``seen_px``.
     min_area_px : int
         Closed parts (touching neither the core edge nor the AOI boundary) smaller than this are settled
         here as small voids: counted in ``small_void_count``/``small_void_px``, labelled -1, not listed.
@@ -180,7 +185,7 @@ def detect_cell_holes(
     ValueError
         On arrays of the wrong shape, a bad parameter, or a halo narrower than needed.
     """
-    arrays = dict(zip(_INPUTS, (count, zmax, zmin, aoi, water_points, water_mask, flight_line, coverage)))
+    arrays = dict(zip(_INPUTS, (count, zmax, zmin, aoi, water_points, water_mask, flight_line, coverage, sight)))
     work = _checked_work(
         arrays, cell, grid_window, connectivity=connectivity, local_radius_px=local_radius_px, height_bin=height_bin
     )
@@ -310,6 +315,8 @@ class _Work(NamedTuple):
     gap: np.ndarray | None  # inside a coverage gap (or a missing tile's square)
     swath: np.ndarray | None  # inside a flight line's swath
     missing_tile: np.ndarray | None  # inside a missing tile's square
+    blocked: np.ndarray | None  # swept by some swath, hidden from every line that swept it
+    seen: np.ndarray | None  # seen unobstructed by some line
 
     def core(self, arr: np.ndarray) -> np.ndarray:
         """The view of a work-window array over the core."""
@@ -354,6 +361,7 @@ def _work_arrays(arrays: dict[str, np.ndarray | None], cell: Cell, R: int) -> _W
     data_w = count_w > 0
     water_points = view("water_points", 0)
     coverage_w = view("coverage", 0, np.int8)
+    sight_w = view("sight", 0, np.uint8)
     return _Work(
         R=R,
         hole=~data_w & aoi_w,
@@ -367,6 +375,8 @@ def _work_arrays(arrays: dict[str, np.ndarray | None], cell: Cell, R: int) -> _W
         gap=None if coverage_w is None else coverage_w >= 2,
         swath=None if coverage_w is None else coverage_w == 1,
         missing_tile=None if coverage_w is None else coverage_w == 3,
+        blocked=None if sight_w is None else sight_w == BLOCKED,
+        seen=None if sight_w is None else sight_w == SEEN,
     )
 
 
@@ -555,7 +565,13 @@ def _pixel_statistics(
     cols["touches_data"] = sums.near_data[1:] > 0
     cols["hole_water_px"] = sums.water[1:]
     cols["water_mask_px"] = sums.in_mask[1:]
-    for name, where in (("gap_px", work.gap), ("swath_px", work.swath), ("missing_tile_px", work.missing_tile)):
+    for name, where in (
+        ("gap_px", work.gap),
+        ("swath_px", work.swath),
+        ("missing_tile_px", work.missing_tile),
+        ("blocked_px", work.blocked),
+        ("seen_px", work.seen),
+    ):
         cols[name] = (
             np.zeros(n, np.int64) if where is None else np.bincount(labels[work.core(where)], minlength=n + 1)[1:]
         )

@@ -72,6 +72,8 @@ STATS_COLUMNS: dict[str, tuple[type, str, str]] = {
     "gap_px": (np.int64, "sum", "hole pixels inside a coverage gap (no flight line's swath)"),
     "swath_px": (np.int64, "sum", "hole pixels inside a flight line's swath"),
     "missing_tile_px": (np.int64, "sum", "hole pixels inside the square of a missing tile (counted in gap_px too)"),
+    "blocked_px": (np.int64, "sum", "hole pixels swept by a swath but hidden from every line that swept them"),
+    "seen_px": (np.int64, "sum", "hole pixels some line saw unobstructed (it returned nothing)"),
     "touches_data": (np.bool_, "any", "a measured pixel is 4-adjacent somewhere"),
 }
 

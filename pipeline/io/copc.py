@@ -15,6 +15,7 @@ with lazrs; it serves the tests and the benchmark (no COPC is written by a run).
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import os
 import struct
@@ -28,7 +29,7 @@ from laspy.copc import CopcReader, load_octree_for_query
 from laspy.point.record import PackedPointRecord
 
 from ..errors import InputDataError
-from .las import NEEDED_LAYERS, PointChunk, point_chunk
+from .las import NEEDED_LAYERS, SENSOR_LAYERS, PointChunk, PulseFields, point_chunk
 
 #: One hierarchy entry, as the COPC specification lays it out (32 bytes, little-endian).
 NODE_DTYPE = np.dtype(
@@ -102,6 +103,7 @@ def iter_copc_nodes(
     chunk_points: int,
     *,
     selection: laspy.DecompressionSelection = NEEDED_LAYERS,
+    pulses: bool = False,
 ) -> Iterator[PointChunk]:
     """Decode the given nodes of a COPC file, about ``chunk_points`` points at a time.
 
@@ -115,6 +117,8 @@ def iter_copc_nodes(
         A chunk cannot be read or decompressed (file truncated or corrupt).
     """
     path = Path(path)
+    if pulses:
+        selection = selection | SENSOR_LAYERS
     decoded = 0
     expected = sum(int(n[2]) for n in nodes)
     try:
@@ -126,7 +130,7 @@ def iter_copc_nodes(
             for batch in _batches(sorted(nodes), chunk_points):
                 records = _decompress(fh, batch, header.point_format, laszip, selection)
                 decoded += len(records)
-                yield point_chunk(records, scales, offsets)  # type: ignore[arg-type]
+                yield point_chunk(records, scales, offsets, pulses=pulses)  # type: ignore[arg-type]
     except InputDataError:
         raise
     except Exception as e:
@@ -307,22 +311,25 @@ def _write_file(path, header: laspy.LasHeader, points: np.ndarray, entries, cent
 
 def save_point_chunk(path: str | os.PathLike, chunk: PointChunk, keep: np.ndarray) -> None:
     """Keep the points ``keep`` of a decoded chunk for another task (``.npz``, the raw fields)."""
+    pulses = {} if chunk.pulses is None else {f"pulse_{k}": v[keep] for k, v in vars(chunk.pulses).items()}
     np.savez(
         path,
         X=chunk.X[keep], Y=chunk.Y[keep], Z=chunk.Z[keep],
         classification=chunk.classification[keep], withheld=chunk.withheld[keep],
         point_source_id=chunk.point_source_id[keep],
-        scales=np.array(chunk.scales), offsets=np.array(chunk.offsets),
+        scales=np.array(chunk.scales), offsets=np.array(chunk.offsets), **pulses,
     )  # fmt: skip
 
 
 def load_point_chunk(path: str | os.PathLike) -> PointChunk:
     """Points kept by :func:`save_point_chunk`."""
     with np.load(path) as data:
+        fields = [f.name for f in dataclasses.fields(PulseFields)]
+        pulses = PulseFields(*(data[f"pulse_{f}"] for f in fields)) if f"pulse_{fields[0]}" in data else None
         return PointChunk(
             X=data["X"], Y=data["Y"], Z=data["Z"],
             scales=tuple(float(v) for v in data["scales"]),  # type: ignore[arg-type]
             offsets=tuple(float(v) for v in data["offsets"]),  # type: ignore[arg-type]
             classification=data["classification"], withheld=data["withheld"],
-            point_source_id=data["point_source_id"],
+            point_source_id=data["point_source_id"], pulses=pulses,
         )  # fmt: skip

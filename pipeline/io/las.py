@@ -36,6 +36,10 @@ NEEDED_LAYERS = (
     | laspy.DecompressionSelection.FLAGS
     | laspy.DecompressionSelection.POINT_SOURCE_ID
 )
+#: ... and, where hole causes are wanted, the layers of the sensor's geometry: the GPS time
+#: orders a line's pulses and pairs the returns of one pulse; the scan angle places a
+#: return in the scan plane (return numbers travel in the base layer).
+SENSOR_LAYERS = NEEDED_LAYERS | laspy.DecompressionSelection.GPS_TIME | laspy.DecompressionSelection.SCAN_ANGLE
 
 
 @dataclass(frozen=True)
@@ -73,6 +77,7 @@ class PointChunk:
     classification: np.ndarray  # uint8
     withheld: np.ndarray  # bool
     point_source_id: np.ndarray  # uint16: the flight line
+    pulses: PulseFields | None = None  # decoded only where hole causes need the sensor's geometry
 
     def __len__(self) -> int:
         return len(self.X)
@@ -82,6 +87,35 @@ class PointChunk:
         return tuple(  # type: ignore[return-value]
             raw * scale + offset for raw, scale, offset in zip((self.X, self.Y, self.Z), self.scales, self.offsets)
         )
+
+
+@dataclass(frozen=True)
+class PulseFields:
+    """Per point, what ties a return to its pulse and its pulse to the sensor (LAS 1.4 R15, tables 7 and 15).
+
+    ``scan_angle_deg`` is NaN where the point format has none; a file that writes zeros
+    everywhere is recognised later, from the spread of the angles.
+    """
+
+    gps_time: np.ndarray  # float64 seconds; all zero where the format has no GPS time
+    return_number: np.ndarray  # uint8
+    number_of_returns: np.ndarray  # uint8
+    scan_angle_deg: np.ndarray  # float32 degrees from nadir
+
+
+def pulse_fields(records: np.ndarray) -> PulseFields:
+    """Return numbers, GPS time and scan angle from the raw records of any point format."""
+    names = records.dtype.names or ()
+    bits = np.asarray(records["bit_fields"])
+    n = len(bits)
+    if "scan_angle" in names:  # formats 6-10: 4-bit return fields, scan angle in 0.006 degree steps
+        return_number, number_of_returns = bits & np.uint8(0x0F), bits >> np.uint8(4)
+        angle = records["scan_angle"].astype(np.float32) * np.float32(0.006)
+    else:  # formats 0-5: 3-bit return fields, whole degrees
+        return_number, number_of_returns = bits & np.uint8(0x07), (bits >> np.uint8(3)) & np.uint8(0x07)
+        angle = records["scan_angle_rank"].astype(np.float32)
+    time = np.asarray(records["gps_time"], np.float64) if "gps_time" in names else np.zeros(n)
+    return PulseFields(time, return_number, number_of_returns, angle)
 
 
 def read_header(path: str | os.PathLike) -> TileHeader:
@@ -172,16 +206,23 @@ def _copc_octree(path: Path, count: int) -> Any:
 
 
 def iter_point_chunks(
-    path: str | os.PathLike, chunk_points: int, *, selection: laspy.DecompressionSelection = NEEDED_LAYERS
+    path: str | os.PathLike,
+    chunk_points: int,
+    *,
+    selection: laspy.DecompressionSelection = NEEDED_LAYERS,
+    pulses: bool = False,
 ) -> Iterator[PointChunk]:
     """Decode a file once, ``chunk_points`` points at a time.
 
     Memory is bounded by the chunk size, never the whole tile. Only the LAZ
     layers in ``selection`` are decompressed (coordinates, class and flags by
     default). A file that ends early, or decodes fewer points than its header
-    declares, raises :class:`InputDataError`.
+    declares, raises :class:`InputDataError`. With ``pulses``, the sensor's layers
+    (``SENSOR_LAYERS``) are decoded too and each chunk carries its :class:`PulseFields`.
     """
     path = Path(path)
+    if pulses:
+        selection = selection | SENSOR_LAYERS
     decoded = 0
     expected = None
     try:
@@ -197,7 +238,7 @@ def iter_point_chunks(
                 if n == 0:
                     break
                 decoded += n
-                yield point_chunk(chunk.array, scales, offsets)
+                yield point_chunk(chunk.array, scales, offsets, pulses=pulses)
     except InputDataError:
         raise
     except Exception as e:
@@ -234,13 +275,18 @@ def _check_bounds(path: Path, mins, maxs, count: int) -> None:
 
 
 def point_chunk(
-    records: np.ndarray, scales: tuple[float, float, float], offsets: tuple[float, float, float]
+    records: np.ndarray,
+    scales: tuple[float, float, float],
+    offsets: tuple[float, float, float],
+    *,
+    pulses: bool = False,
 ) -> PointChunk:
     """A :class:`PointChunk` over decoded point records (views, no copy of the coordinates)."""
     classification, withheld = _class_and_withheld(records)
     return PointChunk(
         X=records["X"], Y=records["Y"], Z=records["Z"], scales=scales, offsets=offsets,
         classification=classification, withheld=withheld, point_source_id=records["point_source_id"],
+        pulses=pulse_fields(records) if pulses else None,
     )  # fmt: skip
 
 
@@ -262,4 +308,13 @@ def decode_only(path: str | os.PathLike, chunk_points: int) -> int:
     return total
 
 
-__all__ = ["CRSError", "PointChunk", "TileHeader", "decode_only", "iter_point_chunks", "read_header"]
+__all__ = [
+    "CRSError",
+    "PointChunk",
+    "PulseFields",
+    "pulse_fields",
+    "TileHeader",
+    "decode_only",
+    "iter_point_chunks",
+    "read_header",
+]

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, InputDataError
-from .las import PointChunk, TileHeader
+from .las import PointChunk, PulseFields, TileHeader
 
 #: The dimensions the binning reads (PDAL is asked for these only when no user stage runs).
 BINNING_DIMENSIONS = ["X", "Y", "Z", "Classification", "Withheld", "PointSourceId"]
@@ -202,6 +202,14 @@ def _chunk(array: np.ndarray) -> PointChunk:
         classification=column("Classification", np.uint8, 0),
         withheld=column("Withheld", np.uint8, 0) != 0,
         point_source_id=column("PointSourceId", np.uint16, 0),
+        pulses=PulseFields(
+            gps_time=column("GpsTime", np.float64, 0),
+            return_number=column("ReturnNumber", np.uint8, 1),
+            number_of_returns=column("NumberOfReturns", np.uint8, 1),
+            scan_angle_deg=(
+                column("ScanAngleRank", np.float32, 0) if "ScanAngleRank" in names else np.full(n, np.nan, np.float32)
+            ),
+        ),
     )
 
 

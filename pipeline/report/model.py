@@ -22,6 +22,7 @@ CAUSE_COLOURS = {
     "occlusion": "#e69f00",
     "water": "#0072b2",
     "missed_coverage": "#d55e00",
+    "no_return": "#009e73",
     "unknown": "#cc79a7",
 }
 _OTHER_COLOUR = "#666666"

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,10 +25,11 @@ from ..ground_level import GROUND_CLASS, GroundLevel, count_ground_at_zero
 from ..io import pdal_reader
 from ..io.copc import iter_copc_nodes, load_point_chunk, save_point_chunk
 from ..io.intermediate import save_tile_statistics
-from ..io.las import PointChunk, iter_point_chunks
+from ..io.las import PointChunk, PulseFields, iter_point_chunks
 from ..plan import SurveyPlan
 from ..rasterize import WATER_CLASS, HeightMapAccumulator, point_filter_mask
 from ..reads import Node, cell_of
+from ..sensor.sums import TrajectorySums, trajectory_sums
 from ..staging import Staging, input_fingerprint
 from ..survey import source_crs_for_task
 
@@ -64,6 +65,7 @@ class TileTask:
     top_dir: str = ""  # a cell task: where its file's top task leaves the points of each cell
     cells: tuple[tuple[int, int], ...] = ()  # a top task: the cells its file has tasks for
     pdal: pdal_reader.PdalRead | None = None  # read through PDAL (read.reader = "pdal"), else laspy
+    sensor: bool = False  # decode the pulses' fields and sum them for the flight lines' trajectories
 
 
 @dataclass(frozen=True)
@@ -79,6 +81,7 @@ class TileResult:
     read_index: int = -1
     read_tasks: int = 1  # tasks the file was read by (after results_by_file)
     ground: GroundLevel = GroundLevel()  # ground-class points binned, and those at z = 0
+    trajectory: TrajectorySums = field(default_factory=TrajectorySums.empty)  # per flight line and time bin
 
 
 @dataclass(frozen=True)
@@ -113,7 +116,8 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
             pdal = pdal_reader.tile_read(user_pipeline, plan.survey.crs_wkt, tile.header, tile.source_crs_wkt)
             source_crs = None if pdal.reprojects else source_crs  # else PDAL's points are in the survey CRS
         key: tuple[object, ...] = (grid.resolution, grid.col_min, grid.row_top, grid.offset, source_crs)
-        key += (point_filter, voxel_height) + (() if pdal is None else (pdal,))
+        sensor = config.holes.enabled and config.sensor.enabled
+        key += (point_filter, voxel_height, sensor) + (() if pdal is None else (pdal,))
         if read.is_whole_file:
             fingerprint = input_fingerprint(tile.path, window, *key)
         else:
@@ -143,6 +147,7 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
                 cell=read.cell,
                 top_dir=top_dirs.get(tile.index, "") if read.role == "cell" else "",
                 pdal=pdal,
+                sensor=sensor,
             )
         )
     tasks = [replace(t, cells=tuple(cells[t.tile_index])) if t.role == "top" else t for t in tasks]
@@ -180,8 +185,8 @@ def read_points(task: TileTask) -> Iterator[PointChunk]:
     if task.pdal is not None:
         return pdal_reader.iter_pdal_chunks(task.path, task.chunk_points, task.pdal)
     if task.role == "whole":
-        return iter_point_chunks(task.path, task.chunk_points)
-    return iter_copc_nodes(task.path, task.nodes, task.chunk_points)
+        return iter_point_chunks(task.path, task.chunk_points, pulses=task.sensor)
+    return iter_copc_nodes(task.path, task.nodes, task.chunk_points, pulses=task.sensor)
 
 
 def _points_to_bin(task: TileTask) -> Iterator[tuple[PointChunk, bool]]:
@@ -237,10 +242,11 @@ def hand_over_top(task: TileTask, *after: object) -> TileResult:
 
 
 def _subset(chunk: PointChunk, keep: np.ndarray) -> PointChunk:
+    pulses = None if chunk.pulses is None else PulseFields(*(v[keep] for v in vars(chunk.pulses).values()))
     return PointChunk(
         X=chunk.X[keep], Y=chunk.Y[keep], Z=chunk.Z[keep], scales=chunk.scales, offsets=chunk.offsets,
         classification=chunk.classification[keep], withheld=chunk.withheld[keep],
-        point_source_id=chunk.point_source_id[keep],
+        point_source_id=chunk.point_source_id[keep], pulses=pulses,
     )  # fmt: skip
 
 
@@ -248,10 +254,13 @@ def _concatenate(parts: list[PointChunk]) -> PointChunk:
     def joined(name: str) -> np.ndarray:
         return np.concatenate([getattr(p, name) for p in parts])
 
+    pulses = None
+    if all(p.pulses is not None for p in parts):
+        pulses = PulseFields(*(np.concatenate([getattr(p.pulses, f) for p in parts]) for f in vars(parts[0].pulses)))
     return PointChunk(
         X=joined("X"), Y=joined("Y"), Z=joined("Z"), scales=parts[0].scales, offsets=parts[0].offsets,
         classification=joined("classification"), withheld=joined("withheld"),
-        point_source_id=joined("point_source_id"),
+        point_source_id=joined("point_source_id"), pulses=pulses,
     )  # fmt: skip
 
 
@@ -278,6 +287,8 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
     )
     read = used = outside = 0
     ground = GroundLevel()
+    sums: list[TrajectorySums] = []
+    origin = (grid.x_left, grid.y_top, 0.0)
     f = task.point_filter
     for chunk, decoded in _points_to_bin(task):
         keep = point_filter_mask(
@@ -294,11 +305,15 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
                 chunk.X, chunk.Y, chunk.Z, keep, scales=chunk.scales, offsets=chunk.offsets, **evidence
             )
             ground += count_ground_at_zero(chunk.Z, is_ground, scale=chunk.scales[2], offset=chunk.offsets[2])
+            if chunk.pulses is not None:
+                sums.append(_trajectory_sums(chunk, chunk.coordinates(), keep, origin))
         else:
             x, y, z = chunk.coordinates()
             x, y = transformer.transform(x, y)
             n_used, n_outside = accumulator.add(x, y, z, keep, **evidence)
             ground += count_ground_at_zero(z, is_ground)
+            if chunk.pulses is not None:
+                sums.append(_trajectory_sums(chunk, (x, y, z), keep, origin))
         read += len(chunk) if decoded else 0  # handed-over points were counted by the top task
         used += n_used
         outside += n_outside
@@ -314,7 +329,20 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
         seconds=time.perf_counter() - started,
         read_index=task.read_index,
         ground=ground,
+        trajectory=TrajectorySums.merged(sums),
     )
+
+
+def _trajectory_sums(chunk: PointChunk, xyz: tuple, keep: np.ndarray, origin: tuple) -> TrajectorySums:
+    """The chunk's sums per flight line and time bin (:mod:`pipeline.sensor.sums`)."""
+    p = chunk.pulses
+    assert p is not None
+    return TrajectorySums(
+        *trajectory_sums(
+            *xyz, chunk.point_source_id, p.gps_time, p.return_number, p.number_of_returns, p.scan_angle_deg, keep,
+            origin=origin,
+        )
+    )  # fmt: skip
 
 
 def rasterize_tile_or_skip(task: TileTask, *after: object) -> TileResult | TileFailure:
@@ -344,6 +372,7 @@ def results_by_file(results: list[TileResult]) -> list[TileResult]:
                 seconds=kept.seconds + r.seconds,
                 read_tasks=kept.read_tasks + 1,
                 ground=kept.ground + r.ground,
+                trajectory=kept.trajectory + r.trajectory,
             )
         )
     return list(by_file.values())

@@ -6,23 +6,36 @@ stage reads it) and returns only small tables and outlines to the client.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 import shapely
 
-from ..config import HOLE_CONTEXT_PX
+from ..config import HOLE_CONTEXT_PX, Config
 from ..footprint import BlockMap, aoi_mask
 from ..grid import Cell, Grid, PixelWindow, window_union_mask
 from ..holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
-from ..holes.coverage import IN_GAP, IN_MISSING_TILE, OUTSIDE_TILE_EXTENTS, CoverageGaps, extent_strips
+from ..holes.coverage import (
+    IN_GAP,
+    IN_MISSING_TILE,
+    IN_SWATH,
+    OUTSIDE_TILE_EXTENTS,
+    UNKNOWN,
+    CoverageGaps,
+    extent_strips,
+)
 from ..holes.outlines import label_outlines
 from ..holes.walls import Wall, find_walls
 from ..io.intermediate import load_cell_statistics, save_labels
 from ..io.raster import geometry_mask, label_polygons
 from ..plan import HoleParams, SurveyPlan
 from ..rasterize import PixelStatistics
+from ..sensor.sight import ground_targets, sight_classes
+from ..sensor.sums import TrajectorySums
+from ..sensor.trajectory import FlightLine, fit_flight_lines, swath_polygon
 from ..staging import Staging
+from .bin_tiles import TileResult
 from .merge_cells import CellResult
 
 
@@ -41,6 +54,21 @@ class DetectTask:
     params: HoleParams
     gaps: CoverageGaps | None = None  # between the flight lines' swaths, survey-wide; missing tiles
     gaps_inside: bool = False  # coverage gaps and missing tiles in the survey area are inside the AOI
+    sight: SightInputs | None = None  # the flight lines' swaths and trajectories, where they are known
+
+
+@dataclass(frozen=True)
+class SightInputs:
+    """What one detection task needs to judge swaths and lines of sight (:mod:`pipeline.sensor.sight`).
+
+    ``tracks`` and ``swaths`` hold the lines whose swath reaches the cell's window grown by
+    ``reach_px``; ``neighbours`` the cores and statistics of the cells that window meets.
+    """
+
+    tracks: tuple[np.ndarray, ...]  # each line's sensor positions (K, 3), world units
+    swaths: tuple[bytes, ...]  # each line's swath polygon (WKB, world units)
+    reach_px: int
+    neighbours: tuple[tuple[PixelWindow, str], ...]
 
 
 @dataclass(frozen=True)
@@ -54,6 +82,81 @@ class DetectResult:
     aoi_px: int
 
 
+@dataclass(frozen=True)
+class SensorGeometry:
+    """The survey's flight lines (:mod:`pipeline.sensor.trajectory`) and their swaths (world polygons).
+
+    ``complete``: the lines account for the survey's points (their GPS times place them), so a
+    pixel outside every swath was swept by none; else the swaths are written but not judged.
+    """
+
+    lines: tuple[FlightLine, ...]
+    swaths: tuple[shapely.Geometry, ...]
+    points_in_lines: int
+    points_timed: int
+    points_used: int
+
+    @property
+    def complete(self) -> bool:
+        return (
+            bool(self.lines)
+            and self.points_in_lines >= LINES_MIN_POINT_SHARE * self.points_timed
+            and self.points_timed >= TIMED_MIN_POINT_SHARE * self.points_used
+        )
+
+
+#: The fitted lines must hold this share of the points with a GPS time ...
+LINES_MIN_POINT_SHARE = 0.95
+#: ... and those this share of the points used (a survey of tiles without GPS time has no lines).
+TIMED_MIN_POINT_SHARE = 0.9
+
+
+def sensor_geometry(tiles: list[TileResult], plan: SurveyPlan, config: Config) -> SensorGeometry:
+    """Gather: the flight lines' trajectories and swaths from the sums of every tile."""
+    sums = TrajectorySums.merged([t.trajectory for t in tiles])
+    grid = plan.grid
+    lines = fit_flight_lines(
+        sums.lines,
+        sums.bins,
+        sums.values,
+        origin=(grid.x_left, grid.y_top, 0.0),
+        nominal_fov_deg=config.sensor.nominal_fov_deg,
+    )
+    return SensorGeometry(
+        lines=tuple(lines),
+        swaths=tuple(swath_polygon(line) for line in lines),
+        points_in_lines=sum(line.points for line in lines),
+        points_timed=sums.points,
+        points_used=sum(t.points_used for t in tiles),
+    )
+
+
+def sight_inputs(
+    plan: SurveyPlan, merged: list[CellResult], geometry: SensorGeometry, reach_m: float
+) -> dict[str, SightInputs]:
+    """Per merged cell: the lines whose swath reaches it, and the cells its lines of sight read."""
+    grid = plan.grid
+    reach_px = max(1, math.ceil(reach_m / (grid.resolution * plan.survey.horizontal_unit_m)))
+    cells = plan.cell_by_id()
+    paths = {r.cell_id: r.statistics_path for r in merged}
+    boxes = shapely.STRtree(list(geometry.swaths))
+    cores = {cell_id: cells[cell_id].window for cell_id in paths}
+    out = {}
+    for cell_id in paths:
+        window = cells[cell_id].halo_window.expand(reach_px).intersection(grid.window)
+        x0, y0, x1, y1 = grid.window_bounds(window)
+        near = sorted(int(i) for i in boxes.query(shapely.box(x0, y0, x1, y1)))
+        out[cell_id] = SightInputs(
+            tracks=tuple(geometry.lines[i].sensor for i in near),
+            swaths=tuple(shapely.to_wkb(geometry.swaths[i]) for i in near),
+            reach_px=reach_px,
+            neighbours=tuple(
+                (core, paths[other]) for other, core in cores.items() if not core.intersection(window).is_empty
+            ),
+        )
+    return out
+
+
 def detect_tasks(
     plan: SurveyPlan,
     params: HoleParams,
@@ -62,6 +165,7 @@ def detect_tasks(
     water: shapely.Geometry | None,
     staging: Staging,
     gaps: CoverageGaps | None = None,
+    sight: dict[str, SightInputs] | None = None,
 ) -> list[DetectTask]:
     """One task per merged cell, in plan order.
 
@@ -90,7 +194,8 @@ def detect_tasks(
                 water_wkb=water_wkb,
                 params=params,
                 gaps=gaps if gaps else None,
-                gaps_inside=plan.tile_grid is not None,
+                gaps_inside=plan.tile_grid is not None or (sight is not None and plan.aoi_given),
+                sight=None if sight is None else sight[cell.id],
             )
         )
     return tasks
@@ -128,8 +233,11 @@ def detect_cell(task: DetectTask) -> DetectResult:
     cell, grid, params = task.cell, task.grid, task.params
     stats = load_cell_statistics(task.statistics_path)
     coverage = task.gaps.classes(stats.window) if task.gaps is not None else None
+    if task.sight is not None:
+        coverage = _with_swaths(task.sight, grid, stats.window, coverage)
     aoi = _aoi(task, stats, coverage)
-    holes = _cell_holes(task, stats, aoi, coverage)
+    sight = _sight(task, stats, aoi, coverage) if task.sight is not None else None
+    holes = _cell_holes(task, stats, aoi, coverage, sight)
     labels = holes.labels if holes.labels is not None else np.zeros(cell.window.shape, np.int32)
     save_labels(task.labels_path, labels, cell.window)
     core_rows, core_cols = cell.window.slices_within(stats.window)
@@ -180,7 +288,81 @@ def _aoi(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray | None) 
     return aoi
 
 
-def _cell_holes(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray, coverage: np.ndarray | None) -> CellHoles:
+def _swath_masks(sight: SightInputs, grid: Grid, window: PixelWindow) -> np.ndarray:
+    """Whether each line's swath covers each pixel of a window: shape (lines, rows, columns)."""
+    transform = grid.window_transform(window)
+    masks = np.zeros((len(sight.swaths), *window.shape), bool)
+    for i, swath in enumerate(sight.swaths):
+        masks[i] = geometry_mask(shapely.from_wkb(swath), transform, window.shape)
+    return masks
+
+
+def _with_swaths(sight: SightInputs, grid: Grid, window: PixelWindow, coverage: np.ndarray | None) -> np.ndarray:
+    """The coverage classes with the swaths: inside one, or outside every one (a coverage gap).
+
+    Missing tiles and tile extents (the tile grid's) keep their classes.
+    """
+    covered = _swath_masks(sight, grid, window).any(axis=0)
+    swept = np.where(covered, IN_SWATH, IN_GAP).astype(np.int8)
+    return swept if coverage is None else np.where(coverage == UNKNOWN, swept, coverage).astype(np.int8)
+
+
+def _sight(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
+    """Per empty pixel of the core inside a swath: blocked from every line, or seen by one (over ``stats.window``).
+
+    Lines of sight are followed over the core grown by ``reach_px``, read from the cells it meets.
+    """
+    sight, cell, grid = task.sight, task.cell, task.grid
+    assert sight is not None
+    out = np.zeros(stats.window.shape, np.uint8)
+    core = cell.window.slices_within(stats.window)
+    empty = (stats.count == 0) & aoi & (coverage == IN_SWATH if coverage is not None else True)
+    if not empty[core].any():
+        return out
+    window = cell.window.expand(sight.reach_px).intersection(grid.window)
+    zmax, zmin, measured = _read_window(sight.neighbours, window)
+    candidates = np.zeros(window.shape, bool)
+    candidates[cell.window.slices_within(window)] = empty[core]
+    targets = ground_targets(zmin, measured, candidates)
+    transform = grid.window_transform(window)
+    classes = sight_classes(
+        candidates,
+        np.where(measured, zmax, np.nan),
+        targets,
+        _swath_masks(sight, grid, window),
+        list(sight.tracks),
+        origin_xy=(transform.c, transform.f),
+        pixel_size=grid.resolution,
+        reach=sight.reach_px * grid.resolution,
+    )
+    out[core] = classes[cell.window.slices_within(window)]
+    return out
+
+
+def _read_window(
+    neighbours: tuple[tuple[PixelWindow, str], ...], window: PixelWindow
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Highest and lowest return and whether measured, over a window, from the cores of the cells it meets."""
+    zmax = np.full(window.shape, np.nan)
+    zmin = np.full(window.shape, np.nan)
+    measured = np.zeros(window.shape, bool)
+    for core, path in neighbours:
+        overlap = core.intersection(window)
+        if overlap.is_empty:
+            continue
+        stats = load_cell_statistics(path, ("zmax", "zmin", "count")).crop(overlap)
+        inside = overlap.slices_within(window)
+        zmax[inside], zmin[inside], measured[inside] = stats.zmax, stats.zmin, stats.count > 0
+    return zmax, zmin, measured
+
+
+def _cell_holes(
+    task: DetectTask,
+    stats: PixelStatistics,
+    aoi: np.ndarray,
+    coverage: np.ndarray | None,
+    sight: np.ndarray | None = None,
+) -> CellHoles:
     params = task.params
     water_mask = (
         geometry_mask(shapely.from_wkb(task.water_wkb), task.grid.window_transform(stats.window), stats.window.shape)
@@ -201,6 +383,7 @@ def _cell_holes(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray, cover
         flight_line=stats.source.astype(np.int64) - 1,
         # outside every tile's extent counts as a missing tile's pixel: the delivery stops short there
         coverage=None if coverage is None else np.where(coverage == OUTSIDE_TILE_EXTENTS, IN_MISSING_TILE, coverage),
+        sight=sight,
         min_area_px=params.min_area_px,
         local_radius_px=HOLE_CONTEXT_PX,
     )

@@ -19,7 +19,7 @@ from ..holes.coverage import line_bands
 from ..holes.flight_lines import axial_mean, line_azimuths
 from ..io.intermediate import save_object
 from ..plan import HoleParams, SurveyPlan
-from .detect_holes import DetectResult
+from .detect_holes import DetectResult, SensorGeometry
 
 
 @dataclass(frozen=True)
@@ -35,15 +35,23 @@ class HoleSet:
     azimuth_deg: np.ndarray  # float64: for a missed strip, the direction of the flight lines beside it; else NaN
     sampling_gaps: int = 0  # holes no thicker than HoleParams.sampling_gap_px (not listed, filled as small voids)
     sampling_gap_px: int = 0  # their pixels
+    geometry: SensorGeometry | None = None  # the flight lines and swaths (None: the sensor's geometry was off)
 
 
 def link_cells(
-    detected: list[DetectResult], plan: SurveyPlan, config: Config, params: HoleParams, line_moments: np.ndarray
+    detected: list[DetectResult],
+    plan: SurveyPlan,
+    config: Config,
+    params: HoleParams,
+    line_moments: np.ndarray,
+    geometry: SensorGeometry | None = None,
 ) -> HoleSet:
     """Gather: link the detected parts of every cell (in plan order) and classify the holes.
 
     ``line_moments``: the survey's flight-line pixel moments (gathered from stage 2),
-    for the direction of the flight lines beside a missed strip.
+    for the direction of the flight lines beside a missed strip where their trajectories
+    are not known; ``geometry``: the flight lines' trajectories and swaths, whose lines of
+    sight decide the causes where it is complete.
     """
     catalog = link_holes([d.cell_holes for d in detected], min_area_px=params.min_area_px)
     catalog, gaps = mark_sampling_gaps(catalog, params.sampling_gap_px)
@@ -52,8 +60,15 @@ def link_cells(
         pixel_size_m=plan.grid.resolution * plan.survey.horizontal_unit_m,
         vertical_unit_m=plan.survey.vertical_unit_m,
     )
-    causes = classify_causes(catalog.stats, rules, bands_known=len(line_bands(line_moments)) >= 2)
-    directions = line_azimuths(line_moments)
+    sight_known = geometry is not None and geometry.complete
+    causes = classify_causes(
+        catalog.stats, rules, bands_known=len(line_bands(line_moments)) >= 2, sight_known=sight_known
+    )
+    if sight_known:
+        assert geometry is not None
+        directions = {line.line: line.azimuth_deg % 180.0 for line in geometry.lines}
+    else:
+        directions = line_azimuths(line_moments)
     azimuths = strip_azimuths(catalog.stats.line_hist, causes["cause"] == "missed_coverage", directions)
     return HoleSet(
         catalog=catalog,
@@ -62,6 +77,7 @@ def link_cells(
         azimuth_deg=azimuths,
         sampling_gaps=int(gaps.sum()),
         sampling_gap_px=int(catalog.holes["area_px"][gaps].sum()),
+        geometry=geometry,
     )
 
 

@@ -1,0 +1,180 @@
+"""Which swaths cover a pixel, and whether the sensor saw it unobstructed (pure, numba).
+
+A pixel without returns inside a line's swath was swept by the scanner. Whether the
+laser could reach it is a matter of geometry: the line of sight from the sensor's
+position, when its scan plane passed over the pixel, to the ground at the pixel.
+The ray is followed over the surface model (the highest return of each pixel) from
+the pixel towards the sensor; it is *blocked* where a measured pixel stands above
+it. A pixel blocked from every line whose swath covers it lies in the shadow of
+what blocks it (occlusion); a pixel that one line saw unobstructed and that
+returned nothing did not return the pulse (water, a dark or wet surface, glass).
+
+The ground height at an empty pixel is unknown; it is taken as the lowest return
+nearby (the nearest of ``TARGET_RADII_PX`` that holds a measured pixel): a shadow lies
+on the ground beside what casts it, and a lower target only makes a blocked ray more
+certain, never a seen one. A measured pixel blocks a ray only when it stands above
+the ray everywhere across the pixel (the ray's rise over half a pixel is the
+tolerance): the surface model's blocks must not invent obstacles at their corners.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import scipy.ndimage as ndi
+
+__all__ = ["BLOCKED", "OUTSIDE_SWATHS", "SEEN", "ground_targets", "sight_classes"]
+
+#: Classes of a hole pixel (:func:`sight_classes`); 0: not a hole pixel.
+OUTSIDE_SWATHS, BLOCKED, SEEN = 1, 2, 3
+#: Square radii (pixels) searched, nearest first, for the lowest return around an empty pixel.
+TARGET_RADII_PX = (2, 4, 8, 16, 32, 64)
+
+
+def ground_targets(zmin: np.ndarray, measured: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """The lowest return within the nearest radius of ``TARGET_RADII_PX`` holding one, at the pixels ``where``.
+
+    NaN where no radius holds a measured pixel.
+    """
+    out = np.full(zmin.shape, np.nan)
+    todo = where.copy()
+    values = np.where(measured, zmin, np.inf).astype(np.float64)
+    for radius in TARGET_RADII_PX:
+        if not todo.any():
+            break
+        rows, cols = np.nonzero(todo)
+        r0, r1 = max(rows.min() - radius, 0), min(rows.max() + radius + 1, zmin.shape[0])
+        c0, c1 = max(cols.min() - radius, 0), min(cols.max() + radius + 1, zmin.shape[1])
+        low = ndi.minimum_filter(values[r0:r1, c0:c1], size=2 * radius + 1, mode="constant", cval=np.inf)
+        found = todo[r0:r1, c0:c1] & np.isfinite(low)
+        out[r0:r1, c0:c1][found] = low[found]
+        todo[r0:r1, c0:c1] &= ~found
+    return out
+
+
+def sight_classes(
+    candidates: np.ndarray,
+    zmax: np.ndarray,
+    targets: np.ndarray,
+    swaths: np.ndarray,
+    tracks: list[np.ndarray],
+    *,
+    origin_xy: tuple[float, float],
+    pixel_size: float,
+    reach: float,
+) -> np.ndarray:
+    """Per candidate pixel: ``OUTSIDE_SWATHS``, ``BLOCKED`` or ``SEEN`` (0 elsewhere).
+
+    Parameters
+    ----------
+    candidates : ndarray of bool, shape (H, W)
+        The empty pixels to classify (the hole pixels of a cell core, within the window).
+    zmax : ndarray of float, shape (H, W)
+        Highest return per pixel, NaN where empty: the surface that blocks rays.
+    targets : ndarray of float, shape (H, W)
+        Ground height at each candidate (:func:`ground_targets`); NaN: classified as seen
+        when some swath covers it (nothing to block a ray to an unknown height).
+    swaths : ndarray of bool, shape (L, H, W)
+        Whether line ``l``'s swath covers each pixel.
+    tracks : list of ndarray, shape (K_l, 3)
+        Each line's sensor positions in time order (world x, y, z).
+    origin_xy : (float, float)
+        World x of the window's left edge and y of its top edge; rows grow southwards.
+    pixel_size : float
+        Pixel size in world units.
+    reach : float
+        How far (world units) a ray is followed: one that leaves the window sooner (the survey's
+        grid ends there) without clearing every height in it proves nothing, and the pixel is not seen by it.
+    """
+    out = np.zeros(candidates.shape, np.uint8)
+    rows, cols = np.nonzero(candidates)
+    if len(rows) == 0:
+        return out
+    covered = swaths[:, rows, cols] if len(swaths) else np.zeros((0, len(rows)), bool)
+    top = float(np.nanmax(zmax)) if np.isfinite(zmax).any() else -np.inf
+    seen = np.zeros(len(rows), np.bool_)
+    any_line = covered.any(axis=0)
+    for index, track in enumerate(tracks):
+        todo = covered[index] & ~seen
+        if not todo.any() or len(track) < 1:
+            continue
+        _cast(
+            rows[todo], cols[todo], targets, zmax, np.ascontiguousarray(track, np.float64),
+            origin_xy[0], origin_xy[1], pixel_size, top, seen, np.flatnonzero(todo), reach,
+        )  # fmt: skip
+    out[rows, cols] = np.where(~any_line, OUTSIDE_SWATHS, np.where(seen, SEEN, BLOCKED))
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _sensor_at(track, x, y):
+    """The sensor's position when its scan plane (across the track) passed over (x, y)."""
+    k = len(track)
+    if k == 1:
+        return track[0, 0], track[0, 1], track[0, 2]
+    hx, hy = track[k - 1, 0] - track[0, 0], track[k - 1, 1] - track[0, 1]
+    norm = math.sqrt(hx * hx + hy * hy)
+    if norm == 0.0:
+        return track[0, 0], track[0, 1], track[0, 2]
+    hx, hy = hx / norm, hy / norm
+    target = x * hx + y * hy
+    previous = track[0, 0] * hx + track[0, 1] * hy
+    if target <= previous:
+        return track[0, 0], track[0, 1], track[0, 2]
+    for i in range(1, k):
+        here = track[i, 0] * hx + track[i, 1] * hy
+        if target <= here:
+            f = (target - previous) / (here - previous) if here > previous else 0.0
+            return (
+                track[i - 1, 0] + f * (track[i, 0] - track[i - 1, 0]),
+                track[i - 1, 1] + f * (track[i, 1] - track[i - 1, 1]),
+                track[i - 1, 2] + f * (track[i, 2] - track[i - 1, 2]),
+            )
+        previous = here
+    return track[k - 1, 0], track[k - 1, 1], track[k - 1, 2]
+
+
+@numba.njit(cache=True, nogil=True)
+def _cast(rows, cols, targets, zmax, track, x_left, y_top, pixel, top, seen, slots, reach):
+    height, width = zmax.shape
+    for n in range(len(rows)):
+        r, c = rows[n], cols[n]
+        z0 = targets[r, c]
+        if z0 != z0:  # no ground height nearby: nothing to test against
+            seen[slots[n]] = True
+            continue
+        x0 = x_left + (c + 0.5) * pixel
+        y0 = y_top - (r + 0.5) * pixel
+        sx, sy, sz = _sensor_at(track, x0, y0)
+        dx, dy = sx - x0, sy - y0
+        distance = math.sqrt(dx * dx + dy * dy)
+        if sz <= z0:
+            continue  # the sensor below the ground: no line of sight
+        if distance < 0.25 * pixel:
+            seen[slots[n]] = True  # straight below the sensor: nothing stands in between
+            continue
+        ux, uy = dx / distance, dy / distance
+        slope = (sz - z0) / distance
+        step = 0.5 * pixel
+        tolerance = slope * 0.5 * pixel
+        blocked = False
+        t = step
+        while t < distance:
+            ray_z = z0 + slope * t
+            if ray_z > top:
+                break
+            cc = int(math.floor((x0 + ux * t - x_left) / pixel))
+            rr = int(math.floor((y_top - (y0 + uy * t)) / pixel))
+            if rr < 0 or rr >= height or cc < 0 or cc >= width:
+                blocked = t < reach - pixel  # the grid ends before the reach: nothing proven
+                break
+            if not (rr == r and cc == c):
+                z = zmax[rr, cc]
+                if z == z and z > ray_z + tolerance:
+                    blocked = True
+                    break
+            t += step
+        if not blocked:
+            seen[slots[n]] = True

@@ -1,0 +1,267 @@
+"""Mergeable sums, per flight line and time bin, from which the sensor's trajectory is fitted (pure).
+
+Stage 1 sees every point once. For each (``point_source_id``, ``floor(gps_time /
+bin_seconds)``) it adds to one row of sums; rows of the same key from different tiles
+or chunks add up exactly (maxima take the maximum), so the trajectory fitted from them
+(:mod:`pipeline.sensor.trajectory`) does not depend on how the survey is cut. Three
+kinds of evidence, each used where the data has it:
+
+- **Pulses with several returns** (Gatziolis and McGaughey 2019; Roussel et al. 2020,
+  lidR's ``track_sensor``): the first and the last return of one pulse lie on the
+  laser's ray, so the line through them passes through the sensor. The point closest
+  to all the rays of a time bin, in least squares, is the sensor's position: it solves
+  ``A s = b`` with ``A = sum w (I - u u^T)`` and ``b = sum w (I - u u^T) p``, sums that
+  add across tiles. A ray's angular error is the ranging noise over the returns'
+  separation, so the weight is the squared separation (capped), and pairs closer than
+  ``MIN_PAIR_SEPARATION_M`` are not used.
+- **Scan angles**: a return at scan angle ``a`` lies ``(z_s - z) tan a`` across track
+  from the sensor's ground track. The regression of the returns' x and y on
+  ``tan a`` (and ``z tan a``) per bin gives the ground track and the flying height.
+- **The swath itself**: the points' centroid and their convex hull, kept as the
+  support function in ``SUPPORT_DIRECTIONS`` directions (a maximum per direction,
+  mergeable): where nothing else is known, the ground track is the swath's middle,
+  and the hull tells how wide the swath is.
+
+Coordinates are relative to a survey origin (``origin``) so that the sums keep their
+precision in float64.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+__all__ = [
+    "BIN_SECONDS",
+    "COLUMNS",
+    "SUPPORT_DIRECTIONS",
+    "TrajectorySums",
+    "empty_sums",
+    "merge_sums",
+    "trajectory_sums",
+]
+
+#: Length of a time bin. An aircraft at 50-70 m/s flies 25-35 m in it: a short piece of a
+#: straight line, holding thousands of pulses at today's rates (lidR's default is 0.5 s too).
+BIN_SECONDS = 0.5
+#: Directions of the support function of each bin's points (every 22.5 degrees).
+SUPPORT_DIRECTIONS = 16
+#: Returns of one pulse closer than this give no usable direction: a few centimetres of
+#: ranging noise over a metre is already a degree of error (Gatziolis and McGaughey 2019).
+MIN_PAIR_SEPARATION_M = 1.0
+#: Separations above this count no more (a misplaced return far down the ray must not dominate).
+MAX_PAIR_WEIGHT_SEPARATION_M = 30.0
+#: A ray more than this far from the vertical is no laser ray of an airborne scanner.
+MAX_RAY_ZENITH_DEG = 75.0
+
+_SCALARS = (
+    "n", "sx", "sy", "sz", "st",  # points: count, coordinate sums, time (from the bin's start) sum
+    "pair_n", "pair_w", "pair_t",  # pulse pairs: count, weight sum, weighted time sum
+    "a_xx", "a_xy", "a_xz", "a_yy", "a_yz", "a_zz", "b_x", "b_y", "b_z",  # sum w (I - uu^T), sum w (I - uu^T) p
+    "sa_n", "sa_k", "sa_kk", "sa_z", "sa_zk", "sa_zkk", "sa_zzkk",  # scan angles: k = tan(angle)
+    "sa_x", "sa_xk", "sa_xzk", "sa_y", "sa_yk", "sa_yzk", "sa_t",
+    "sa_max",  # largest |scan angle| in degrees (merged by maximum)
+)  # fmt: skip
+#: Column names of a sums row: the scalars, then ``h0..h15``, the support function (maximum of
+#: ``x cos(phi) + y sin(phi)``, ``phi = k * 22.5`` degrees), merged by maximum.
+COLUMNS = _SCALARS + tuple(f"h{k}" for k in range(SUPPORT_DIRECTIONS))
+_MAX_COLUMNS = ("sa_max",) + tuple(f"h{k}" for k in range(SUPPORT_DIRECTIONS))
+_INDEX = {name: i for i, name in enumerate(COLUMNS)}
+_N_COLUMNS = len(COLUMNS)
+_MAX_MASK = np.array([name in _MAX_COLUMNS for name in COLUMNS])
+
+
+def empty_sums() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(lines, bins, values)`` with no row: line ids (int64), bin indices (int64), sums (float64, N x columns)."""
+    return np.empty(0, np.int64), np.empty(0, np.int64), np.empty((0, _N_COLUMNS), np.float64)
+
+
+def trajectory_sums(
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray,
+    line: np.ndarray,
+    gps_time: np.ndarray,
+    return_number: np.ndarray,
+    number_of_returns: np.ndarray,
+    scan_angle_deg: np.ndarray,
+    keep: np.ndarray,
+    *,
+    origin: tuple[float, float, float],
+    bin_seconds: float = BIN_SECONDS,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sums of one chunk of points, one row per (line, time bin) present.
+
+    Parameters
+    ----------
+    x, y, z : ndarray of float64
+        World coordinates (the grid's CRS and units).
+    line : ndarray of int
+        ``point_source_id``.
+    gps_time, return_number, number_of_returns, scan_angle_deg : ndarray
+        :class:`pipeline.io.las.PulseFields`; points whose time is 0 (virtual or synthetic
+        points, formats without time) are left out.
+    keep : ndarray of bool
+        The points that count (noise and withheld points are left out).
+    origin : (float, float, float)
+        Subtracted from the coordinates before summing.
+
+    Returns
+    -------
+    lines, bins, values : ndarray
+        Line id and bin index per row and the sums (columns ``COLUMNS``).
+    """
+    use = keep & (gps_time != 0)
+    if not use.any():
+        return empty_sums()
+    bins = np.floor(gps_time / bin_seconds).astype(np.int64)
+    keys = bins * 65536 + line.astype(np.int64)
+    slots, unique_keys = _slots(keys, use)
+    values = np.zeros((len(unique_keys), _N_COLUMNS), np.float64)
+    values[:, _MAX_MASK] = -np.inf
+    _accumulate(
+        values, slots, x - origin[0], y - origin[1], z - origin[2], gps_time - bins * bin_seconds,
+        return_number, number_of_returns, scan_angle_deg.astype(np.float64), line.astype(np.int64), gps_time,
+    )  # fmt: skip
+    return unique_keys % 65536, unique_keys // 65536, values
+
+
+def _slots(keys: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A row index per point (-1 where not used) and the sorted keys of the rows.
+
+    Points of a line come in time order in most files, so the keys change rarely: the
+    keys of the runs of equal keys are made unique, not the keys of every point.
+    """
+    starts = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
+    run_keys = keys[starts]
+    unique_keys, run_slot = np.unique(run_keys, return_inverse=True)
+    lengths = np.diff(np.append(starts, len(keys)))
+    slots = np.repeat(run_slot.astype(np.int64), lengths)
+    slots[~use] = -1
+    used = np.unique(slots[slots >= 0])
+    if len(used) < len(unique_keys):  # a key whose every point is left out gets no row
+        remap = np.full(len(unique_keys), -1, np.int64)
+        remap[used] = np.arange(len(used))
+        slots = np.where(slots >= 0, remap[np.maximum(slots, 0)], -1)
+        unique_keys = unique_keys[used]
+    return slots, unique_keys
+
+
+@numba.njit(cache=True, nogil=True)
+def _accumulate(values, slots, x, y, z, t, return_number, number_of_returns, angle, line, gps_time):
+    n = len(slots)
+    cos_k = np.empty(16)
+    sin_k = np.empty(16)
+    for k in range(16):
+        cos_k[k] = math.cos(k * math.pi / 8.0)
+        sin_k[k] = math.sin(k * math.pi / 8.0)
+    min_up = math.cos(math.radians(75.0))
+    for i in range(n):
+        s = slots[i]
+        if s < 0:
+            continue
+        row = values[s]
+        xi, yi, zi = x[i], y[i], z[i]
+        row[0] += 1.0
+        row[1] += xi
+        row[2] += yi
+        row[3] += zi
+        row[4] += t[i]
+        a = angle[i]
+        if a == a and abs(a) < 89.0:  # not NaN
+            k = math.tan(math.radians(a))
+            row[17] += 1.0
+            row[18] += k
+            row[19] += k * k
+            row[20] += zi
+            row[21] += zi * k
+            row[22] += zi * k * k
+            row[23] += zi * zi * k * k
+            row[24] += xi
+            row[25] += xi * k
+            row[26] += xi * zi * k
+            row[27] += yi
+            row[28] += yi * k
+            row[29] += yi * zi * k
+            row[30] += t[i]
+            if abs(a) > row[31]:
+                row[31] = abs(a)
+        for d in range(16):
+            h = xi * cos_k[d] + yi * sin_k[d]
+            if h > row[32 + d]:
+                row[32 + d] = h
+        # the first return of a pulse with several: its last return is the one stored last
+        m = number_of_returns[i]
+        if return_number[i] == 1 and m > 1:
+            j = i + m - 1
+            if j < n and slots[j] == s and gps_time[j] == gps_time[i] and return_number[j] == m and line[j] == line[i]:
+                dx, dy, dz = xi - x[j], yi - y[j], zi - z[j]
+                sep = math.sqrt(dx * dx + dy * dy + dz * dz)
+                if sep >= 1.0 and dz > min_up * sep:
+                    ux, uy, uz = dx / sep, dy / sep, dz / sep
+                    w = min(sep, 30.0) ** 2
+                    axx, axy, axz = w * (1 - ux * ux), -w * ux * uy, -w * ux * uz
+                    ayy, ayz, azz = w * (1 - uy * uy), -w * uy * uz, w * (1 - uz * uz)
+                    row[5] += 1.0
+                    row[6] += w
+                    row[7] += w * t[i]
+                    row[8] += axx
+                    row[9] += axy
+                    row[10] += axz
+                    row[11] += ayy
+                    row[12] += ayz
+                    row[13] += azz
+                    row[14] += axx * xi + axy * yi + axz * zi
+                    row[15] += axy * xi + ayy * yi + ayz * zi
+                    row[16] += axz * xi + ayz * yi + azz * zi
+
+
+def merge_sums(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Add the rows of the same (line, bin) from many chunks or tiles (maxima: the maximum)."""
+    parts = [p for p in parts if len(p[0])]
+    if not parts:
+        return empty_sums()
+    lines = np.concatenate([p[0] for p in parts])
+    bins = np.concatenate([p[1] for p in parts])
+    values = np.concatenate([p[2] for p in parts])
+    keys = bins * 65536 + lines
+    unique_keys, index = np.unique(keys, return_inverse=True)
+    out = np.zeros((len(unique_keys), _N_COLUMNS), np.float64)
+    np.add.at(out, index, np.where(_MAX_MASK, 0.0, values))
+    out[:, _MAX_MASK] = -np.inf
+    maxima = np.full((len(unique_keys), int(_MAX_MASK.sum())), -np.inf)
+    np.maximum.at(maxima, index, values[:, _MAX_MASK])
+    out[:, _MAX_MASK] = maxima
+    order = np.lexsort((unique_keys // 65536, unique_keys % 65536))
+    return (unique_keys % 65536)[order], (unique_keys // 65536)[order], out[order]
+
+
+@dataclass(frozen=True)
+class TrajectorySums:
+    """The sums of a tile, a file or the survey: rows keyed by (line, time bin); ``+`` merges."""
+
+    lines: np.ndarray
+    bins: np.ndarray
+    values: np.ndarray
+
+    @classmethod
+    def empty(cls) -> TrajectorySums:
+        return cls(*empty_sums())
+
+    @classmethod
+    def merged(cls, parts: list[TrajectorySums]) -> TrajectorySums:
+        return cls(*merge_sums([(p.lines, p.bins, p.values) for p in parts]))
+
+    def __add__(self, other: TrajectorySums) -> TrajectorySums:
+        return TrajectorySums.merged([self, other])
+
+    def __len__(self) -> int:
+        return len(self.lines)
+
+    @property
+    def points(self) -> int:
+        """Points summed (those with a GPS time)."""
+        return int(self.values[:, _INDEX["n"]].sum())

@@ -1,0 +1,377 @@
+"""The sensor's trajectory and swath of every flight line, fitted from the survey's sums (pure).
+
+A flight line is a ``point_source_id`` flown once: the bins of one id are cut into
+passes where the swath's middle jumps (the same id flown again, or one id for the
+whole survey). Per time bin the sensor's position comes from the best evidence the
+bin holds (:mod:`pipeline.sensor.sums`): the rays of pulses with several returns,
+else the scan angles, else the swath's middle at a flying height that the swath's
+width and a nominal field of view imply (``FlightLine.method`` says which, and the
+run reports an assumed height as assumed). A running median over
+``SMOOTHING_BINS`` bins removes the odd bin's noise: an aircraft's path is smooth
+over seconds.
+
+The swath of a line is the ground its scanner swept: on both sides of the ground
+track, out to the median half-width of its bins (the extent of each bin's points
+across track, from their hull), so that a lake or a dark roof at the swath's edge,
+which returns nothing, still lies inside it; each bin's own hull is added, so every
+returned point lies in its line's swath.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+
+from .sums import _INDEX, BIN_SECONDS, SUPPORT_DIRECTIONS
+
+__all__ = ["FlightLine", "fit_flight_lines", "swath_polygon"]
+
+#: Pulse pairs a bin needs before its rays place the sensor (lidR's ``track_sensor`` asks for 50
+#: pulses per bin; fewer rays at a metre or more of separation already place it within metres).
+MIN_PAIRS = 30
+#: Returns with a scan angle a bin needs before their regression places the sensor.
+MIN_SCAN_ANGLE_POINTS = 30
+#: The scan angles of a bin must spread by this much (degrees, standard deviation of the angle's
+#: tangent in degrees): a scanner sweeping its field of view does; a file writing one constant does not.
+MIN_SCAN_ANGLE_SPREAD_DEG = 2.0
+#: Points a bin needs to count in a line's swath width.
+MIN_BIN_POINTS = 20
+#: Bins over which the sensor's path is smoothed (running median): 2.5 s of flight.
+SMOOTHING_BINS = 5
+#: A sensor this close above the mean of its bin's returns is no airborne sensor (a failed fit).
+MIN_FLYING_HEIGHT_M = 10.0
+#: A sample's own height more than this many median absolute deviations from the line's median
+#: height is an outlier ...
+OUTLIER_MADS = 5.0
+#: ... and never closer than this (an aircraft's altitude wanders by metres along a line).
+OUTLIER_MIN_M = 15.0
+#: One id's bins are one pass while the swath's middle moves on within this share of the swath
+#: width from where steady flight would take it.
+PASS_BREAK_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class FlightLine:
+    """One pass of the sensor: its trajectory and the swath it scanned.
+
+    Attributes
+    ----------
+    line : int
+        The ``point_source_id`` of its returns.
+    part : int
+        0, or the pass number where one id was flown several times.
+    times : ndarray, shape (K,)
+        GPS time of each trajectory sample.
+    sensor : ndarray, shape (K, 3)
+        The sensor's world position (x, y, z) at each sample.
+    ground_z : ndarray, shape (K,)
+        Mean height of the returns of each sample's bin (the ground the swath swept, roughly).
+    half_width_left, half_width_right : float
+        The swath's extent on each side of the ground track (world units), across track;
+        left is to the left of the direction of flight.
+    hulls : ndarray, shape (K, 16, 2)
+        Each bin's hull of returns (the vertices of its support polygon), world x, y.
+    method : str
+        ``"multiple_returns"``, ``"scan_angle"`` or ``"nominal"`` (most of the samples).
+    points : int
+        Returns of the line.
+    max_scan_angle_deg : float
+        The largest scan angle of its returns (NaN where the file has none).
+    """
+
+    line: int
+    part: int
+    times: np.ndarray
+    sensor: np.ndarray
+    ground_z: np.ndarray
+    half_width_left: float
+    half_width_right: float
+    hulls: np.ndarray
+    method: str
+    points: int
+    max_scan_angle_deg: float
+
+    @property
+    def heading(self) -> np.ndarray:
+        """Unit (dx, dy) of flight, from the first sample to the last."""
+        d = self.sensor[-1, :2] - self.sensor[0, :2]
+        return d / max(float(np.hypot(*d)), 1e-9)
+
+    @property
+    def azimuth_deg(self) -> float:
+        """Direction of flight, degrees clockwise from north."""
+        dx, dy = self.heading
+        return math.degrees(math.atan2(dx, dy)) % 360.0
+
+    @property
+    def flying_height(self) -> float:
+        """Median height of the sensor above the returns of its bins."""
+        return float(np.median(self.sensor[:, 2] - self.ground_z))
+
+
+def fit_flight_lines(
+    lines: np.ndarray,
+    bins: np.ndarray,
+    values: np.ndarray,
+    *,
+    origin: tuple[float, float, float],
+    nominal_fov_deg: float,
+    bin_seconds: float = BIN_SECONDS,
+) -> list[FlightLine]:
+    """Every flight line's trajectory and swath from the merged sums (:func:`pipeline.sensor.sums.merge_sums`).
+
+    ``nominal_fov_deg`` is the scanner's full field of view assumed where a bin has neither
+    pulses with several returns nor scan angles. Lines with fewer than two usable bins are
+    left out (a handful of stray returns has no direction).
+    """
+    out: list[FlightLine] = []
+    for line in np.unique(lines):
+        rows = np.flatnonzero(lines == line)
+        rows = rows[values[rows, _INDEX["n"]] >= 1]
+        rows = rows[np.argsort(bins[rows], kind="stable")]
+        for part, pass_rows in enumerate(_passes(bins[rows], values[rows], bin_seconds, origin)):
+            fitted = _fit_pass(
+                int(line), part, bins[rows][pass_rows], values[rows][pass_rows], origin, nominal_fov_deg, bin_seconds
+            )
+            if fitted is not None:
+                out.append(fitted)
+    return out
+
+
+def _centroids(values: np.ndarray, origin: tuple[float, float, float]) -> np.ndarray:
+    n = values[:, _INDEX["n"]]
+    return np.stack(
+        [values[:, _INDEX[c]] / n + o for c, o in (("sx", origin[0]), ("sy", origin[1]), ("sz", origin[2]))], axis=1
+    )
+
+
+def _passes(bins: np.ndarray, values: np.ndarray, bin_seconds: float, origin) -> list[np.ndarray]:
+    """The rows of one id cut where the swath's middle leaves the course of steady flight."""
+    if len(bins) < 2:
+        return [np.arange(len(bins))]
+    middle = _centroids(values, origin)[:, :2]
+    width = _hull_widths(values, origin)
+    steps = np.diff(middle, axis=0)
+    dt = np.diff(bins).astype(np.float64) * bin_seconds
+    adjacent = dt <= 2 * bin_seconds
+    speed = np.hypot(*steps[adjacent].T) / dt[adjacent] if adjacent.any() else np.array([])
+    breaks = []
+    for i in range(len(steps)):
+        if adjacent[i]:
+            continue
+        before = slice(max(0, i - 4), i + 1)
+        direction = middle[i] - middle[before][0]
+        norm = float(np.hypot(*direction))
+        v = float(np.median(speed)) if len(speed) else 0.0
+        predicted = middle[i] + (direction / norm * v * dt[i] if norm > 0 else 0.0)
+        if np.hypot(*(middle[i + 1] - predicted)) > PASS_BREAK_SHARE * max(float(np.median(width)), 1.0):
+            breaks.append(i + 1)
+    return np.split(np.arange(len(bins)), breaks)
+
+
+def _hull_vertices(values: np.ndarray, origin) -> np.ndarray:
+    """Each row's support polygon: the 16 intersections of consecutive support lines (world x, y)."""
+    phi = np.arange(SUPPORT_DIRECTIONS) * (2 * math.pi / SUPPORT_DIRECTIONS)
+    h = values[:, _INDEX["h0"] : _INDEX["h0"] + SUPPORT_DIRECTIONS]
+    c0, s0 = np.cos(phi), np.sin(phi)
+    c1, s1 = np.roll(c0, -1), np.roll(s0, -1)
+    h1 = np.roll(h, -1, axis=1)
+    det = c0 * s1 - s0 * c1  # sin(22.5 deg), never 0
+    vx = (h * s1 - h1 * s0) / det
+    vy = (c0 * h1 - c1 * h) / det
+    return np.stack([vx + origin[0], vy + origin[1]], axis=2)
+
+
+def _hull_widths(values: np.ndarray, origin) -> np.ndarray:
+    """The largest extent of each row's hull (its diameter across the 16 directions)."""
+    h = values[:, _INDEX["h0"] : _INDEX["h0"] + SUPPORT_DIRECTIONS]
+    half = SUPPORT_DIRECTIONS // 2
+    return np.max(h[:, :half] + h[:, half:], axis=1)
+
+
+def _fit_pass(
+    line: int,
+    part: int,
+    bins: np.ndarray,
+    values: np.ndarray,
+    origin: tuple[float, float, float],
+    nominal_fov_deg: float,
+    bin_seconds: float,
+) -> FlightLine | None:
+    enough = values[:, _INDEX["n"]] >= MIN_BIN_POINTS
+    if enough.sum() < 2:
+        return None
+    bins, values = bins[enough], values[enough]
+    middle = _centroids(values, origin)
+    sensor = np.full((len(bins), 3), np.nan)
+    times = bins * bin_seconds + values[:, _INDEX["st"]] / values[:, _INDEX["n"]]
+    methods = np.zeros(len(bins), np.int8)  # 0 nominal, 1 scan angle, 2 multiple returns
+    for i, row in enumerate(values):
+        position = _from_pulse_pairs(row, origin)
+        if position is not None and position[2] - middle[i, 2] >= MIN_FLYING_HEIGHT_M:
+            sensor[i], methods[i] = position, 2
+            times[i] = bins[i] * bin_seconds + row[_INDEX["pair_t"]] / row[_INDEX["pair_w"]]
+            continue
+        position = _from_scan_angles(row, origin)
+        if position is not None and position[2] - middle[i, 2] >= MIN_FLYING_HEIGHT_M:
+            sensor[i], methods[i] = position, 1
+            times[i] = bins[i] * bin_seconds + row[_INDEX["sa_t"]] / row[_INDEX["sa_n"]]
+    order = np.argsort(times, kind="stable")
+    times, sensor, middle, methods, values = times[order], sensor[order], middle[order], methods[order], values[order]
+    hulls = _hull_vertices(values, origin)
+    evidence = _consistent(sensor)
+    methods[~evidence] = 0
+    if evidence.sum() >= 2:
+        track = _along_time(times, times[evidence], sensor[evidence, :2])
+    else:
+        track = _along_time(times, times, middle[:, :2])
+    heading = _heading(track)
+    left = np.array([-heading[1], heading[0]])
+    across = np.einsum("kvd,d->kv", hulls - track[:, None, :], left)
+    half_left = float(np.median(across.max(axis=1)))
+    half_right = float(np.median(-across.min(axis=1)))
+    if evidence.sum() >= 2:
+        height = np.interp(times, times[evidence], sensor[evidence, 2])
+    else:
+        fov = math.radians(nominal_fov_deg)
+        height = middle[:, 2] + (max(half_left, 0.0) + max(half_right, 0.0)) / (2.0 * math.tan(fov / 2.0))
+    sensor = _running_median(np.column_stack([track, np.where(evidence, sensor[:, 2], height)]), SMOOTHING_BINS)
+    angles = values[:, _INDEX["sa_max"]]
+    return FlightLine(
+        line=line,
+        part=part,
+        times=times,
+        sensor=sensor,
+        ground_z=middle[:, 2],
+        half_width_left=max(half_left, 0.0),
+        half_width_right=max(half_right, 0.0),
+        hulls=hulls,
+        method=("nominal", "scan_angle", "multiple_returns")[int(np.bincount(methods, minlength=3).argmax())],
+        points=int(values[:, _INDEX["n"]].sum()),
+        max_scan_angle_deg=float(angles.max()) if np.isfinite(angles).any() else math.nan,
+    )
+
+
+def _consistent(sensor: np.ndarray) -> np.ndarray:
+    """The samples with a position of their own whose height agrees with the line's others.
+
+    An aircraft holds its altitude within metres over a line; a bin at the swath's end
+    with a few skewed rays can put the sensor hundreds of metres off. Kept: within
+    ``OUTLIER_MADS`` median absolute deviations of the median height (at least ``OUTLIER_MIN_M``).
+    """
+    known = ~np.isnan(sensor[:, 2])
+    if known.sum() < 3:
+        return known
+    z = sensor[known, 2]
+    median = float(np.median(z))
+    spread = max(OUTLIER_MADS * float(np.median(np.abs(z - median))), OUTLIER_MIN_M)
+    return known & (np.abs(np.nan_to_num(sensor[:, 2], nan=np.inf) - median) <= spread)
+
+
+def _along_time(times: np.ndarray, known_times: np.ndarray, known_xy: np.ndarray) -> np.ndarray:
+    """Positions at ``times``: interpolated between known samples, a straight line fitted to them beyond."""
+    out = np.column_stack([np.interp(times, known_times, known_xy[:, d]) for d in range(2)])
+    outside = (times < known_times[0]) | (times > known_times[-1])
+    if outside.any():
+        design = np.column_stack([np.ones_like(known_times), known_times - known_times[0]])
+        coefficients = np.linalg.lstsq(design, known_xy, rcond=None)[0]
+        fitted = np.column_stack([np.ones_like(times), times - known_times[0]]) @ coefficients
+        out[outside] = fitted[outside]
+    return out
+
+
+def _heading(track: np.ndarray) -> np.ndarray:
+    """Unit direction of the principal axis of the track, pointing from its first sample to its last."""
+    centred = track - track.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    d = vt[0]
+    if np.dot(track[-1] - track[0], d) < 0:
+        d = -d
+    return d / np.hypot(*d)
+
+
+def _from_pulse_pairs(row: np.ndarray, origin) -> np.ndarray | None:
+    """The point nearest to a bin's rays in least squares (Roussel et al. 2020), or None."""
+    if row[_INDEX["pair_n"]] < MIN_PAIRS:
+        return None
+    a = np.array(
+        [
+            [row[_INDEX["a_xx"]], row[_INDEX["a_xy"]], row[_INDEX["a_xz"]]],
+            [row[_INDEX["a_xy"]], row[_INDEX["a_yy"]], row[_INDEX["a_yz"]]],
+            [row[_INDEX["a_xz"]], row[_INDEX["a_yz"]], row[_INDEX["a_zz"]]],
+        ]
+    )
+    eig = np.linalg.eigvalsh(a)
+    if eig[0] <= 1e-4 * eig[-1]:  # the rays are (nearly) parallel: no crossing point
+        return None
+    b = np.array([row[_INDEX["b_x"]], row[_INDEX["b_y"]], row[_INDEX["b_z"]]])
+    return np.linalg.solve(a, b) + np.asarray(origin)
+
+
+def _from_scan_angles(row: np.ndarray, origin) -> np.ndarray | None:
+    """Ground track and height from the regression of x, y on tan(scan angle), or None.
+
+    A return at angle ``a`` lies at ``s + c (z_s - z) tan a`` (``c`` the unit vector across
+    track): in the basis ``1, k, k (z - mean z)`` with ``k = tan a`` the coefficient of ``k``
+    is ``c (z_s - mean z)``, well defined even on flat ground where the third column vanishes.
+    """
+    n = row[_INDEX["sa_n"]]
+    if n < MIN_SCAN_ANGLE_POINTS:
+        return None
+    mk = row[_INDEX["sa_k"]] / n
+    if row[_INDEX["sa_kk"]] / n - mk * mk < math.tan(math.radians(MIN_SCAN_ANGLE_SPREAD_DEG)) ** 2:
+        return None
+    g = np.array(
+        [
+            [n, row[_INDEX["sa_k"]], row[_INDEX["sa_zk"]]],
+            [row[_INDEX["sa_k"]], row[_INDEX["sa_kk"]], row[_INDEX["sa_zkk"]]],
+            [row[_INDEX["sa_zk"]], row[_INDEX["sa_zkk"]], row[_INDEX["sa_zzkk"]]],
+        ]
+    )
+    mz = row[_INDEX["sa_z"]] / n
+    t = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -mz, 1.0]])  # to the basis 1, k, k (z - mean z)
+    g_c = t @ g @ t.T
+    coefficients = []
+    for c in ("x", "y"):
+        rhs = t @ np.array([row[_INDEX[f"sa_{c}"]], row[_INDEX[f"sa_{c}k"]], row[_INDEX[f"sa_{c}zk"]]])
+        coefficients.append(np.linalg.lstsq(g_c, rhs, rcond=1e-9)[0])
+    (x0, kx, _), (y0, ky, _) = coefficients
+    height = math.hypot(kx, ky)
+    return np.array([x0 + origin[0], y0 + origin[1], mz + origin[2] + height])
+
+
+def _running_median(samples: np.ndarray, width: int) -> np.ndarray:
+    """Running median of each column over ``width`` samples (shorter at the ends)."""
+    if len(samples) < 3:
+        return samples
+    half = width // 2
+    out = np.empty_like(samples)
+    for i in range(len(samples)):
+        out[i] = np.median(samples[max(0, i - half) : i + half + 1], axis=0)
+    return out
+
+
+def swath_polygon(line: FlightLine) -> shapely.Geometry:
+    """The ground the line's scanner swept (world x, y): the track's strip out to the swath's half-widths, and every bin's hull.
+
+    The strip's ends reach half a sample's spacing beyond the first and last sample.
+    """
+    track = line.sensor[:, :2]
+    heading = line.heading
+    left = np.array([-heading[1], heading[0]])
+    if len(track) > 1:
+        step = float(np.median(np.hypot(*np.diff(track, axis=0).T))) / 2.0
+    else:
+        step = 0.0
+    start, end = track[0] - heading * step, track[-1] + heading * step
+    path = np.vstack([start, track, end])
+    lefts = path + left * line.half_width_left
+    rights = path - left * line.half_width_right
+    quads = [
+        shapely.Polygon([lefts[i], lefts[i + 1], rights[i + 1], rights[i]]).buffer(0) for i in range(len(path) - 1)
+    ]
+    hulls = [shapely.Polygon(h).buffer(0) for h in line.hulls]
+    return shapely.union_all([g for g in quads + hulls if not g.is_empty])
