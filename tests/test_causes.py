@@ -88,12 +88,14 @@ def test_rule_order_is_one_table():
         "missing_tile",
         "coverage_gap",
         "water_points",
+        "line_of_sight",
         "jumps",
         "shadow",
         "strip",
         "level_rim",
         "flat_low_rim",
         "river_rim",
+        "seen",
     ]
 
 
