@@ -9,6 +9,7 @@ from __future__ import annotations
 import collections
 import functools
 import json
+import math
 import os
 import socket
 import time
@@ -207,6 +208,9 @@ def write_hole_layers(
     )
     wall_records, wall_geometries = _wall_records(plan, detected)
     write_layer(gpkg, "walls", wall_records, wall_geometries, crs_wkt=crs, geometry_type="LineString")
+    line_records, line_geometries, swath_geometries = _flight_line_records(holes)
+    write_layer(gpkg, "flight_lines", line_records, line_geometries, crs_wkt=crs, geometry_type="LineString Z")
+    write_layer(gpkg, "swaths", line_records, swath_geometries, crs_wkt=crs, geometry_type="MultiPolygon")
     catalog = holes.catalog
     counts_by_cause = collections.Counter(r["cause"] for r in hole_records)
     return {
@@ -341,6 +345,36 @@ def _part_records(plan: SurveyPlan, holes: HoleSet, part_outlines: dict, listed:
         )
         geometries.append(to_world(part_outlines[(int(part["cell"]), int(part["label"]))], plan.grid.transform))
     return records, geometries, counts_by_type
+
+
+def _flight_line_records(holes: HoleSet) -> tuple[list, list, list]:
+    """The ``flight_lines`` (the sensor's trajectory, with heights) and ``swaths`` layers: one feature per line."""
+    geometry = holes.geometry
+    if geometry is None:
+        return [], [], []
+    records, tracks, swaths = [], [], []
+    for line, swath in zip(geometry.lines, geometry.swaths):
+        records.append(
+            {
+                "point_source_id": line.line,
+                "pass": line.part,
+                "method": line.method,
+                "height_assumed": line.method == "nominal",
+                "start_time": float(line.times[0]),
+                "end_time": float(line.times[-1]),
+                "azimuth_deg": round(line.azimuth_deg, 2),
+                "flying_height": round(line.flying_height, 2),
+                "swath_left": round(line.half_width_left, 2),
+                "swath_right": round(line.half_width_right, 2),
+                "max_scan_angle_deg": None if math.isnan(line.max_scan_angle_deg) else line.max_scan_angle_deg,
+                "points": line.points,
+                "judged": geometry.complete,
+            }
+        )
+        track = line.sensor if len(line.sensor) > 1 else np.vstack([line.sensor, line.sensor])
+        tracks.append(shapely.LineString(track))
+        swaths.append(shapely.MultiPolygon([swath]) if swath.geom_type == "Polygon" else swath)
+    return records, tracks, swaths
 
 
 def _vertical_records(plan: SurveyPlan, detected: list[DetectResult]) -> tuple[list, list]:
