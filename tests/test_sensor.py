@@ -1,0 +1,146 @@
+"""The sensor's geometry on small synthetic scans: trajectory sums and fit, swaths, lines of sight."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pipeline.sensor.sight import BLOCKED, OUTSIDE_SWATHS, SEEN, ground_targets, sight_classes
+from pipeline.sensor.sums import TrajectorySums, trajectory_sums
+from pipeline.sensor.trajectory import fit_flight_lines, swath_polygon
+
+ORIGIN = (1000.0, 2000.0, 0.0)
+
+
+def _scan(*, height=500.0, half_angle=20.0, line=7, t0=1.0e5, seconds=10.0, pairs=True, angles=True, seed=0):
+    """Pulses of a line flying east at 60 m/s over flat ground at z = 10, trees 15 m tall in half the pulses."""
+    rng = np.random.default_rng(seed)
+    n = int(seconds * 2000)
+    t = t0 + np.sort(rng.uniform(0, seconds, n))
+    angle = rng.uniform(-half_angle, half_angle, n)
+    sx = ORIGIN[0] + 60.0 * (t - t0)
+    sy = np.full(n, ORIGIN[1] - 300.0)
+    ground = 10.0
+    offset = (height - ground) * np.tan(np.radians(angle))  # across track: +y to the north (left)
+    xg, yg = sx, sy + offset
+    tree = rng.random(n) < 0.5 if pairs else np.zeros(n, bool)
+    # first return 15 m up the ray where a tree stands; last return on the ground
+    up = 15.0
+    x1 = xg - 0.0
+    y1 = yg - up * np.tan(np.radians(angle))
+    z1 = np.full(n, ground + up)
+    rows = []
+    for i in range(n):
+        if tree[i]:
+            rows.append((x1[i], y1[i], z1[i], t[i], 1, 2, angle[i]))
+            rows.append((xg[i], yg[i], ground, t[i], 2, 2, angle[i]))
+        else:
+            rows.append((xg[i], yg[i], ground, t[i], 1, 1, angle[i]))
+    a = np.array(rows)
+    scan_angle = a[:, 6].astype(np.float32) if angles else np.zeros(len(a), np.float32)
+    return dict(
+        x=a[:, 0], y=a[:, 1], z=a[:, 2], line=np.full(len(a), line, np.uint16), gps_time=a[:, 3],
+        return_number=a[:, 4].astype(np.uint8), number_of_returns=a[:, 5].astype(np.uint8), scan_angle_deg=scan_angle,
+        keep=np.ones(len(a), bool),
+    )  # fmt: skip
+
+
+def _fit(points_list, **kwargs):
+    sums = TrajectorySums.merged([TrajectorySums(*trajectory_sums(**p, origin=ORIGIN)) for p in points_list])
+    return fit_flight_lines(sums.lines, sums.bins, sums.values, origin=ORIGIN, nominal_fov_deg=40.0, **kwargs)
+
+
+def test_trajectory_from_multiple_returns_finds_the_sensor():
+    (line,) = _fit([_scan(angles=False)])
+    assert line.method == "multiple_returns"
+    assert line.line == 7
+    assert abs(np.median(line.sensor[:, 2]) - 500.0) < 5.0
+    assert np.all(np.abs(line.sensor[:, 1] - (ORIGIN[1] - 300.0)) < 5.0)
+    assert abs(line.azimuth_deg - 90.0) < 1.0  # east
+
+
+def test_trajectory_from_scan_angles_alone():
+    (line,) = _fit([_scan(pairs=False)])
+    assert line.method == "scan_angle"
+    assert abs(np.median(line.sensor[:, 2]) - 500.0) < 5.0
+    swath = (500.0 - 10.0) * math.tan(math.radians(20.0))
+    assert abs(line.half_width_left - swath) < 0.05 * swath
+    assert abs(line.half_width_right - swath) < 0.05 * swath
+
+
+def test_nominal_height_where_nothing_else_is_known():
+    (line,) = _fit([_scan(pairs=False, angles=False)])
+    assert line.method == "nominal"
+    swath = 2 * (500.0 - 10.0) * math.tan(math.radians(20.0))
+    assert abs(line.flying_height - swath / (2 * math.tan(math.radians(20.0)))) < 0.1 * swath
+
+
+def test_sums_do_not_depend_on_how_the_points_are_cut():
+    scan = _scan(seed=3)
+    whole = TrajectorySums(*trajectory_sums(**scan, origin=ORIGIN))
+    half = len(scan["x"]) // 2
+    parts = [{k: v[:half] for k, v in scan.items()}, {k: v[half:] for k, v in scan.items()}]
+    cut = TrajectorySums.merged([TrajectorySums(*trajectory_sums(**p, origin=ORIGIN)) for p in parts])
+    assert np.array_equal(whole.lines, cut.lines) and np.array_equal(whole.bins, cut.bins)
+    # a pulse whose two returns are cut apart is lost to the rays; everything else adds up
+    assert np.allclose(whole.values[:, 0], cut.values[:, 0])
+
+
+def test_one_id_flown_twice_is_two_passes():
+    first = _scan(seconds=6.0)
+    second = _scan(seconds=6.0, t0=1.0e5 + 100.0, seed=1)
+    second["y"] = second["y"] + 600.0
+    lines = _fit([first, second])
+    assert [(line.line, line.part) for line in lines] == [(7, 0), (7, 1)]
+
+
+def test_swath_covers_the_returns():
+    scan = _scan(pairs=False)
+    (line,) = _fit([scan])
+    swath = swath_polygon(line)
+    import shapely
+
+    inside = shapely.contains_xy(swath.buffer(1e-6), scan["x"], scan["y"])
+    assert inside.mean() > 0.999
+
+
+def test_line_of_sight_behind_a_wall():
+    """A 20 m wall; the sensor to the east: the ground just west of it is hidden, east of it seen."""
+    size, pixel = 60, 1.0
+    zmax = np.zeros((size, size))
+    zmax[:, 30] = 20.0
+    candidates = np.zeros((size, size), bool)
+    candidates[30, 27] = True  # 3 m west of the 20 m wall: in its shadow (the ray climbs 4 m a metre)
+    candidates[30, 40] = True  # east of the wall
+    candidates[30, 5] = True  # far west: outside the swath
+    zmax[candidates] = np.nan
+    measured = np.isfinite(zmax)
+    targets = ground_targets(np.nan_to_num(zmax), measured, candidates)
+    swaths = np.ones((1, size, size), bool)
+    swaths[0, :, :10] = False
+    track = np.array([[100.0, 30.0, 300.0], [100.0, -90.0, 300.0]])  # flies south, x = 100 (east of the window)
+    classes = sight_classes(
+        candidates, zmax, targets, swaths, [track], origin_xy=(0.0, 60.0), pixel_size=pixel, reach=60.0
+    )
+    assert classes[30, 27] == BLOCKED
+    assert classes[30, 40] == SEEN
+    assert classes[30, 5] == OUTSIDE_SWATHS
+    assert classes[0, 0] == 0
+
+
+def test_a_second_line_from_the_other_side_sees_the_shadow():
+    size = 60
+    zmax = np.zeros((size, size))
+    zmax[:, 30] = 20.0
+    candidates = np.zeros((size, size), bool)
+    candidates[30, 27] = True
+    zmax[candidates] = np.nan
+    targets = ground_targets(np.nan_to_num(zmax), np.isfinite(zmax), candidates)
+    east = np.array([[100.0, 30.0, 300.0], [100.0, -90.0, 300.0]])
+    west = np.array([[-40.0, 30.0, 300.0], [-40.0, -90.0, 300.0]])
+    swaths = np.ones((2, size, size), bool)
+    classes = sight_classes(
+        candidates, zmax, targets, swaths, [east, west], origin_xy=(0.0, 60.0), pixel_size=1.0, reach=60.0
+    )
+    assert classes[30, 27] == SEEN
