@@ -333,13 +333,19 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
     )
 
 
-def _trajectory_sums(chunk: PointChunk, xyz: tuple, keep: np.ndarray, origin: tuple) -> TrajectorySums:
+def _trajectory_sums(
+    chunk: PointChunk,
+    xyz: tuple[np.ndarray, np.ndarray, np.ndarray],
+    keep: np.ndarray,
+    origin: tuple[float, float, float],
+) -> TrajectorySums:
     """The chunk's sums per flight line and time bin (:mod:`pipeline.sensor.sums`)."""
     p = chunk.pulses
     assert p is not None
+    x, y, z = xyz
     return TrajectorySums(
         *trajectory_sums(
-            *xyz, chunk.point_source_id, p.gps_time, p.return_number, p.number_of_returns, p.scan_angle_deg, keep,
+            x, y, z, chunk.point_source_id, p.gps_time, p.return_number, p.number_of_returns, p.scan_angle_deg, keep,
             origin=origin,
         )
     )  # fmt: skip
