@@ -116,7 +116,7 @@ def test_line_of_sight_behind_a_wall():
     candidates[30, 5] = True  # far west: outside the swath
     zmax[candidates] = np.nan
     measured = np.isfinite(zmax)
-    targets = ground_targets(np.nan_to_num(zmax), measured, candidates)
+    targets = ground_targets(np.nan_to_num(zmax), measured, candidates, step=2.5, pixel_size=1.0)
     swaths = np.ones((1, size, size), bool)
     swaths[0, :, :10] = False
     track = np.array([[100.0, 30.0, 300.0], [100.0, -90.0, 300.0]])  # flies south, x = 100 (east of the window)
@@ -136,7 +136,7 @@ def test_a_second_line_from_the_other_side_sees_the_shadow():
     candidates = np.zeros((size, size), bool)
     candidates[30, 27] = True
     zmax[candidates] = np.nan
-    targets = ground_targets(np.nan_to_num(zmax), np.isfinite(zmax), candidates)
+    targets = ground_targets(np.nan_to_num(zmax), np.isfinite(zmax), candidates, step=2.5, pixel_size=1.0)
     east = np.array([[100.0, 30.0, 300.0], [100.0, -90.0, 300.0]])
     west = np.array([[-40.0, 30.0, 300.0], [-40.0, -90.0, 300.0]])
     swaths = np.ones((2, size, size), bool)

@@ -10,7 +10,7 @@ what blocks it (occlusion); a pixel that one line saw unobstructed and that
 returned nothing did not return the pulse (water, a dark or wet surface, glass).
 
 The ground height at an empty pixel is unknown; it is taken as the lowest return
-nearby (the nearest of ``TARGET_RADII_PX`` that holds a measured pixel): a shadow lies
+nearby (the nearest level of ``TARGET_RADII_M``, see :func:`ground_targets`): a shadow lies
 on the ground beside what casts it, and a lower target only makes a blocked ray more
 certain, never a seen one. A measured pixel blocks a ray only when it stands above
 the ray everywhere across the pixel (the ray's rise over half a pixel is the
@@ -29,28 +29,38 @@ __all__ = ["BLOCKED", "OUTSIDE_SWATHS", "SEEN", "ground_targets", "sight_classes
 
 #: Classes of a hole pixel (:func:`sight_classes`); 0: not a hole pixel.
 OUTSIDE_SWATHS, BLOCKED, SEEN = 1, 2, 3
-#: Square radii (pixels) searched, nearest first, for the lowest return around an empty pixel.
-TARGET_RADII_PX = (2, 4, 8, 16, 32, 64)
+#: Square radii (metres) searched, nearest first, for the ground around an empty pixel: the
+#: ground beside an obstacle lies within its shadow's length, 17 m for 30 m at a 30 degree scan angle.
+TARGET_RADII_M = (1.0, 2.0, 4.0, 8.0, 16.0)
 
 
-def ground_targets(zmin: np.ndarray, measured: np.ndarray, where: np.ndarray) -> np.ndarray:
-    """The lowest return within the nearest radius of ``TARGET_RADII_PX`` holding one, at the pixels ``where``.
+def ground_targets(
+    zmin: np.ndarray, measured: np.ndarray, where: np.ndarray, *, step: float, pixel_size: float
+) -> np.ndarray:
+    """The ground height at the pixels ``where``: the lowest return nearby, looked for ever farther out.
 
-    NaN where no radius holds a measured pixel.
+    The radii of ``TARGET_RADII_M`` are searched nearest first; a wider radius replaces
+    the level found when it finds one lower by more than ``step`` (the height-jump
+    threshold: a wall): beside a roof the nearest returns are the roof's, and the
+    ground lies beyond its edge, within a shadow's length; on a gentle slope the wider
+    radii are only a little lower, and the nearest level stands. NaN where no radius
+    holds a measured pixel.
     """
     out = np.full(zmin.shape, np.nan)
-    todo = where.copy()
+    rows, cols = np.nonzero(where)
+    if len(rows) == 0:
+        return out
     values = np.where(measured, zmin, np.inf).astype(np.float64)
-    for radius in TARGET_RADII_PX:
-        if not todo.any():
-            break
-        rows, cols = np.nonzero(todo)
+    current = np.full(len(rows), np.inf)
+    radii = sorted({max(1, round(r / pixel_size)) for r in TARGET_RADII_M})
+    for radius in radii:
         r0, r1 = max(rows.min() - radius, 0), min(rows.max() + radius + 1, zmin.shape[0])
         c0, c1 = max(cols.min() - radius, 0), min(cols.max() + radius + 1, zmin.shape[1])
         low = ndi.minimum_filter(values[r0:r1, c0:c1], size=2 * radius + 1, mode="constant", cval=np.inf)
-        found = todo[r0:r1, c0:c1] & np.isfinite(low)
-        out[r0:r1, c0:c1][found] = low[found]
-        todo[r0:r1, c0:c1] &= ~found
+        here = low[rows - r0, cols - c0]
+        lower = np.isfinite(here) & (~np.isfinite(current) | (here < current - step))
+        current = np.where(lower, here, current)
+    out[rows, cols] = np.where(np.isfinite(current), current, np.nan)
     return out
 
 

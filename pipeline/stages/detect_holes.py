@@ -69,6 +69,7 @@ class SightInputs:
     swaths: tuple[bytes, ...]  # each line's swath polygon (WKB, world units)
     reach_px: int
     neighbours: tuple[tuple[PixelWindow, str], ...]
+    pixel_m: float  # the pixel's side in metres
 
 
 @dataclass(frozen=True)
@@ -136,7 +137,8 @@ def sight_inputs(
 ) -> dict[str, SightInputs]:
     """Per merged cell: the lines whose swath reaches it, and the cells its lines of sight read."""
     grid = plan.grid
-    reach_px = max(1, math.ceil(reach_m / (grid.resolution * plan.survey.horizontal_unit_m)))
+    pixel_m = grid.resolution * plan.survey.horizontal_unit_m
+    reach_px = max(1, math.ceil(reach_m / pixel_m))
     cells = plan.cell_by_id()
     paths = {r.cell_id: r.statistics_path for r in merged}
     boxes = shapely.STRtree(list(geometry.swaths))
@@ -153,6 +155,7 @@ def sight_inputs(
             neighbours=tuple(
                 (core, paths[other]) for other, core in cores.items() if not core.intersection(window).is_empty
             ),
+            pixel_m=pixel_m,
         )
     return out
 
@@ -323,7 +326,13 @@ def _sight(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray, coverage: 
     zmax, zmin, measured = _read_window(sight.neighbours, window)
     candidates = np.zeros(window.shape, bool)
     candidates[cell.window.slices_within(window)] = empty[core]
-    targets = ground_targets(zmin, measured, candidates)
+    targets = ground_targets(
+        zmin,
+        measured,
+        candidates,
+        step=task.params.jump_threshold,
+        pixel_size=sight.pixel_m,
+    )
     transform = grid.window_transform(window)
     classes = sight_classes(
         candidates,
