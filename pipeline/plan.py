@@ -213,8 +213,9 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
     """Lay the global grid over the survey, cut it into cells and index tiles by cell."""
     sizing = plan_sizing(survey.density, config)
     area = survey_area(survey, config, aoi=aoi)
+    planned = [tuple(area.geometry.bounds)] if aoi is not None and not area.geometry.is_empty else []
     grid = Grid.covering(
-        [t.bounds for t in survey.tiles] + list(area.missing_tiles),
+        [t.bounds for t in survey.tiles] + list(area.missing_tiles) + planned,
         resolution=sizing.resolution_m / survey.horizontal_unit_m,
         cell_px=sizing.cell_px,
         halo_px=config.grid.halo_px,
@@ -226,8 +227,9 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
     tiles_of_halo = _tiles_by_cell(grid, tile_windows, expand_px=grid.halo_px)
     # cells under the squares of a tile grid too (missing tiles, gaps between tiles' data), within the
     # lattice: as many squares as tiles, and never the empty margins beyond the data (exterior anyway)
+    # and, with an --aoi, the cells of the planned area beyond the tiles: nothing was delivered there
     keys = set(tiles_of_core) | {
-        k for b in _area_squares(area) for k in grid.cell_indices_under(_inner_window(grid, b))
+        k for b in _area_squares(area) + planned for k in grid.cell_indices_under(_inner_window(grid, b))
     }
     candidates = [grid.cell(ix, iy) for iy, ix in sorted(((iy, ix) for ix, iy in keys), key=_north_west_first)]
     boxes = shapely.box(*zip(*(grid.window_bounds(c.window) for c in candidates))) if candidates else []

@@ -142,3 +142,20 @@ def test_data_stopping_short_of_its_square_is_missed_coverage(shared_data, tmp_p
     assert (hole["cause"], hole["cause_rule"]) == ("missed_coverage", "missing_tile")
     xmin, _, xmax, _ = hole.geometry.bounds
     assert 770541 <= xmin and xmax <= 770551 and 300 <= hole["area_m2"] <= 420
+
+
+def test_planned_area_beyond_the_tiles_is_missed_coverage(shared_data, tmp_path, dask_client):
+    """A 50 m tile inside a 150 m --aoi: the planned area without data is one hole, missed coverage."""
+    import geopandas as gpd
+
+    tile = shared_data / "ign_tile_77055_627760.laz"
+    x0, y0 = 770550.0, 6277550.0  # the tile's lower-left corner (its header)
+    aoi = tmp_path / "aoi.gpkg"
+    gpd.GeoDataFrame(geometry=[shapely.box(x0 - 50, y0 - 50, x0 + 100, y0 + 100)], crs="EPSG:2154").to_file(aoi)
+    out = tmp_path / "out"
+    run_survey([str(tile)], out, load_config(), aoi=str(aoi), client=dask_client)
+    holes = read_layer(out / "holes.gpkg", "holes")
+    planned = holes[holes["area_m2"] > 1000]
+    assert len(planned) == 1, holes[["area_m2", "cause", "cause_rule"]]
+    assert planned.iloc[0]["cause"] == "missed_coverage"
+    assert planned.iloc[0]["area_m2"] == pytest.approx(150**2 - 50**2, rel=0.01)

@@ -55,6 +55,7 @@ class DetectTask:
     gaps: CoverageGaps | None = None  # between the flight lines' swaths, survey-wide; missing tiles
     gaps_inside: bool = False  # coverage gaps and missing tiles in the survey area are inside the AOI
     sight: SightInputs | None = None  # the flight lines' swaths and trajectories, where they are known
+    planned: bool = False  # the survey area is the --aoi: its pixels beyond every tile were planned, not delivered
 
 
 @dataclass(frozen=True)
@@ -197,7 +198,8 @@ def detect_tasks(
                 water_wkb=water_wkb,
                 params=params,
                 gaps=gaps if gaps else None,
-                gaps_inside=plan.tile_grid is not None or (sight is not None and plan.aoi_given),
+                gaps_inside=plan.tile_grid is not None or plan.aoi_given,
+                planned=plan.aoi_given,
                 sight=None if sight is None else sight[cell.id],
             )
         )
@@ -238,6 +240,8 @@ def detect_cell(task: DetectTask) -> DetectResult:
     coverage = task.gaps.classes(stats.window) if task.gaps is not None else None
     if task.sight is not None:
         coverage = _with_swaths(task.sight, grid, stats.window, coverage)
+    if task.planned:
+        coverage = _with_undelivered(task, stats.window, coverage)
     aoi = _aoi(task, stats, coverage)
     sight = _sight(task, stats, aoi, coverage) if task.sight is not None else None
     holes = _cell_holes(task, stats, aoi, coverage, sight)
@@ -308,6 +312,13 @@ def _with_swaths(sight: SightInputs, grid: Grid, window: PixelWindow, coverage: 
     covered = _swath_masks(sight, grid, window).any(axis=0)
     swept = np.where(covered, IN_SWATH, IN_GAP).astype(np.int8)
     return swept if coverage is None else np.where(coverage == UNKNOWN, swept, coverage).astype(np.int8)
+
+
+def _with_undelivered(task: DetectTask, window: PixelWindow, coverage: np.ndarray | None) -> np.ndarray:
+    """The pixels beyond every tile's extent as a missing tile's: planned (the --aoi), never delivered."""
+    undelivered = ~window_union_mask(window, task.tile_windows)
+    base = np.zeros(window.shape, np.int8) if coverage is None else coverage
+    return np.where(undelivered & (base != OUTSIDE_TILE_EXTENTS), IN_MISSING_TILE, base).astype(np.int8)
 
 
 def _sight(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
