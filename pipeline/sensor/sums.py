@@ -189,10 +189,12 @@ def _accumulate(values, slots, x, y, z, t, return_number, number_of_returns, ang
             row[30] += t[i]
             if abs(a) > row[31]:
                 row[31] = abs(a)
-        for d in range(16):
+        for d in range(8):  # directions d and d + 8 are opposite: one product serves both
             h = xi * cos_k[d] + yi * sin_k[d]
             if h > row[32 + d]:
                 row[32 + d] = h
+            if -h > row[40 + d]:
+                row[40 + d] = -h
         # the first return of a pulse with several: its last return is the one stored last
         m = number_of_returns[i]
         if return_number[i] == 1 and m > 1:
