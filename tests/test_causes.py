@@ -89,6 +89,7 @@ def test_rule_order_is_one_table():
         "coverage_gap",
         "water_points",
         "line_of_sight",
+        "water_edge",
         "jumps",
         "shadow",
         "strip",

@@ -31,6 +31,7 @@ RULES: tuple[tuple[str, str], ...] = (
     ("coverage_gap", "missed_coverage"),
     ("water_points", "water"),
     ("line_of_sight", "occlusion"),
+    ("water_edge", "water"),
     ("jumps", "occlusion"),
     ("shadow", "occlusion"),
     ("strip", "missed_coverage"),
@@ -251,7 +252,7 @@ def classify_causes(
         holds["river_rim"] &= elongated
         holds["level_rim"] &= elongated
     else:
-        holds["line_of_sight"] = holds["seen"] = np.zeros(len(stats), bool)
+        holds["line_of_sight"] = holds["water_edge"] = holds["seen"] = np.zeros(len(stats), bool)
     conditions = [holds[rule] for rule, _ in RULES]
     out["cause"] = np.select(conditions, [cause for _, cause in RULES], default="unknown")
     out["rule"] = np.select(conditions, [rule for rule, _ in RULES], default="none")
@@ -328,6 +329,8 @@ def _rule_conditions(stats: HoleStats, ring: _RingEvidence, rules: CauseRules) -
         "line_of_sight": (stats["blocked_px"] > 0)
         & (stats["blocked_px"] / swept >= rules.occlusion_min_blocked_fraction),
         "seen": stats["seen_px"] > 0,
+        # seen unobstructed, nothing came back, and water was measured at its edge
+        "water_edge": (stats["seen_px"] > 0) & (stats["ring_water_px"] > 0),
         "water_mask": stats["water_mask_px"] / area1 >= rules.water_min_mask_fraction,
         "missing_tile": stats["missing_tile_px"] / area1 >= rules.gap_min_fraction,
         "coverage_gap": stats["gap_px"] / area1 >= rules.gap_min_fraction,
