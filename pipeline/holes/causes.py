@@ -41,7 +41,7 @@ RULES: tuple[tuple[str, str], ...] = (
     ("seen", "no_return"),
 )
 #: The rules that judge a hole from its rim alone, where the sensor's lines of sight are not known.
-RIM_ONLY_RULES = ("jumps", "shadow", "strip")
+RIM_ONLY_RULES = ("jumps", "shadow", "strip", "flat_low_rim")
 
 CAUSE_DTYPE = np.dtype([("cause", "U16"), ("rule", "U16")])
 

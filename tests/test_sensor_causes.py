@@ -1,0 +1,64 @@
+"""Causes from the sensor's geometry on real surveys (skipped without ../shared/data)."""
+
+from __future__ import annotations
+
+import laspy
+import numpy as np
+import pytest
+
+from pipeline.config import load_config
+from pipeline.io.vector import read_layer
+from pipeline.run import run_survey
+
+pytestmark = pytest.mark.slow
+
+
+def _cut_squares(src, dst, *, size: float, count: int, seed: int) -> None:
+    """Remove every point in ``count`` random squares away from water-class points (a void with no cause)."""
+    las = laspy.read(src)
+    x, y = np.asarray(las.x), np.asarray(las.y)
+    water = np.asarray(las.classification) == 9
+    rng = np.random.default_rng(seed)
+    keep = np.ones(len(x), bool)
+    for _ in range(count):
+        for _attempt in range(200):
+            cx = rng.uniform(x.min() + size, x.max() - size)
+            cy = rng.uniform(y.min() + size, y.max() - size)
+            inside = (np.abs(x - cx) < size / 2) & (np.abs(y - cy) < size / 2)
+            near = (np.abs(x - cx) < size) & (np.abs(y - cy) < size)
+            if inside.sum() > 50 and not (water & near).any():
+                break
+        keep &= ~inside
+    las.points = las.points[keep]
+    las.write(dst)
+
+
+@pytest.mark.parametrize(("name", "crs"), [("ahn3_delft_1", "EPSG:28992"), ("lasr_bcts_2", None)])
+def test_voids_cut_into_a_real_survey_are_not_water(name, crs, shared_data, tmp_path, dask_client):
+    """Squares cut out of streets, roofs and forest: seen by the lines, no water at their edge."""
+    cut = tmp_path / f"{name}.laz"
+    _cut_squares(shared_data / f"{name}.laz", cut, size=20.0, count=4, seed=1)
+    config = load_config(overrides=[f'survey.crs="{crs}"'] if crs else [])
+    out = tmp_path / "out"
+    run_survey([str(cut)], out, config, client=dask_client)
+    holes = read_layer(out / "holes.gpkg", "holes")
+    lines = read_layer(out / "holes.gpkg", "flight_lines")
+    assert lines["judged"].all() and len(lines) >= 3
+    water = holes[holes["cause"] == "water"]
+    assert set(water["cause_rule"]) <= {"water_points", "water_edge"}, water[["area_m2", "cause_rule"]]
+    squares = holes[(holes["area_m2"] > 300) & (holes["area_m2"] <= 400)]  # a 20 m square less its rim's pixels
+    assert len(squares) == 4, holes[["area_m2", "cause", "cause_rule"]]
+    assert set(squares["cause"]) == {"no_return"}
+
+
+def test_a_canal_with_water_at_its_edge_is_water(shared_data, tmp_path, dask_client):
+    """AHN3 Delft: every hole with class-9 returns on its rim is water, the canal between houses too."""
+    out = tmp_path / "out"
+    run_survey(
+        [str(shared_data / "ahn3_delft_1.laz")], out, load_config(overrides=['survey.crs="EPSG:28992"']),
+        client=dask_client,
+    )  # fmt: skip
+    holes = read_layer(out / "holes.gpkg", "holes")
+    canal = holes[(holes["area_m2"] > 1000) & (holes["area_m2"] < 1100)]
+    assert list(canal["cause"]) == ["water"], holes[["area_m2", "cause", "cause_rule"]]
+    assert (holes[holes["area_m2"] >= 40]["cause"] != "occlusion").all()
