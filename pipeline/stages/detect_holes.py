@@ -307,11 +307,15 @@ def _swath_masks(sight: SightInputs, grid: Grid, window: PixelWindow) -> np.ndar
 def _with_swaths(sight: SightInputs, grid: Grid, window: PixelWindow, coverage: np.ndarray | None) -> np.ndarray:
     """The coverage classes with the swaths: inside one, or outside every one (a coverage gap).
 
-    Missing tiles and tile extents (the tile grid's) keep their classes.
+    Missing tiles keep their class, and so do the pixels beyond every tile's extent that a swath covers.
     """
     covered = _swath_masks(sight, grid, window).any(axis=0)
     swept = np.where(covered, IN_SWATH, IN_GAP).astype(np.int8)
-    return swept if coverage is None else np.where(coverage == UNKNOWN, swept, coverage).astype(np.int8)
+    if coverage is None:
+        return swept
+    # beyond a tile's extent and outside every swath: a coverage gap (and so inside the survey area)
+    unknown = (coverage == UNKNOWN) | ((coverage == OUTSIDE_TILE_EXTENTS) & ~covered)
+    return np.where(unknown, swept, coverage).astype(np.int8)
 
 
 def _with_undelivered(task: DetectTask, window: PixelWindow, coverage: np.ndarray | None) -> np.ndarray:
