@@ -213,7 +213,11 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
     """Lay the global grid over the survey, cut it into cells and index tiles by cell."""
     sizing = plan_sizing(survey.density, config)
     area = survey_area(survey, config, aoi=aoi)
-    planned = [tuple(area.geometry.bounds)] if aoi is not None and not area.geometry.is_empty else []
+    planned = (
+        [_centres_inside(area.geometry.bounds, sizing.resolution_m / survey.horizontal_unit_m)]
+        if (aoi is not None and not area.geometry.is_empty)
+        else []
+    )
     grid = Grid.covering(
         [t.bounds for t in survey.tiles] + list(area.missing_tiles) + planned,
         resolution=sizing.resolution_m / survey.horizontal_unit_m,
@@ -229,7 +233,9 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
     # lattice: as many squares as tiles, and never the empty margins beyond the data (exterior anyway)
     # and, with an --aoi, the cells of the planned area beyond the tiles: nothing was delivered there
     keys = set(tiles_of_core) | {
-        k for b in _area_squares(area) + planned for k in grid.cell_indices_under(_inner_window(grid, b))
+        k
+        for b in _area_squares(area) + [tuple(area.geometry.bounds)] * bool(planned)
+        for k in grid.cell_indices_under(_inner_window(grid, b))
     }
     candidates = [grid.cell(ix, iy) for iy, ix in sorted(((iy, ix) for ix, iy in keys), key=_north_west_first)]
     boxes = shapely.box(*zip(*(grid.window_bounds(c.window) for c in candidates))) if candidates else []
@@ -311,6 +317,13 @@ def survey_area(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
         missing_tiles=tuple(grid.square_bounds(s) for s in found.missing),
         skipped_squares=tuple(grid.square_bounds(s) for s in found.skipped),
     )
+
+
+def _centres_inside(bounds: Bounds, resolution: float) -> Bounds:
+    """A box shrunk by half a pixel: what the grid must cover for the pixels whose centres lie inside it."""
+    minx, miny, maxx, maxy = bounds
+    half = resolution / 2
+    return (minx + half, miny + half, max(maxx - half, minx + half), max(maxy - half, miny + half))
 
 
 def _inner_window(grid: Grid, bounds: Bounds) -> PixelWindow:
