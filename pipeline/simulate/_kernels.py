@@ -38,7 +38,7 @@ def _mix(x: np.uint64) -> np.uint64:
 
 
 @numba.njit(cache=True, nogil=True)
-def uniform(key: np.uint64, index: np.int64, salt: np.int64) -> float:
+def uniform(key: np.uint64, index: int, salt: int) -> float:
     """A uniform number in [0, 1) that depends only on ``(key, index, salt)``."""
     x = _mix(key + np.uint64(index) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(salt) * np.uint64(0xD1B54A32D192ED03))
     return float(x >> np.uint64(11)) * _BITS_53
@@ -160,7 +160,7 @@ def pulse_returns(
     z_range: np.ndarray,
     settings: np.ndarray,
     key: np.uint64,
-    pulse: np.int64,
+    pulse: int,
     out: np.ndarray,
 ) -> int:
     """The returns of one pulse, written into ``out`` rows ``(t, z, class)``; how many (0-3).
@@ -215,8 +215,8 @@ def cast_line_pulses(
     scanner: np.ndarray,
     settings: np.ndarray,
     key: np.uint64,
-    first_pulse: np.int64,
-    n_pulses: np.int64,
+    first_pulse: int,
+    n_pulses: int,
     points: np.ndarray,
     attributes: np.ndarray,
 ) -> int:

@@ -266,7 +266,9 @@ def _across_extent(terrain: Terrain, heading_deg: float) -> float:
     return abs(terrain.width_m * math.cos(a)) + abs(terrain.height_m * math.sin(a))
 
 
-def _crossing_track(terrain: Terrain, heading_deg: float, shift: float) -> tuple[tuple[float, float], tuple[float, float]]:
+def _crossing_track(
+    terrain: Terrain, heading_deg: float, shift: float
+) -> tuple[tuple[float, float], tuple[float, float]]:
     """A track perpendicular to the others through the scene's middle (shifted by ``shift`` x its size)."""
     x0, y0, x1, y1 = terrain.bounds
     a = math.radians(heading_deg + 90.0)
@@ -307,7 +309,11 @@ def _fly(
 def _tile_sizes(terrain: Terrain) -> list[float]:
     """Standard tile sizes (100-250 m) dividing the scene, else the scene itself."""
     side = min(terrain.width_m, terrain.height_m)
-    sizes = [size for size in (100.0, 125.0, 200.0, 250.0) if side >= 2 * size and abs(side / size - round(side / size)) < 1e-9]
+    sizes = [
+        size
+        for size in (100.0, 125.0, 200.0, 250.0)
+        if side >= 2 * size and abs(side / size - round(side / size)) < 1e-9
+    ]
     return sizes or [side]
 
 

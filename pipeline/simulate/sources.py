@@ -105,7 +105,12 @@ def load_terrain(name: str, data_dir: str | os.PathLike, *, scene_m: float | Non
     cell = source.cell_m
     x0, y0, x1, y1 = footprint_box(points["x"], points["y"])
     # the cells lie inside the data's footprint (no half-empty border cells)
-    bounds = (math.ceil(x0 / cell) * cell, math.ceil(y0 / cell) * cell, math.floor(x1 / cell) * cell, math.floor(y1 / cell) * cell)
+    bounds = (
+        math.ceil(x0 / cell) * cell,
+        math.ceil(y0 / cell) * cell,
+        math.floor(x1 / cell) * cell,
+        math.floor(y1 / cell) * cell,
+    )
     terrain = terrain_from_points(
         points["x"], points["y"], points["z"], points["classification"], cell_m=cell, bounds=bounds, name=name, crs=crs
     )

@@ -312,10 +312,16 @@ def mirror_terrain(terrain: Terrain, *, width_m: float, height_m: float) -> Terr
     """
     rows = int(round(height_m / terrain.cell_m))
     cols = int(round(width_m / terrain.cell_m))
-    arrays = []
-    for raster in (terrain.surface, terrain.ground, terrain.kind):
-        arrays.append(_mirror_to(raster, rows, cols))
-    return Terrain(terrain.name, *arrays, terrain.cell_m, terrain.x_min, terrain.y_min, terrain.crs)
+    return Terrain(
+        terrain.name,
+        _mirror_to(terrain.surface, rows, cols),
+        _mirror_to(terrain.ground, rows, cols),
+        _mirror_to(terrain.kind, rows, cols),
+        terrain.cell_m,
+        terrain.x_min,
+        terrain.y_min,
+        terrain.crs,
+    )
 
 
 def _mirror_to(raster: np.ndarray, rows: int, cols: int) -> np.ndarray:
