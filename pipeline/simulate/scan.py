@@ -102,7 +102,7 @@ def simulate_scan(terrain: Terrain, params: ScanParams, out_dir: str | os.PathLi
     for line in params.lines:
         _kernels.line_visibility(terrain.surface, solid, terrain.cell_m, _line_array(terrain, line), half_fov, flags)
     tiles = write_tiles(out / "tiles", points, terrain, params)
-    (out / "scan.json").write_text(json.dumps(scan_record(terrain, params, counts), indent=1) + "\n")
+    (out / "scan.json").write_text(json.dumps(scan_record(terrain, params, counts), indent=1, default=float) + "\n")
     return ScanResult(
         terrain=terrain,
         params=params,

@@ -85,23 +85,12 @@ def load_terrain(name: str, data_dir: str | os.PathLike, *, scene_m: float | Non
         Square, ``scene_m`` wide, its lower-left corner on multiples of
         :data:`SCENE_ORIGIN_STEP_M`, in the source's CRS.
     """
-    import laspy
-
     if name not in TERRAINS:
         raise ValueError(f"unknown terrain {name!r}; choose from {sorted(TERRAINS)}")
     source = TERRAINS[name]
-    folder = pathlib.Path(data_dir)
-    parts: dict[str, list[np.ndarray]] = {"x": [], "y": [], "z": [], "classification": []}
-    crs = source.crs
-    for file_name in source.files:
-        las = laspy.read(folder / file_name)
-        if not crs:
-            parsed = las.header.parse_crs()
-            crs = f"EPSG:{parsed.to_epsg()}" if parsed is not None and parsed.to_epsg() else ""
-            crs = crs or (parsed.to_wkt() if parsed is not None else "")
-        for key in parts:
-            parts[key].append(np.asarray(getattr(las, key)))
-    points = {key: np.concatenate(values) for key, values in parts.items()}
+    paths = [pathlib.Path(data_dir) / file_name for file_name in source.files]
+    points = read_points(paths)
+    crs = source.crs or file_crs(paths[0])
     cell = source.cell_m
     x0, y0, x1, y1 = footprint_box(points["x"], points["y"])
     # the cells lie inside the data's footprint (no half-empty border cells)
@@ -120,6 +109,34 @@ def load_terrain(name: str, data_dir: str | os.PathLike, *, scene_m: float | Non
         math.floor(bounds[0] / SCENE_ORIGIN_STEP_M) * SCENE_ORIGIN_STEP_M,
         math.floor(bounds[1] / SCENE_ORIGIN_STEP_M) * SCENE_ORIGIN_STEP_M,
     )
+
+
+def read_points(paths: list[pathlib.Path]) -> dict[str, np.ndarray]:
+    """x, y, z and classification of every point of the files (``pipeline.io.las``)."""
+    from ..io.las import iter_point_chunks
+
+    parts: dict[str, list[np.ndarray]] = {"x": [], "y": [], "z": [], "classification": []}
+    for path in paths:
+        for chunk in iter_point_chunks(path, 1_000_000):
+            x, y, z = chunk.coordinates()
+            parts["x"].append(x)
+            parts["y"].append(y)
+            parts["z"].append(z)
+            parts["classification"].append(np.asarray(chunk.classification))
+    return {key: np.concatenate(values) for key, values in parts.items()}
+
+
+def file_crs(path: pathlib.Path) -> str:
+    """The file's CRS as ``EPSG:<code>`` when it has one, else its WKT ("" without a CRS)."""
+    import pyproj
+
+    from ..io.las import read_header
+
+    wkt = read_header(path).crs_wkt
+    if not wkt:
+        return ""
+    code = pyproj.CRS.from_wkt(wkt).to_epsg()
+    return f"EPSG:{code}" if code else wkt
 
 
 def footprint_box(
