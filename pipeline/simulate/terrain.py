@@ -210,11 +210,18 @@ def _lowest(index: np.ndarray, z: np.ndarray, n: int) -> np.ndarray:
 
 
 def _water_mask(water_points: np.ndarray, void: np.ndarray) -> np.ndarray:
-    """Cells with water-class points, and the voids of the data that touch them."""
-    labels, _ = ndi.label(void)
-    near_water = ndi.binary_dilation(water_points, iterations=1)
-    touching = np.unique(labels[near_water & void])
-    water = water_points | np.isin(labels, touching[touching > 0])
+    """Cells with water-class points, and the voids of the data that reach them.
+
+    A void here is a cell more than one cell away from any point (sampling gaps of sparse
+    data are not voids: among trees beside a lake they would all become water); the voids
+    near water-class points are grown back by that cell, over empty cells only.
+    """
+    wide_void = ~ndi.binary_dilation(~void, iterations=1)
+    labels, _ = ndi.label(wide_void)
+    near_water = ndi.binary_dilation(water_points, iterations=2)
+    touching = np.unique(labels[near_water & wide_void])
+    water_voids = ndi.binary_dilation(np.isin(labels, touching[touching > 0]), iterations=1) & void
+    water = water_points | water_voids
     return ndi.binary_closing(water, iterations=1) | water
 
 
