@@ -2,7 +2,8 @@
 
 Truth comes as a raster of cause codes on the same pixel lattice as the run
 (``pipeline.synth.HoleCause``: 0 no hole, 1 occlusion, 2 water, 3 missed
-coverage), as the synthetic surveys write it. Detected holes are the polygons
+coverage, 4 no return, 5 covered), as the synthetic surveys and the scan
+simulator (``pipeline.simulate``) write it. Detected holes are the polygons
 of the ``holes`` layer, rasterized by pixel centre (exact: they follow pixel
 edges). A detected hole's true cause is the most common truth cause of its
 pixels.
@@ -20,7 +21,7 @@ from .io.raster import geometry_mask, read_raster
 from .io.vector import read_layer
 
 #: Truth codes -> cause names of the ``holes`` layer.
-CAUSE_NAMES = {1: "occlusion", 2: "water", 3: "missed_coverage"}
+CAUSE_NAMES = {1: "occlusion", 2: "water", 3: "missed_coverage", 4: "no_return", 5: "covered"}
 
 
 @dataclass

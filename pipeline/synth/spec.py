@@ -54,6 +54,10 @@ class HoleCause(enum.IntEnum):
     """Mostly over water: the laser returns nothing."""
     MISSED_COVERAGE = 3
     """Outside every flown line's swath (gap left by a dropped line)."""
+    NO_RETURN = 4
+    """Seen by a line, unobstructed, not water, yet no return (a dark or wet surface)."""
+    COVERED = 5
+    """A DTM void under points that were removed (buildings, vegetation); reserved."""
 
 
 class SurfaceKind(enum.IntEnum):
