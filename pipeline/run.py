@@ -481,7 +481,10 @@ def _write_products(
             flight_summary = {"not_planned": NO_TERRAIN} if hole_summary.get("listed") else {}
         else:
             centroid = plan.survey_area.centroid
-            flight_summary = plan_flights(gpkg, vrt, config, staging.root, home=(centroid.x, centroid.y))
+            try:
+                flight_summary = plan_flights(gpkg, vrt, config, staging.root, home=(centroid.x, centroid.y))
+            except InputDataError as e:  # the survey's products stand; only the re-flight cannot be planned
+                flight_summary = {"not_planned": e.reason}
         timer.lap("flightplan")
     summary = RunSummary(
         flightplan=flight_summary,
