@@ -64,6 +64,32 @@ def ground_targets(
     return out
 
 
+def surface_tops(zmax: np.ndarray, measured: np.ndarray, where: np.ndarray, *, pixel_size: float) -> np.ndarray:
+    """The first surface at the pixels ``where``: the highest return within the nearest radius holding one.
+
+    What bounds a swath is the first surface the scanner's outermost pulses meet: a void
+    among trees at a swath's edge lay under the canopy the edge pulses could not reach,
+    and the ground beneath is wider in the swath than the canopy. NaN where no radius of
+    ``TARGET_RADII_M`` holds a measured pixel.
+    """
+    out = np.full(zmax.shape, np.nan)
+    rows, cols = np.nonzero(where)
+    if len(rows) == 0:
+        return out
+    values = np.where(measured, zmax, -np.inf).astype(np.float64)
+    found = np.full(len(rows), -np.inf)
+    for radius in sorted({max(1, round(r / pixel_size)) for r in TARGET_RADII_M}):
+        todo = ~np.isfinite(found)
+        if not todo.any():
+            break
+        r0, r1 = max(rows.min() - radius, 0), min(rows.max() + radius + 1, zmax.shape[0])
+        c0, c1 = max(cols.min() - radius, 0), min(cols.max() + radius + 1, zmax.shape[1])
+        high = ndi.maximum_filter(values[r0:r1, c0:c1], size=2 * radius + 1, mode="constant", cval=-np.inf)
+        found = np.where(todo, high[rows - r0, cols - c0], found)
+    out[rows, cols] = np.where(np.isfinite(found), found, np.nan)
+    return out
+
+
 def sight_classes(
     candidates: np.ndarray,
     zmax: np.ndarray,
@@ -74,6 +100,8 @@ def sight_classes(
     origin_xy: tuple[float, float],
     pixel_size: float,
     reach: float,
+    max_scan_angles: list[float] | None = None,
+    tops: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per candidate pixel: ``OUTSIDE_SWATHS``, ``BLOCKED`` or ``SEEN`` (0 elsewhere).
 
@@ -97,6 +125,14 @@ def sight_classes(
     reach : float
         How far (world units) a ray is followed: one that leaves the window sooner (the survey's
         grid ends there) without clearing every height in it proves nothing, and the pixel is not seen by it.
+    max_scan_angles : list of float, optional
+        Each line's largest scan angle (degrees; NaN where unknown). Where known, the swath is
+        exact: a pixel lies in it when the ray from the sensor to its ground is no farther from the
+        vertical than that angle (half a pixel of tolerance), whatever ``swaths`` says; ``swaths``
+        (the returns' extent) only bounds the pixels tried.
+    tops : ndarray of float, shape (H, W), optional
+        The first surface at each candidate (:func:`surface_tops`), for the swath's angle; the
+        ground (``targets``) where not given.
     """
     out = np.zeros(candidates.shape, np.uint8)
     rows, cols = np.nonzero(candidates)
@@ -105,16 +141,20 @@ def sight_classes(
     covered = swaths[:, rows, cols] if len(swaths) else np.zeros((0, len(rows)), bool)
     top = float(np.nanmax(zmax)) if np.isfinite(zmax).any() else -np.inf
     seen = np.zeros(len(rows), np.bool_)
-    any_line = covered.any(axis=0)
+    swept = np.zeros(len(rows), np.bool_)
+    angles = max_scan_angles if max_scan_angles is not None else [math.nan] * len(tracks)
+    tops = targets if tops is None else np.where(np.isnan(tops), targets, tops)
     for index, track in enumerate(tracks):
-        todo = covered[index] & ~seen
+        todo = covered[index]
         if not todo.any() or len(track) < 1:
             continue
+        angle = angles[index]
+        tan_max = math.tan(math.radians(angle)) if math.isfinite(angle) and angle > 0 else math.inf
         _cast(
-            rows[todo], cols[todo], targets, zmax, np.ascontiguousarray(track, np.float64),
-            origin_xy[0], origin_xy[1], pixel_size, top, seen, np.flatnonzero(todo), reach,
+            rows[todo], cols[todo], targets, tops, zmax, np.ascontiguousarray(track, np.float64),
+            origin_xy[0], origin_xy[1], pixel_size, top, seen, swept, np.flatnonzero(todo), reach, tan_max,
         )  # fmt: skip
-    out[rows, cols] = np.where(~any_line, OUTSIDE_SWATHS, np.where(seen, SEEN, BLOCKED))
+    out[rows, cols] = np.where(~swept, OUTSIDE_SWATHS, np.where(seen, SEEN, BLOCKED))
     return out
 
 
@@ -147,12 +187,13 @@ def _sensor_at(track, x, y):
 
 
 @numba.njit(cache=True, nogil=True)
-def _cast(rows, cols, targets, zmax, track, x_left, y_top, pixel, top, seen, slots, reach):
+def _cast(rows, cols, targets, tops, zmax, track, x_left, y_top, pixel, top, seen, swept, slots, reach, tan_max):
     height, width = zmax.shape
     for n in range(len(rows)):
         r, c = rows[n], cols[n]
         z0 = targets[r, c]
         if z0 != z0:  # no ground height nearby: nothing to test against
+            swept[slots[n]] = True
             seen[slots[n]] = True
             continue
         x0 = x_left + (c + 0.5) * pixel
@@ -162,6 +203,12 @@ def _cast(rows, cols, targets, zmax, track, x_left, y_top, pixel, top, seen, slo
         distance = math.sqrt(dx * dx + dy * dy)
         if sz <= z0:
             continue  # the sensor below the ground: no line of sight
+        surface = tops[r, c]
+        if distance > (sz - surface) * tan_max + 0.5 * pixel:
+            continue  # beyond the scanner's largest angle at the first surface: outside this line's swath
+        swept[slots[n]] = True
+        if seen[slots[n]]:
+            continue
         if distance < 0.25 * pixel:
             seen[slots[n]] = True  # straight below the sensor: nothing stands in between
             continue

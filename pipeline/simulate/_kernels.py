@@ -153,6 +153,7 @@ def pulse_returns(
     solid: np.ndarray,
     kind: np.ndarray,
     dark: np.ndarray,
+    edge: np.ndarray,
     origin: np.ndarray,
     direction: np.ndarray,
     scan_angle: float,
@@ -166,9 +167,11 @@ def pulse_returns(
     """The returns of one pulse, written into ``out`` rows ``(t, z, class)``; how many (0-3).
 
     ``settings`` = (single_returns, penetration, intermediate, water_nadir_rad,
-    water_return). The first surface is ``surface``; a pulse through vegetation may go on
-    to ``solid`` (the ground under the trees). Dark cells and water return nothing, except
-    water within ``water_nadir_rad`` of nadir, with chance ``water_return`` (class 9).
+    water_return, water_edge_return). The first surface is ``surface``; a pulse through
+    vegetation may go on to ``solid`` (the ground under the trees). Dark cells and water
+    return nothing, except water within ``water_nadir_rad`` of nadir, with chance
+    ``water_return``, and water at its edge (``edge``: shallow water, wet banks), with chance
+    ``water_edge_return`` (class 9).
     """
     t1 = cast_ray(surface, origin, direction, 0.0, cell, z_range[0], z_range[1])
     if t1 < 0.0:
@@ -179,7 +182,9 @@ def pulse_returns(
         return 0
     z1 = origin[2] + t1 * direction[2]
     if first_kind == WATER:
-        if abs(scan_angle) <= settings[3] and uniform(key, pulse, 1) < settings[4]:
+        if (abs(scan_angle) <= settings[3] and uniform(key, pulse, 1) < settings[4]) or (
+            edge[row, col] and uniform(key, pulse, 5) < settings[5]
+        ):
             out[0, 0], out[0, 1], out[0, 2] = t1, z1, 9.0
             return 1
         return 0
@@ -210,6 +215,7 @@ def cast_line_pulses(
     solid: np.ndarray,
     kind: np.ndarray,
     dark: np.ndarray,
+    edge: np.ndarray,
     cell: float,
     line: np.ndarray,
     scanner: np.ndarray,
@@ -263,7 +269,9 @@ def cast_line_pulses(
         foot_u, foot_v = origin[0] + reach * across_u, origin[1] + reach * across_v
         if foot_u < -margin or foot_v < -margin or foot_u > cols * cell + margin or foot_v > rows * cell + margin:
             continue
-        n = pulse_returns(surface, solid, kind, dark, origin, direction, angle, cell, z_range, settings, key, i, hits)
+        n = pulse_returns(
+            surface, solid, kind, dark, edge, origin, direction, angle, cell, z_range, settings, key, i, hits
+        )
         next_position = sweeps * (t + 1.0 / rate) * 0.5 + phase
         flags = float((fraction < 0.5) + 2 * ((fraction < 0.5) != (next_position - np.floor(next_position) < 0.5)))
         for k in range(n):

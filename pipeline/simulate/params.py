@@ -96,6 +96,8 @@ class ScanParams:
         Pulses on water within this scan angle may return (class 9); 0: water never returns.
     water_return : float
         Chance of such a return.
+    water_edge_return : float
+        Chance that a pulse on water within ``scan.WATER_EDGE_M`` of land returns (class 9).
     dark_patches : tuple of tuple of (float, float)
         Polygons (CRS coordinates) where the surface returns nothing (dark or wet).
     tile_m : float
@@ -116,6 +118,7 @@ class ScanParams:
     intermediate: float = 0.3
     water_nadir_deg: float = 0.0
     water_return: float = 0.0
+    water_edge_return: float = 0.0
     dark_patches: tuple[tuple[tuple[float, float], ...], ...] = ()
     tile_m: float = 100.0
     notes: dict = field(default_factory=dict, compare=False, hash=False)
@@ -254,6 +257,7 @@ def random_scan_params(seed: int, terrain: Terrain) -> ScanParams:
         intermediate=float(rng.uniform(0.1, 0.5)),
         water_nadir_deg=float(rng.uniform(2.0, 6.0)) if rng.random() < 0.6 else 0.0,
         water_return=float(rng.uniform(0.05, 0.3)),
+        water_edge_return=float(rng.uniform(0.3, 0.7)),
         dark_patches=dark_patches(terrain, rng, count=int(rng.choice([0, 0, 1, 2, 3]))),
         tile_m=float(rng.choice(_tile_sizes(terrain))),
         notes={"flying_height_m": height, "overlap": overlap, "heading_deg": heading},

@@ -31,7 +31,7 @@ from ..io.intermediate import load_cell_statistics, save_labels
 from ..io.raster import geometry_mask, label_polygons
 from ..plan import HoleParams, SurveyPlan
 from ..rasterize import PixelStatistics
-from ..sensor.sight import ground_targets, sight_classes
+from ..sensor.sight import OUTSIDE_SWATHS, ground_targets, sight_classes, surface_tops
 from ..sensor.sums import TrajectorySums
 from ..sensor.trajectory import FlightLine, fit_flight_lines, swath_polygon
 from ..staging import Staging
@@ -67,6 +67,7 @@ class SightInputs:
     """
 
     tracks: tuple[np.ndarray, ...]  # each line's sensor positions (K, 3), world units
+    max_scan_angles: tuple[float, ...]  # each line's largest scan angle (degrees; NaN: unknown)
     swaths: tuple[bytes, ...]  # each line's swath polygon (WKB, world units)
     reach_px: int
     neighbours: tuple[tuple[PixelWindow, str], ...]
@@ -151,6 +152,7 @@ def sight_inputs(
         near = sorted(int(i) for i in boxes.query(shapely.box(x0, y0, x1, y1)))
         out[cell_id] = SightInputs(
             tracks=tuple(geometry.lines[i].sensor for i in near),
+            max_scan_angles=tuple(geometry.lines[i].max_scan_angle_deg for i in near),
             swaths=tuple(shapely.to_wkb(geometry.swaths[i]) for i in near),
             reach_px=reach_px,
             neighbours=tuple(
@@ -240,10 +242,14 @@ def detect_cell(task: DetectTask) -> DetectResult:
     coverage = task.gaps.classes(stats.window) if task.gaps is not None else None
     if task.sight is not None:
         coverage = _with_swaths(task.sight, grid, stats.window, coverage)
+    sight = None
+    if task.sight is not None:
+        assert coverage is not None
+        sight = _sight(task, stats, coverage)
+        coverage = np.where(sight == OUTSIDE_SWATHS, IN_GAP, coverage).astype(np.int8)
     if task.planned:
         coverage = _with_undelivered(task, stats.window, coverage)
     aoi = _aoi(task, stats, coverage)
-    sight = _sight(task, stats, aoi, coverage) if task.sight is not None else None
     holes = _cell_holes(task, stats, aoi, coverage, sight)
     labels = holes.labels if holes.labels is not None else np.zeros(cell.window.shape, np.int32)
     save_labels(task.labels_path, labels, cell.window)
@@ -325,8 +331,9 @@ def _with_undelivered(task: DetectTask, window: PixelWindow, coverage: np.ndarra
     return np.where(undelivered & (base != OUTSIDE_TILE_EXTENTS), IN_MISSING_TILE, base).astype(np.int8)
 
 
-def _sight(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
-    """Per empty pixel of the core inside a swath: blocked from every line, or seen by one (over ``stats.window``).
+def _sight(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray) -> np.ndarray:
+    """Per empty pixel of the core inside a swath's extent: outside every swath after all (by the
+    scan angles), blocked from every line, or seen by one (over ``stats.window``).
 
     Lines of sight are followed over the core grown by ``reach_px``, read from the cells it meets.
     """
@@ -334,7 +341,7 @@ def _sight(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray, coverage: 
     assert sight is not None
     out = np.zeros(stats.window.shape, np.uint8)
     core = cell.window.slices_within(stats.window)
-    empty = (stats.count == 0) & aoi & (coverage == IN_SWATH if coverage is not None else True)
+    empty = (stats.count == 0) & (coverage == IN_SWATH)
     if not empty[core].any():
         return out
     window = cell.window.expand(sight.reach_px).intersection(grid.window)
@@ -358,6 +365,8 @@ def _sight(task: DetectTask, stats: PixelStatistics, aoi: np.ndarray, coverage: 
         origin_xy=(transform.c, transform.f),
         pixel_size=grid.resolution,
         reach=sight.reach_px * grid.resolution,
+        max_scan_angles=list(sight.max_scan_angles),
+        tops=surface_tops(zmax, measured, candidates, pixel_size=sight.pixel_m),
     )
     out[core] = classes[cell.window.slices_within(window)]
     return out
