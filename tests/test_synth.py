@@ -33,6 +33,7 @@ from pipeline.synth import (
     preset,
     write_truth,
 )
+from pipeline.synth.pulses import WATER_EDGE_M
 from pipeline.synth.scenes import cause_scene
 
 # Default-density survey small enough for tests: 320 m x 120 m, ~300k points.
@@ -122,7 +123,9 @@ def test_las_1_2_uncompressed(tmp_path):
 
 def test_point_attributes_are_plausible(small_survey):
     points = read_points(small_survey)
-    assert set(np.unique(points["classification"])) == {CLASS_GROUND, CLASS_HIGH_VEGETATION, CLASS_BUILDING}
+    classes = set(np.unique(points["classification"]).tolist())
+    # water (9): returns from the water's edge (pipeline.synth.pulses.WATER_EDGE_M)
+    assert {CLASS_GROUND, CLASS_HIGH_VEGETATION, CLASS_BUILDING} <= classes <= {2, 5, 6, 9}
     # canopy first returns followed by ground last returns
     first, last = points["return_number"], points["number_of_returns"]
     assert np.all(first <= last) and set(np.unique(last)) == {1, 2}
@@ -205,10 +208,11 @@ def test_water_holes_are_over_the_river(unit_survey):
     v = spec.height_m - (rows + 0.5) * spec.resolution
     distance = np.abs(river.offset(u, v))
     assert np.all(distance < river.half_width + spec.resolution)
-    # no point comes from well inside the water
+    # no point comes from well inside the water: only from its edge (WATER_EDGE_M), classified water
     points = read_points(unit_survey)
-    inside = np.abs(river.offset(points["x"] - spec.x_min, points["y"] - spec.y_min)) < river.half_width - 0.5
-    assert not inside.any()
+    offset = np.abs(river.offset(points["x"] - spec.x_min, points["y"] - spec.y_min))
+    assert not (offset < river.half_width - WATER_EDGE_M - 0.5).any()
+    assert np.all(points["classification"][offset < river.half_width - 0.5] == 9)
     # the river crosses the whole scene: water pixels in every column
     assert np.all((unit_survey.hole_cause == HoleCause.WATER).any(axis=0))
     # its outline, in CRS coordinates, holds the water pixels' centres

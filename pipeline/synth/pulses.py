@@ -183,7 +183,7 @@ def _line_pulses(
     grid = _pulse_grid(spec, line, resolution_cm, bounds_cm)
     if grid is None:
         return None
-    hits = _select_returns(spec, grid, raster, visible, visible_hard, resolution_cm, fine_per_pixel)
+    hits = _select_returns(spec, scene, grid, raster, visible, visible_hard, resolution_cm, fine_per_pixel)
     if hits is None:
         return None
     pulse = hits.pulse
@@ -305,6 +305,7 @@ class _Returns:
 
 def _select_returns(
     spec: SurveySpec,
+    scene: Scene,
     grid: _PulseGrid,
     raster: SceneRaster,
     visible: np.ndarray,
@@ -322,9 +323,11 @@ def _select_returns(
     sees_hard = visible_hard.ravel()[fine]
     penetrates = _uniform(grid.keys, _STREAM_PENETRATION) < spec.canopy_penetration
     land = inside & (kind != SurfaceKind.WATER)
-    edge = _water_edge(raster, res_cm / k / _CENTIMETRES_PER_METRE).ravel()[fine]
+    on_water = np.flatnonzero(inside & (kind == SurfaceKind.WATER) & sees_top)
+    edge = np.zeros(len(kind), bool)
+    edge[on_water] = _at_water_edge(scene, grid.x_cm[on_water] / 100.0, grid.y_cm[on_water] / 100.0)
     weak = _uniform(grid.keys, _STREAM_WATER_EDGE) < WATER_EDGE_RETURN_SHARE
-    first = (land | (inside & edge & weak)) & sees_top
+    first = (land | (edge & weak)) & sees_top
     # a second (last) return from the ground under a crown the pulse first hit
     under_crown = first & (kind == SurfaceKind.TREE) & penetrates
     # a pulse whose target is hidden only by a tree crown reaches the ground sometimes
@@ -351,14 +354,15 @@ def _select_returns(
     )
 
 
-def _water_edge(raster: SceneRaster, cell_m: float) -> np.ndarray:
-    """The water cells of a raster within ``WATER_EDGE_M`` of land."""
-    water = raster.kind == SurfaceKind.WATER
-    if not water.any():
-        return water
-    import scipy.ndimage as ndi
+def _at_water_edge(scene: Scene, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Whether land lies within ``WATER_EDGE_M`` of each point (east, west, north or south).
 
-    return water & (ndi.distance_transform_edt(water) * cell_m <= WATER_EDGE_M)
+    Evaluated on the scene itself, not a tile's raster, so a pulse is the same whatever the tiling.
+    """
+    edge = np.zeros(len(u), bool)
+    for du, dv in ((WATER_EDGE_M, 0.0), (-WATER_EDGE_M, 0.0), (0.0, WATER_EDGE_M), (0.0, -WATER_EDGE_M)):
+        edge |= ~scene.water_level(u + du, v + dv)[0]
+    return edge
 
 
 def _return_heights(
