@@ -194,7 +194,7 @@ def _plan(inputs: list[str] | tuple[str, ...], config: Config, aoi: str | os.Pat
         inputs, crs=config.survey.crs, target_crs=config.survey.target_crs, on_error=config.survey.on_error
     )
     plan = plan_survey(survey, config, aoi=aoi)
-    if not plan.cells:
+    if not any(plan.tiles_of_cell.get(cell.id) for cell in plan.cells):  # the planned area's own cells hold none
         raise InputDataError(aoi or "INPUT", "the survey area does not overlap the data of any tile")
     return plan
 

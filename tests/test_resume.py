@@ -58,8 +58,17 @@ def plain(values) -> list:
     return [None if value is None or value != value else value for value in values.tolist()]
 
 
-def same_outputs(a: Path, b: Path, *, skip_layers: tuple[str, ...] = ()) -> None:
-    """The rasters and the GeoPackage layers (but ``skip_layers``) equal value by value, paths aside."""
+#: Layers estimated from sums whose order follows the reads (a split COPC file's octree order pairs
+#: a pulse's returns differently): the flight lines' trajectories and swaths agree within this (m).
+ESTIMATED_LAYERS = {"flight_lines": 1.0, "swaths": 1.0}
+
+
+def same_outputs(a: Path, b: Path, *, skip_layers: tuple[str, ...] = (), estimated_tolerance: float = 0.0) -> None:
+    """The rasters and the GeoPackage layers (but ``skip_layers``) equal value by value, paths aside.
+
+    ``estimated_tolerance``: compare ``ESTIMATED_LAYERS`` by their ids and geometries within their
+    tolerance only (reads of the same points in another order).
+    """
     for name in ("dsm.vrt", "fill_mask.vrt", "fill_distance.vrt"):
         va, ta, _ = read_raster(a / name)
         vb, tb, _ = read_raster(b / name)
@@ -69,6 +78,11 @@ def same_outputs(a: Path, b: Path, *, skip_layers: tuple[str, ...] = ()) -> None
         fa, fb = read_layer(a / "holes.gpkg", layer), read_layer(b / "holes.gpkg", layer)
         assert list(fa.columns) == list(fb.columns), layer
         assert len(fa) == len(fb), layer
+        if estimated_tolerance and layer in ESTIMATED_LAYERS:
+            assert plain(fa["point_source_id"]) == plain(fb["point_source_id"]), layer
+            distance = fa.geometry.hausdorff_distance(fb.geometry)
+            assert (distance <= ESTIMATED_LAYERS[layer]).all(), (layer, distance.tolist())
+            continue
         for column in fa.columns:
             if column == "geometry":
                 assert fa.geometry.geom_equals_exact(fb.geometry, tolerance=0).all(), layer
