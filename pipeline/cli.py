@@ -550,7 +550,7 @@ def _with_pdal(config):
 def _report(summary) -> None:
     _note(
         f"{summary.tiles} tiles, {summary.points_read:,} points "
-        f"({summary.points_per_second / 1e6:.2f} M/s), {summary.cells} cells, "
+        f"({summary.points_per_second / 1e6:.2f} M/s; {summary.points_used:,} used), {summary.cells} cells, "
         f"{len(summary.dsm_tiles)} DSM tiles in {summary.seconds:.1f} s -> {summary.out_dir}",
     )
     holes = summary.holes
@@ -566,6 +566,11 @@ def _report(summary) -> None:
         _note(
             f"heights are above the ground ({summary.heights['ground_points_at_zero']:,} of "
             f"{summary.heights['ground_points']:,} ground points at z = 0): the DSM is a height-above-ground model"
+        )
+    if summary.points_outside:
+        _note(
+            f"{summary.points_outside:,} points lie outside their tile's header bounds and were not used",
+            level="warning",
         )
     if "not_planned" in summary.flightplan:
         _note(f"no re-flight plan: {summary.flightplan['not_planned']}", level="warning")

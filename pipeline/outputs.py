@@ -86,6 +86,7 @@ class RunSummary:
     point_files: list[str] = field(default_factory=list)  # points/*.laz (output.points)
     reused_tasks: int = 0  # results of unchanged tiles and cells taken from the previous run (incremental)
     heights: dict[str, Any] = field(default_factory=dict)  # elevations or above the ground (pipeline.ground_level)
+    points_outside: int = 0  # points outside their file's header bounds (reprojected or PDAL reads): not used
 
     @property
     def points_per_second(self) -> float:
@@ -135,7 +136,11 @@ def write_survey_layers(
         bounds: Any = record.pop("bounds")
         result = done.get(int(record["tile_id"]))  # type: ignore[call-overload]
         record["points_used"] = result.points_used if result else 0
-        record["status"] = "ok" if result else ("skipped" if record["path"] in skipped_paths else "failed")
+        record["status"] = (
+            ("ok" if result.points_used else "no points")
+            if result
+            else ("skipped" if record["path"] in skipped_paths else "failed")
+        )
         tile_records.append(record)
         tile_geometries.append(shapely.box(*bounds))
     write_layer(gpkg, "tiles", tile_records, tile_geometries, crs_wkt=grid.crs_wkt, geometry_type="Polygon")
@@ -451,6 +456,7 @@ def write_manifest(
             "cells": summary.cells,
             "points_read": summary.points_read,
             "points_used": summary.points_used,
+            "points_outside": summary.points_outside,
             "seconds": round(summary.seconds, 3),
             "points_per_second": round(summary.points_per_second),
             "stage_seconds": {k: round(v, 3) for k, v in summary.stage_seconds.items()},

@@ -291,6 +291,10 @@ def _run_rasters(
     _check_points_left(results, config)
     results.tiles = bin_tiles.results_by_file(results.tiles)
     results.failed = list({f["path"]: f for f in results.failed}.values())  # a split file's failed tasks: once
+    for empty in (r for r in results.tiles if not r.points_used):  # listed and warned like a skipped tile
+        reason = f"no point used: none of its {empty.points_read:,} points passes the filter ([filter])"
+        logger.warning("skipping %s: %s", empty.path, reason)
+        results.failed.append({"path": empty.path, "reason": reason})
     order = {cell.id: i for i, cell in enumerate(plan.cells)}
     results.cells.sort(key=lambda r: order[r.cell_id])
     results.written.sort(key=lambda r: order[r.cell_id])
@@ -481,6 +485,7 @@ def _write_products(
         cells=len(rasters.cells),
         points_read=sum(r.points_read for r in rasters.tiles),
         points_used=sum(r.points_used for r in rasters.tiles),
+        points_outside=sum(r.points_outside for r in rasters.tiles),
         seconds=time.perf_counter() - started,
         stage_seconds=timer.seconds,
         skipped=skipped,
