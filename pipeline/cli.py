@@ -214,6 +214,7 @@ def run(
             raise InputDataError(path, f"{name} file not found")
     # the workers start while the pipeline's modules are imported and the headers scanned
     starting = None if scheduler else ClusterStart.begin(config)
+    summary = None
     try:
         from .run import run_survey
 
@@ -232,7 +233,12 @@ def run(
         )
     finally:
         if starting is not None:
-            starting.close()
+            try:
+                starting.close()
+            except KeyboardInterrupt:
+                if summary is None:
+                    raise
+                # the result was committed before the interrupt: it stands (exit 0)
     _report(summary)
     if summary.skipped:  # outputs written, but some tiles are missing from them
         click.get_current_context().exit(EXIT_PARTIAL)

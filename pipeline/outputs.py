@@ -92,6 +92,31 @@ class RunSummary:
     def points_per_second(self) -> float:
         return self.points_read / self.seconds if self.seconds else 0.0
 
+    @classmethod
+    def from_manifest(cls, manifest: dict[str, Any], out_dir: str) -> RunSummary:
+        """The summary a finished run wrote into its manifest (a resumed run that only had to commit)."""
+        summary, outputs = manifest.get("summary", {}), manifest.get("outputs", {})
+        flightplan = dict(manifest.get("flightplan") or {})
+        flightplan["files"] = [os.path.join(out_dir, name) for name in outputs.get("flightplan", [])]
+        return cls(
+            out_dir=out_dir,
+            tiles=int(summary.get("tiles", 0)),
+            cells=int(summary.get("cells", 0)),
+            points_read=int(summary.get("points_read", 0)),
+            points_used=int(summary.get("points_used", 0)),
+            points_outside=int(summary.get("points_outside", 0)),
+            seconds=float(summary.get("seconds", 0.0)),
+            stage_seconds=dict(summary.get("stage_seconds", {})),
+            skipped=list(manifest.get("skipped", [])),
+            dsm_tiles=list(outputs.get("dsm_tiles", [])),
+            holes=dict(manifest.get("holes") or {}),
+            flightplan=flightplan,
+            resumed_tasks=int(summary.get("resumed_tasks", 0)),
+            point_files=list(outputs.get("points", [])),
+            reused_tasks=int(summary.get("reused_tasks", 0)),
+            heights=dict(manifest.get("heights") or {}),
+        )
+
 
 def write_mosaics(staging: Staging, plan: SurveyPlan, written: list[WriteResult]) -> None:
     """One VRT per raster product over its cell tiles (none when no cell holds a point)."""

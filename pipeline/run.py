@@ -115,6 +115,9 @@ def run_survey(
         created_out = not out.exists()
         reuse = incremental and _holds_result_of(out, config)
         staging = Staging.create(out, run_key=run_key(plan, config, aoi, water), resume=resume, incremental=reuse)
+        if staging.resumed and staging.commit_pending:  # the interrupted run had finished: move it into place
+            cluster_scope.close()
+            return _finish_commit(staging)
         try:
             with _Progress(progress) as bar:
                 runner = _Runner(connect(), bar, staging, retries=config.dask.retries)
@@ -136,6 +139,18 @@ def run_survey(
             _discard(staging, created_out)
             raise
     return summary
+
+
+def _finish_commit(staging: Staging) -> RunSummary:
+    """Finish the commit of an interrupted run whose products were all written; its manifest is the summary."""
+    try:
+        staging.finish_commit()
+    except BaseException:
+        staging.keep_for_resume()
+        raise
+    logger.info("%s: the interrupted run's result was complete; moved into place", staging.out)
+    manifest = json.loads((staging.out / "manifest.json").read_text())
+    return RunSummary.from_manifest(manifest, str(staging.out))
 
 
 def _discard(staging: Staging, created_out: bool) -> None:

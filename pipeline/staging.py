@@ -52,11 +52,12 @@ import logging
 import os
 import pickle
 import shutil
+import signal
 import socket
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -218,22 +219,66 @@ class Staging:
         then visibly incomplete. ``replaces``: glob patterns of products an older run
         may have left in OUT that this run does not write again (e.g. the files of a
         sortie no longer planned); they are removed so that OUT never mixes two runs.
+
+        The commit is journaled (``commit.json`` in the staging folder: the products, which
+        of them this run wrote, ``keep_work``), so a commit cut short by SIGKILL or a lost
+        node is finished by ``--resume`` (:meth:`finish_commit`). Ctrl-C and SIGTERM are held
+        until it is done: a commit is renames, and once it starts the result is complete.
         """
+        journal = {
+            "products": list(products),
+            "written": [name for name in (*products, "work") if _has_content(self.root / name)],
+            "keep_work": keep_work,
+            "replaces": list(replaces),
+        }
+        with deferred_interrupts() as interrupted:
+            tmp = self.root / f"{COMMIT_FILE}.tmp"
+            tmp.write_text(json.dumps(journal))
+            os.replace(tmp, self.root / COMMIT_FILE)
+            self._apply_commit(journal)
+        if interrupted:
+            logger.warning("interrupted while the result was being moved into place; the result is complete")
+
+    @property
+    def commit_pending(self) -> bool:
+        """Whether an interrupted run of this folder had begun its commit (``--resume`` finishes it)."""
+        return (self.root / COMMIT_FILE).is_file()
+
+    def finish_commit(self) -> None:
+        """Finish the commit an interrupted run began (its journal says what it moves)."""
+        journal = _read_json(self.root / COMMIT_FILE)
+        if not isinstance(journal.get("products"), list) or not isinstance(journal.get("written"), list):
+            raise OutputError(f"{self.root / COMMIT_FILE}: the commit journal cannot be read; run without --resume")
+        safe = [n for n in journal["products"] + journal["written"] if isinstance(n, str) and _plain_name(n)]
+        if len(safe) != len(journal["products"]) + len(journal["written"]):
+            raise OutputError(f"{self.root / COMMIT_FILE}: the commit journal names a path outside the folder")
+        with deferred_interrupts() as interrupted:
+            self._apply_commit(journal)
+        if interrupted:
+            logger.warning("interrupted while the result was being moved into place; the result is complete")
+
+    def _apply_commit(self, journal: dict[str, Any]) -> None:
+        """Move what is still staged into OUT (idempotent: a product already moved stays)."""
+        products, written = tuple(journal["products"]), set(journal["written"])
+        keep_work = bool(journal.get("keep_work"))
         manifest = MANIFEST if MANIFEST in products else None
         if manifest is not None:
             (self.out / manifest).unlink(missing_ok=True)
-        for pattern in replaces:
+        for pattern in journal.get("replaces", ()):
             for stale in self.out.glob(pattern):
                 if stale.name not in products and stale.is_file():
                     stale.unlink()
         ordered = [name for name in products if name != manifest] + ([manifest] if manifest else [])
         for name in ordered + (["work"] if keep_work else []):
             source, target = self.root / name, self.out / name
+            staged = _has_content(source)
+            if not staged and name in written:
+                continue  # moved into place before the interruption
             if target.is_dir() and not target.is_symlink():
                 shutil.rmtree(target)
             elif target.exists() or target.is_symlink():
                 target.unlink()  # also a product an older run wrote and this one does not
-            if source.exists() and not (source.is_dir() and not any(source.iterdir())):
+            if staged:
                 os.replace(source, target)
         shutil.rmtree(self.root, ignore_errors=True)
         _unlock(self.out)
@@ -250,6 +295,37 @@ class Staging:
     def keep_for_resume(self) -> None:
         """An interrupted run: keep the folder (finished tasks' results) for ``--resume``; unlock."""
         _unlock(self.out)
+
+
+def _has_content(path: Path) -> bool:
+    """A staged product: a file, or a folder that is not empty."""
+    return path.exists() and not (path.is_dir() and not any(path.iterdir()))
+
+
+def _plain_name(name: str) -> bool:
+    return name not in ("", ".", "..") and "/" not in name and "\\" not in name
+
+
+@contextlib.contextmanager
+def deferred_interrupts() -> Iterator[list[int]]:
+    """Hold Ctrl-C and SIGTERM until the block is done; the list says which arrived.
+
+    Only in the main thread (where Python runs signal handlers); a signal the process
+    ignores (a run started in the background of a shell) stays ignored.
+    """
+    arrived: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield arrived
+        return
+    previous = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            previous[signum] = signal.signal(signum, lambda s, _frame: arrived.append(s))
+    try:
+        yield arrived
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 def _link_tree(source: Path, target: Path) -> None:
@@ -288,6 +364,7 @@ def kept_result(path: Path) -> Any | None:
 
 PARTIAL_PREFIX = ".holefill-partial-"
 RUN_FILE = "run.json"
+COMMIT_FILE = "commit.json"
 LOCK_FILE = ".holefill.lock"
 MANIFEST = "manifest.json"
 

@@ -357,3 +357,46 @@ def test_a_result_of_another_configuration_is_not_replaced_unless_asked(tmp_path
     assert result.exit_code == 4 and "holds the result of another configuration" in result.output
     assert (out / "manifest.json").read_text() == before
     assert runner.invoke(main, [*base, "--set", "fill.enabled=false", "--overwrite"]).exit_code == 0
+
+
+def wait_for_commit(out: Path, product: str, process: subprocess.Popen, timeout: float = 300.0) -> None:
+    """Wait until the run stages its manifest (the report, then the commit are next), then until ``OUT/product``."""
+    started = time.monotonic()
+    while not list(out.glob(".holefill-partial-*/manifest.json")):
+        assert process.poll() is None and time.monotonic() - started < timeout, process.communicate()
+        time.sleep(0.002)
+    while not (out / product).exists():  # the commit is renames: a few milliseconds
+        assert process.poll() is None, process.communicate()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGKILL, signal.SIGINT])
+def test_an_interrupt_during_the_commit_leaves_a_result_that_resume_completes(survey, reference, tmp_path, signum):
+    tiles = str(survey / "tiles")
+    out = tmp_path / "out"
+    run = holefill(tiles, "--out", str(out), preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    wait_for_commit(out, "dsm", run)
+    os.killpg(run.pid, signum)
+    _, err = run.communicate(timeout=60)
+    if signum == signal.SIGINT:  # held until the commit is done: the result stands
+        assert run.returncode == 0, err
+        assert "the result is complete" in err
+    else:
+        assert run.returncode == -signal.SIGKILL
+        assert not (out / "manifest.json").exists(), "the kill came after the commit"
+        assert list(out.glob(".holefill-partial-*/commit.json"))
+        resumed = holefill(tiles, "--out", str(out), "--resume")
+        _, err = resumed.communicate(timeout=300)
+        assert resumed.returncode == 0, err
+    assert json.loads((out / "manifest.json").read_text())["complete"]
+    assert not list(out.glob(".holefill-partial-*")) and not (out / ".holefill.lock").exists()
+    same_outputs(reference, out)
+
+
+def test_sigterm_once_the_manifest_is_in_place_exits_0_and_cleans_up(survey, tmp_path):
+    out = tmp_path / "out"
+    run = holefill(str(survey / "tiles"), "--out", str(out))
+    wait_for_commit(out, "manifest.json", run)
+    run.send_signal(signal.SIGTERM)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 0, err
+    assert not list(out.glob(".holefill-partial-*")) and not (out / ".holefill.lock").exists()
