@@ -6,7 +6,7 @@ Everything a run writes goes into ``OUT/.holefill-partial-<id>/`` first::
         work/tiles/<tile key>/     stage 1: per-tile statistic binaries (key: file name + input fingerprint)
         work/cells/<cell id>.npz   stage 2: merged statistics of a cell and its halo
         work/holes/<cell id>.npz   detection: part labels of a cell core
-        work/holes/catalog.pkl     linking: the survey's hole catalog with causes
+        work/holes/catalog.npz     linking: the survey's hole catalog with causes
         work/fill/fill_<cell id>.npz  filling: the holes a cell owns: ids, heights, method codes, distances
         dsm/dsm_<cell id>.tif      the writer stage's rasters (also fill_mask/, fill_distance/,
                                    dsm_unfilled/)
@@ -50,7 +50,6 @@ import hashlib
 import json
 import logging
 import os
-import pickle
 import shutil
 import signal
 import socket
@@ -141,7 +140,7 @@ class Staging:
 
     @property
     def hole_catalog(self) -> Path:
-        return self.work / "holes" / "catalog.pkl"
+        return self.work / "holes" / "catalog.npz"
 
     def cell_fill(self, cell_id: str) -> Path:
         """The filled holes a cell owns (their first pixel lies in its core)."""
@@ -149,7 +148,7 @@ class Staging:
 
     def task_result(self, key: str) -> Path:
         """Where a finished task keeps its (small) result, for a resumed run."""
-        return self.work / "done" / f"{key}.pkl"
+        return self.work / "done" / f"{key}.npz"
 
     def kept(self, key: str) -> tuple[Any, str] | None:
         """The kept result of task ``key`` and where it came from (``resumed`` or ``reused``), if any.
@@ -185,7 +184,7 @@ class Staging:
             data = []
         else:
             return False
-        sources = [self.reuse_from / "done" / f"{key}.pkl", *(self.reuse_from / d for d in data)]
+        sources = [self.reuse_from / "done" / f"{key}.npz", *(self.reuse_from / d for d in data)]
         if not all(s.exists() for s in sources):
             return False
         targets = [self.task_result(key), *(self.work / d for d in data)]
@@ -358,7 +357,8 @@ def kept_result(path: Path) -> Any | None:
         return None
     try:
         return load_object(path)
-    except (OSError, ValueError, EOFError, pickle.UnpicklingError, AttributeError):
+    except (OSError, ValueError) as e:  # another version, or content this holefill did not write: recompute
+        logger.warning("%s: not used, the task runs again (%s)", path.name, e)
         return None
 
 

@@ -188,7 +188,7 @@ def test_killed_split_run_resumes_to_the_same_outputs(synthetic, tmp_path):
     wait_for_kept_tiles(out, 6, killed)
     os.killpg(killed.pid, signal.SIGKILL)
     killed.wait(timeout=30)
-    kept = list(out.glob(".holefill-partial-*/work/done/rasterize-*-part*.pkl"))
+    kept = list(out.glob(".holefill-partial-*/work/done/rasterize-*-part*.npz"))
     assert len(kept) >= 6  # split tasks keep their results under file + fingerprint + part
     resumed = holefill(copc, "--out", str(out), "--resume", *settings)
     _, err = resumed.communicate(timeout=300)

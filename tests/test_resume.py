@@ -47,7 +47,7 @@ def holefill(*args: str, **kwargs) -> subprocess.Popen:
 def wait_for_kept_tiles(out: Path, n: int, process: subprocess.Popen, timeout: float = 120.0) -> None:
     started = time.monotonic()
     while time.monotonic() - started < timeout:
-        if len(list(out.glob(".holefill-partial-*/work/done/rasterize-*.pkl"))) >= n:
+        if len(list(out.glob(".holefill-partial-*/work/done/rasterize-*.npz"))) >= n:
             return
         assert process.poll() is None, process.communicate()
         time.sleep(0.05)
@@ -400,3 +400,26 @@ def test_sigterm_once_the_manifest_is_in_place_exits_0_and_cleans_up(survey, tmp
     _, err = run.communicate(timeout=60)
     assert run.returncode == 0, err
     assert not list(out.glob(".holefill-partial-*")) and not (out / ".holefill.lock").exists()
+
+
+def test_planted_results_in_the_output_folder_run_no_code_and_are_recomputed(survey, reference, tmp_path):
+    """``OUT/work`` can be written by anyone who can write OUT: what a run reads back there is data only."""
+    from .test_plain_data import planted_pickle, planted_tree
+
+    tiles = str(survey / "tiles")
+    out = tmp_path / "out"
+    first = holefill(tiles, "--out", str(out), "--incremental")
+    assert first.wait(timeout=300) == 0, first.communicate()
+    kept = sorted((out / "work" / "done").glob("rasterize-*.npz"))
+    marker = tmp_path / "ran"
+    planted_pickle(kept[0], marker)  # a pickle that runs a shell command when loaded
+    planted_tree(kept[1], {"$c": "subprocess:Popen", "v": {}})
+    planted_pickle(kept[2].with_suffix(".pkl"), marker)  # the name older holefills read
+    again = holefill(tiles, "--out", str(out), "--incremental")
+    _, err = again.communicate(timeout=300)
+    assert again.returncode == 0, err
+    assert not marker.exists()
+    assert "not used, the task runs again" in err
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["summary"]["reused_tasks"] > 0
+    same_outputs(reference, out)
