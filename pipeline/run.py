@@ -50,7 +50,7 @@ from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells
 from .stages.bin_tiles import TileFailure, TileResult
 from .stages.merge_cells import CellResult
 from .stages.write_rasters import WriteResult
-from .staging import Staging, disk_full, input_fingerprint, run_and_keep
+from .staging import PARTIAL_PREFIX, Staging, disk_full, input_fingerprint, run_and_keep
 from .survey import scan_survey
 
 logger = logging.getLogger(__name__)
@@ -109,7 +109,7 @@ def run_survey(
     timer = _StageTimer(started)
     with contextlib.ExitStack() as cluster_scope:
         connect = cluster_scope.enter_context(dask_client(client, scheduler, config, start=cluster))
-        plan = _plan(inputs, config, aoi)  # the headers are scanned while the workers start
+        plan = _plan(inputs, config, aoi, out)  # the headers are scanned while the workers start
         water, water_area = _water(water, config, plan)
         timer.lap("scan")
         created_out = not out.exists()
@@ -203,10 +203,19 @@ def _water(water: str | os.PathLike | None, config: Config, plan: SurveyPlan) ->
     return water, read_survey_area(water, plan.survey.crs, what="water") if water else None
 
 
-def _plan(inputs: list[str] | tuple[str, ...], config: Config, aoi: str | os.PathLike | None) -> SurveyPlan:
-    """Scan the headers and plan the survey; an AOI off every tile's data stops here."""
+def _plan(inputs: list[str] | tuple[str, ...], config: Config, aoi: str | os.PathLike | None, out: Path) -> SurveyPlan:
+    """Scan the headers and plan the survey; an AOI off every tile's data stops here.
+
+    What the run writes into ``out`` (repaired point clouds, kept results, partial
+    folders) is never read as input, also when ``out`` lies inside an input folder.
+    """
+    written = (out / "points", out / "work", *out.glob(f"{PARTIAL_PREFIX}*"))
     survey = scan_survey(
-        inputs, crs=config.survey.crs, target_crs=config.survey.target_crs, on_error=config.survey.on_error
+        inputs,
+        crs=config.survey.crs,
+        target_crs=config.survey.target_crs,
+        on_error=config.survey.on_error,
+        exclude=written,
     )
     plan = plan_survey(survey, config, aoi=aoi)
     if not plan.cells:
