@@ -27,9 +27,9 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .cluster import ClusterStart, dask_client
+from .cluster import ClusterStart, WorkerWatch, dask_client
 from .config import Config, config_key, to_dict
-from .errors import DiskFullError, HolefillError, InputDataError, OutputError, TaskError
+from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, OutputError, TaskError
 from .ground_level import NO_TERRAIN, GroundLevel
 from .holes.coverage import CoverageGaps
 from .io.checksums import input_record, output_records
@@ -44,6 +44,7 @@ from .outputs import (
     write_mosaics,
     write_survey_layers,
 )
+from .output_guard import check_before_run, check_same_survey
 from .plan import SurveyPlan, plan_survey
 from .report import ReportInputs, read_report_inputs, write_report
 from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells, write_points, write_rasters
@@ -105,11 +106,12 @@ def run_survey(
     """
     started = time.perf_counter()
     out = Path(out_dir).absolute()  # workers of a remote cluster resolve paths on their own machines
-    _refuse_other_configuration(out, config, overwrite=overwrite)
+    check_before_run(out, config_key(config), overwrite=overwrite)
     timer = _StageTimer(started)
     with contextlib.ExitStack() as cluster_scope:
         connect = cluster_scope.enter_context(dask_client(client, scheduler, config, start=cluster))
         plan = _plan(inputs, config, aoi, out)  # the headers are scanned while the workers start
+        check_same_survey(out, [t.path for t in plan.survey.tiles], overwrite=overwrite or resume)
         water, water_area = _water(water, config, plan)
         timer.lap("scan")
         created_out = not out.exists()
@@ -120,7 +122,13 @@ def run_survey(
             return _finish_commit(staging)
         try:
             with _Progress(progress) as bar:
-                runner = _Runner(connect(), bar, staging, retries=config.dask.retries)
+                runner = _Runner(
+                    connect(),
+                    bar,
+                    staging,
+                    retries=config.dask.retries,
+                    no_worker_timeout_s=config.dask.no_worker_timeout_s,
+                )
                 rasters, detected, holes, fills = _run_stages(runner, plan, config, staging, timer, water_area)
             cluster_scope.close()  # the workers stop (and free their memory) before the products are written
             summary = _publish(
@@ -131,7 +139,7 @@ def run_survey(
                 runner,
                 keep_work=config.output.keep_intermediate or incremental,
             )
-        except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError):
+        except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError, ClusterError):
             # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
             staging.keep_for_resume()
             raise
@@ -558,9 +566,18 @@ class _Runner:
     :class:`~pipeline.errors.TaskError` line naming the task's tile or cell.
     """
 
-    def __init__(self, client: Any, bar: _Progress, staging: Staging | None = None, *, retries: int = 0) -> None:
+    def __init__(
+        self,
+        client: Any,
+        bar: _Progress,
+        staging: Staging | None = None,
+        *,
+        retries: int = 0,
+        no_worker_timeout_s: float = 60.0,
+    ) -> None:
         self.client = client
         self.retries = retries
+        self.no_worker_timeout_s = no_worker_timeout_s
         self.bar = bar
         self.staging = staging
         self.resumed_tasks = 0
@@ -620,8 +637,17 @@ class _Runner:
             for kept in futures:
                 if isinstance(kept, _Kept):
                     collect(kept.value)
-            for future in as_completed(pending):
-                collect(self._result(future))
+            with WorkerWatch(self.client, pending, self.no_worker_timeout_s) as watch:
+                for future in as_completed(pending):
+                    try:  # a result held by a dead worker is computed again: that waits for a worker too
+                        result = self._result(future)
+                    except TaskError:
+                        if watch.lost:
+                            raise watch.error() from None
+                        raise
+                    if watch.lost:
+                        raise watch.error()
+                    collect(result)
         except BaseException:
             self.client.cancel(pending)
             raise
@@ -671,22 +697,6 @@ def _holds_result_of(out: Path, config: Config) -> bool:
     except (OSError, ValueError):
         return False
     return bool(manifest.get("complete")) and manifest.get("config_key") == config_key(config)
-
-
-def _refuse_other_configuration(out: Path, config: Config, *, overwrite: bool) -> None:
-    """An output folder holding a result of another configuration is not replaced unless asked."""
-    manifest = out / "manifest.json"
-    if overwrite or not manifest.exists():
-        return
-    try:
-        previous = json.loads(manifest.read_text()).get("config_key")
-    except (OSError, ValueError):
-        previous = None
-    if previous is not None and previous != config_key(config):
-        raise OutputError(
-            f"{out}: holds the result of another configuration (manifest.json); "
-            "use --overwrite to replace it, or another --out"
-        )
 
 
 def run_key(plan: SurveyPlan, config: Config, aoi: Any, water: Any) -> str:

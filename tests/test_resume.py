@@ -423,3 +423,20 @@ def test_planted_results_in_the_output_folder_run_no_code_and_are_recomputed(sur
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["summary"]["reused_tasks"] > 0
     same_outputs(reference, out)
+
+
+def test_a_run_whose_workers_all_die_stops_with_exit_1_in_bounded_time(survey, tmp_path, real_cluster):
+    """No worker left (no nanny restarts them): the run stops with one line instead of waiting for ever."""
+    address, workers = real_cluster
+    out = tmp_path / "out"
+    run = holefill(str(survey / "tiles"), "--out", str(out), "--scheduler", address,
+                   "--set", "dask.no_worker_timeout_s=3")  # fmt: skip
+    wait_for_kept_tiles(out, 1, run)
+    for worker in workers:
+        os.killpg(worker.pid, signal.SIGKILL)
+    killed = time.monotonic()
+    _, err = run.communicate(timeout=120)
+    assert run.returncode == 1, err
+    assert "no Dask worker alive for 3 s (dask.no_worker_timeout_s)" in err and "Traceback" not in err
+    assert time.monotonic() - killed < 30
+    assert len(list(out.glob(".holefill-partial-*"))) == 1  # the finished tasks are kept for --resume
