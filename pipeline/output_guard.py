@@ -85,7 +85,9 @@ def check_same_survey(out: Path, inputs: Iterable[str], *, overwrite: bool) -> N
     manifest = None if overwrite else _manifest(out)
     if manifest is None or not manifest.get("complete"):
         return
-    previous = {str(Path(i["path"]).resolve()) for i in manifest.get("inputs", []) if isinstance(i, dict) and "path" in i}
+    previous = {
+        str(Path(i["path"]).resolve()) for i in manifest.get("inputs", []) if isinstance(i, dict) and "path" in i
+    }
     if previous and not previous & {str(Path(p).resolve()) for p in inputs}:
         raise OutputError(
             f"{out}: holds the result of another survey (none of its {len(previous):,} inputs is an input of this "

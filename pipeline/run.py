@@ -29,12 +29,13 @@ from typing import Any
 from . import __version__
 from .cluster import ClusterStart, WorkerWatch, dask_client
 from .config import Config, config_key, to_dict
-from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, OutputError, TaskError
+from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, TaskError
 from .ground_level import NO_TERRAIN, GroundLevel
 from .holes.coverage import CoverageGaps
 from .io.checksums import input_record, output_records
 from .io.flightplan_files import plan_flights
 from .io.vector import read_survey_area
+from .output_guard import check_before_run, check_same_survey
 from .outputs import (
     FLIGHTPLAN_PRODUCTS,
     PRODUCTS,
@@ -44,7 +45,6 @@ from .outputs import (
     write_mosaics,
     write_survey_layers,
 )
-from .output_guard import check_before_run, check_same_survey
 from .plan import SurveyPlan, plan_survey
 from .report import ReportInputs, read_report_inputs, write_report
 from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells, write_points, write_rasters

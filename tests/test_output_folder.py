@@ -40,7 +40,9 @@ def test_a_result_inside_the_input_folder_is_not_read_back(runner, tiles):
         assert sorted(Path(i["path"]).name for i in manifest["inputs"]) == ["a.laz", "b.laz"]
     assert sorted(p.name for p in (out / "points").iterdir()) == ["a.laz", "b.laz"]
     # a repaired point cloud named as an input is refused: its run would replace it
-    result = run(runner, out / "points" / "a.laz", "--out", out, "--set", "output.points=true", "--set", "grid.resolution_m=2")
+    result = run(
+        runner, out / "points" / "a.laz", "--out", out, "--set", "output.points=true", "--set", "grid.resolution_m=2"
+    )
     assert result.exit_code == 3 and "lies in a folder this run writes" in result.output
 
 

@@ -149,7 +149,7 @@ def _dataclass(cls: type, fields: Any, arrays: dict[str, np.ndarray]) -> Any:
     expected = {f.name: f for f in dataclasses.fields(cls)}
     if not isinstance(fields, dict) or set(fields) != set(expected):
         raise ValueError(f"{cls.__qualname__}: fields {sorted(fields) if isinstance(fields, dict) else '?'}")
-    instance = object.__new__(cls)
+    instance: Any = object.__new__(cls)
     for name, field in expected.items():
         value = _decode(fields[name], arrays)
         kinds = _SIMPLE_TYPES.get(field.type if isinstance(field.type, str) else getattr(field.type, "__name__", ""))
