@@ -479,10 +479,17 @@ def disk_full(error: OSError, folder: Path) -> bool:
 
 
 def input_fingerprint(path: str, *parts: object) -> str:
-    """A short stable key of an input file (path, size, modification time) and what it is read with."""
+    """A short stable key of an input file (path, size, times, inode) and what it is read with.
+
+    The change time and inode are part of it: a file rewritten with the same size and
+    a restored modification time (``touch -r``, ``rsync -t``) has another change time,
+    which no program can set, so its old decoding and checksum are not reused.
+    """
     try:
         stat = os.stat(path)
-        identity: tuple[object, ...] = (os.path.abspath(path), stat.st_size, stat.st_mtime_ns)
+        identity: tuple[object, ...] = (
+            os.path.abspath(path), stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino
+        )  # fmt: skip
     except OSError:
         identity = (os.path.abspath(path),)
     return hashlib.sha1(repr((identity, parts)).encode()).hexdigest()[:12]

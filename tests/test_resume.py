@@ -440,3 +440,27 @@ def test_a_run_whose_workers_all_die_stops_with_exit_1_in_bounded_time(survey, t
     assert "no Dask worker alive for 3 s (dask.no_worker_timeout_s)" in err and "Traceback" not in err
     assert time.monotonic() - killed < 30
     assert len(list(out.glob(".holefill-partial-*"))) == 1  # the finished tasks are kept for --resume
+
+
+def test_a_tile_rewritten_with_the_same_size_and_time_is_decoded_again(survey, tmp_path):
+    """The manifest's checksums describe the bytes actually read, even when size and mtime were kept."""
+    import hashlib
+    import shutil
+
+    tiles = tmp_path / "tiles"
+    shutil.copytree(survey / "tiles", tiles)
+    out = tmp_path / "out"
+    first = holefill(str(tiles), "--out", str(out), "--incremental")
+    assert first.wait(timeout=300) == 0, first.communicate()
+    tile = sorted(tiles.glob("*.laz"))[0]
+    stat = tile.stat()
+    data = bytearray(tile.read_bytes())
+    data[26:32] = b"edited"  # same size: the header's system identifier changed ...
+    tile.write_bytes(bytes(data))
+    os.utime(tile, ns=(stat.st_atime_ns, stat.st_mtime_ns))  # ... and the old modification time restored
+    again = holefill(str(tiles), "--out", str(out), "--incremental")
+    _, err = again.communicate(timeout=300)
+    assert again.returncode == 0, err
+    manifest = json.loads((out / "manifest.json").read_text())
+    record = next(i for i in manifest["inputs"] if Path(i["path"]).name == tile.name)
+    assert record["sha256"] == hashlib.sha256(bytes(data)).hexdigest()
