@@ -252,7 +252,8 @@ def test_manifest_is_written_last_and_replaced_first(survey, tmp_path):
     original = os.replace
 
     def spy(source, target):
-        moved.append((Path(target).name, (out / "manifest.json").exists()))
+        if Path(target).parent == out:  # what moves into OUT (the commit journal stays in the staging folder)
+            moved.append((Path(target).name, (out / "manifest.json").exists()))
         return original(source, target)
 
     os.replace = spy
