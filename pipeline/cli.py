@@ -214,6 +214,7 @@ def run(
             raise InputDataError(path, f"{name} file not found")
     # the workers start while the pipeline's modules are imported and the headers scanned
     starting = None if scheduler else ClusterStart.begin(config)
+    summary = None
     try:
         from .run import run_survey
 
@@ -232,7 +233,12 @@ def run(
         )
     finally:
         if starting is not None:
-            starting.close()
+            try:
+                starting.close()
+            except KeyboardInterrupt:
+                if summary is None:
+                    raise
+                # the result was committed before the interrupt: it stands (exit 0)
     _report(summary)
     if summary.skipped:  # outputs written, but some tiles are missing from them
         click.get_current_context().exit(EXIT_PARTIAL)
@@ -550,7 +556,7 @@ def _with_pdal(config):
 def _report(summary) -> None:
     _note(
         f"{summary.tiles} tiles, {summary.points_read:,} points "
-        f"({summary.points_per_second / 1e6:.2f} M/s), {summary.cells} cells, "
+        f"({summary.points_per_second / 1e6:.2f} M/s; {summary.points_used:,} used), {summary.cells} cells, "
         f"{len(summary.dsm_tiles)} DSM tiles in {summary.seconds:.1f} s -> {summary.out_dir}",
     )
     holes = summary.holes
@@ -566,6 +572,11 @@ def _report(summary) -> None:
         _note(
             f"heights are above the ground ({summary.heights['ground_points_at_zero']:,} of "
             f"{summary.heights['ground_points']:,} ground points at z = 0): the DSM is a height-above-ground model"
+        )
+    if summary.points_outside:
+        _note(
+            f"{summary.points_outside:,} points lie outside their tile's header bounds and were not used",
+            level="warning",
         )
     if "not_planned" in summary.flightplan:
         _note(f"no re-flight plan: {summary.flightplan['not_planned']}", level="warning")

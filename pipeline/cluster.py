@@ -16,12 +16,14 @@ import logging
 import os
 import signal
 import threading
+import time
 from collections.abc import Iterator
 from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FuturesTimeout
 from typing import Any
 
 from .config import Config
-from .errors import ClusterError
+from .errors import ClusterError, HolefillError
 
 #: One thread per worker process for BLAS and OpenMP (workers are single-threaded
 #: processes; oversubscription slows every kernel), and a bounded GDAL cache each.
@@ -65,6 +67,11 @@ class ClusterStart:
     def _start(self) -> None:
         try:
             self._future.set_result(_local_cluster(self._config))
+        except HolefillError as e:
+            self._future.set_exception(e)
+        except Exception as e:  # a worker killed while starting, no free port, ...: one line
+            reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            self._future.set_exception(ClusterError(f"the local Dask cluster cannot start: {reason}"))
         except BaseException as e:
             self._future.set_exception(e)
 
@@ -150,17 +157,38 @@ def _local_cluster(config: Config) -> tuple[Any, Any]:
         raise
 
 
-def connect_scheduler(address: str) -> Any:
-    """A client of a running scheduler; one line within seconds when it cannot be reached."""
+def connect_scheduler(address: str, timeout_s: float = SCHEDULER_TIMEOUT_S) -> Any:
+    """A client of a running scheduler; one line within ``timeout_s`` when it cannot be reached.
+
+    The connection is made in a background thread and waited for: a port where another
+    service answers (an HTTP server) would otherwise hold distributed's handshake for ever.
+    """
     from distributed import Client
 
     _quiet_event_loop()
+    connected: Future = Future()
+
+    def connect() -> None:
+        try:
+            connected.set_result(Client(address, timeout=timeout_s))
+        except BaseException as e:
+            connected.set_exception(e)
+
+    threading.Thread(target=connect, name="holefill-connect", daemon=True).start()
     try:
-        return Client(address, timeout=SCHEDULER_TIMEOUT_S)
+        return connected.result(timeout=timeout_s + 2)
+    except FuturesTimeout:
+        raise ClusterError(
+            f"{address}: no Dask scheduler answered within {timeout_s:g} s (dask.connect_timeout_s): "
+            "is it a Dask scheduler's address?"
+        ) from None
     except (OSError, TimeoutError) as e:
         raise ClusterError(
-            f"{address}: cannot reach the Dask scheduler within {SCHEDULER_TIMEOUT_S} s ({type(e).__name__})"
+            f"{address}: cannot reach the Dask scheduler within {timeout_s:g} s ({type(e).__name__})"
         ) from None
+    except Exception as e:  # an address distributed cannot parse, or a protocol it does not speak
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ClusterError(f"{address}: not a Dask scheduler address ({reason})") from None
 
 
 @contextlib.contextmanager
@@ -177,7 +205,7 @@ def dask_client(
         yield lambda: client
         return
     if scheduler:
-        remote = connect_scheduler(scheduler)
+        remote = connect_scheduler(scheduler, config.dask.connect_timeout_s if config else SCHEDULER_TIMEOUT_S)
         with remote:
             yield lambda: remote
         return
@@ -193,3 +221,52 @@ def dask_client(
         yield starting.client
     finally:
         starting.close()
+
+
+class WorkerWatch:
+    """Cancels a batch of futures once no worker has been alive for ``limit_s`` (a run would wait for ever).
+
+    A scheduler whose workers all died (or that never had any) keeps the tasks waiting,
+    saying at most "Couldn't gather 1 keys, rescheduling"; the watch asks the scheduler
+    every few seconds how many workers it has. Use as a context manager around a gather;
+    :attr:`lost` says whether it cancelled.
+    """
+
+    def __init__(self, client: Any, futures: list[Any], limit_s: float) -> None:
+        self._client = client
+        self._futures = futures
+        self.limit_s = limit_s
+        self.lost = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="holefill-worker-watch", daemon=True)
+
+    def __enter__(self) -> WorkerWatch:
+        if self._futures:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+
+    def _watch(self) -> None:
+        none_since: float | None = None
+        while not self._stop.wait(min(2.0, self.limit_s / 4)):
+            try:
+                alive = len(self._client.nthreads())
+            except Exception:  # the scheduler itself is gone: as good as no worker
+                alive = 0
+            if alive:
+                none_since = None
+                continue
+            none_since = none_since if none_since is not None else time.monotonic()
+            if time.monotonic() - none_since >= self.limit_s:
+                self.lost = True
+                with contextlib.suppress(Exception):
+                    self._client.cancel(self._futures)
+                return
+
+    def error(self) -> ClusterError:
+        return ClusterError(
+            f"no Dask worker alive for {self.limit_s:g} s (dask.no_worker_timeout_s): every worker died or "
+            "none joined the scheduler; finished tasks are kept: run again with --resume"
+        )

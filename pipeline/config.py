@@ -243,6 +243,12 @@ class DaskConfig:
         2, "Times a task is retried when its worker dies (preemptible clusters); tasks are idempotent.", ge=0
     )
     memory_limit: str = _opt("auto", "Memory limit per worker, e.g. '2GB', or 'auto' to share the machine's memory.")
+    connect_timeout_s: float = _opt(
+        10.0, "Seconds to wait for a --scheduler to answer before stopping with exit status 1.", gt=0
+    )
+    no_worker_timeout_s: float = _opt(
+        60.0, "Seconds a run waits while no worker is alive (all died, or none joined) before stopping (exit 1).", gt=0
+    )
 
 
 @dataclass(frozen=True)

@@ -87,10 +87,36 @@ class RunSummary:
     point_files: list[str] = field(default_factory=list)  # points/*.laz (output.points)
     reused_tasks: int = 0  # results of unchanged tiles and cells taken from the previous run (incremental)
     heights: dict[str, Any] = field(default_factory=dict)  # elevations or above the ground (pipeline.ground_level)
+    points_outside: int = 0  # points outside their file's header bounds (reprojected or PDAL reads): not used
 
     @property
     def points_per_second(self) -> float:
         return self.points_read / self.seconds if self.seconds else 0.0
+
+    @classmethod
+    def from_manifest(cls, manifest: dict[str, Any], out_dir: str) -> RunSummary:
+        """The summary a finished run wrote into its manifest (a resumed run that only had to commit)."""
+        summary, outputs = manifest.get("summary", {}), manifest.get("outputs", {})
+        flightplan = dict(manifest.get("flightplan") or {})
+        flightplan["files"] = [os.path.join(out_dir, name) for name in outputs.get("flightplan", [])]
+        return cls(
+            out_dir=out_dir,
+            tiles=int(summary.get("tiles", 0)),
+            cells=int(summary.get("cells", 0)),
+            points_read=int(summary.get("points_read", 0)),
+            points_used=int(summary.get("points_used", 0)),
+            points_outside=int(summary.get("points_outside", 0)),
+            seconds=float(summary.get("seconds", 0.0)),
+            stage_seconds=dict(summary.get("stage_seconds", {})),
+            skipped=list(manifest.get("skipped", [])),
+            dsm_tiles=list(outputs.get("dsm_tiles", [])),
+            holes=dict(manifest.get("holes") or {}),
+            flightplan=flightplan,
+            resumed_tasks=int(summary.get("resumed_tasks", 0)),
+            point_files=list(outputs.get("points", [])),
+            reused_tasks=int(summary.get("reused_tasks", 0)),
+            heights=dict(manifest.get("heights") or {}),
+        )
 
 
 def write_mosaics(staging: Staging, plan: SurveyPlan, written: list[WriteResult]) -> None:
@@ -136,7 +162,11 @@ def write_survey_layers(
         bounds: Any = record.pop("bounds")
         result = done.get(int(record["tile_id"]))  # type: ignore[call-overload]
         record["points_used"] = result.points_used if result else 0
-        record["status"] = "ok" if result else ("skipped" if record["path"] in skipped_paths else "failed")
+        record["status"] = (
+            ("ok" if result.points_used else "no points")
+            if result
+            else ("skipped" if record["path"] in skipped_paths else "failed")
+        )
         tile_records.append(record)
         tile_geometries.append(shapely.box(*bounds))
     write_layer(gpkg, "tiles", tile_records, tile_geometries, crs_wkt=grid.crs_wkt, geometry_type="Polygon")
@@ -485,6 +515,7 @@ def write_manifest(
             "cells": summary.cells,
             "points_read": summary.points_read,
             "points_used": summary.points_used,
+            "points_outside": summary.points_outside,
             "seconds": round(summary.seconds, 3),
             "points_per_second": round(summary.points_per_second),
             "stage_seconds": {k: round(v, 3) for k, v in summary.stage_seconds.items()},

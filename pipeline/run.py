@@ -27,14 +27,15 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .cluster import ClusterStart, dask_client
+from .cluster import ClusterStart, WorkerWatch, dask_client
 from .config import Config, config_key, to_dict
-from .errors import DiskFullError, HolefillError, InputDataError, OutputError, TaskError
+from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, TaskError
 from .ground_level import NO_TERRAIN, GroundLevel
 from .holes.coverage import CoverageGaps
 from .io.checksums import input_record, output_records
 from .io.flightplan_files import plan_flights
 from .io.vector import read_survey_area
+from .output_guard import check_before_run, check_same_survey
 from .outputs import (
     FLIGHTPLAN_PRODUCTS,
     PRODUCTS,
@@ -50,7 +51,7 @@ from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells
 from .stages.bin_tiles import TileFailure, TileResult
 from .stages.merge_cells import CellResult
 from .stages.write_rasters import WriteResult
-from .staging import Staging, disk_full, input_fingerprint, run_and_keep
+from .staging import PARTIAL_PREFIX, Staging, disk_full, input_fingerprint, run_and_keep
 from .survey import scan_survey
 
 logger = logging.getLogger(__name__)
@@ -105,19 +106,29 @@ def run_survey(
     """
     started = time.perf_counter()
     out = Path(out_dir).absolute()  # workers of a remote cluster resolve paths on their own machines
-    _refuse_other_configuration(out, config, overwrite=overwrite)
+    check_before_run(out, config_key(config), overwrite=overwrite)
     timer = _StageTimer(started)
     with contextlib.ExitStack() as cluster_scope:
         connect = cluster_scope.enter_context(dask_client(client, scheduler, config, start=cluster))
-        plan = _plan(inputs, config, aoi)  # the headers are scanned while the workers start
+        plan = _plan(inputs, config, aoi, out)  # the headers are scanned while the workers start
+        check_same_survey(out, [t.path for t in plan.survey.tiles], overwrite=overwrite or resume)
         water, water_area = _water(water, config, plan)
         timer.lap("scan")
         created_out = not out.exists()
         reuse = incremental and _holds_result_of(out, config)
         staging = Staging.create(out, run_key=run_key(plan, config, aoi, water), resume=resume, incremental=reuse)
+        if staging.resumed and staging.commit_pending:  # the interrupted run had finished: move it into place
+            cluster_scope.close()
+            return _finish_commit(staging)
         try:
             with _Progress(progress) as bar:
-                runner = _Runner(connect(), bar, staging, retries=config.dask.retries)
+                runner = _Runner(
+                    connect(),
+                    bar,
+                    staging,
+                    retries=config.dask.retries,
+                    no_worker_timeout_s=config.dask.no_worker_timeout_s,
+                )
                 rasters, detected, holes, fills = _run_stages(runner, plan, config, staging, timer, water_area)
             cluster_scope.close()  # the workers stop (and free their memory) before the products are written
             summary = _publish(
@@ -128,7 +139,7 @@ def run_survey(
                 runner,
                 keep_work=config.output.keep_intermediate or incremental,
             )
-        except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError):
+        except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError, ClusterError):
             # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
             staging.keep_for_resume()
             raise
@@ -136,6 +147,18 @@ def run_survey(
             _discard(staging, created_out)
             raise
     return summary
+
+
+def _finish_commit(staging: Staging) -> RunSummary:
+    """Finish the commit of an interrupted run whose products were all written; its manifest is the summary."""
+    try:
+        staging.finish_commit()
+    except BaseException:
+        staging.keep_for_resume()
+        raise
+    logger.info("%s: the interrupted run's result was complete; moved into place", staging.out)
+    manifest = json.loads((staging.out / "manifest.json").read_text())
+    return RunSummary.from_manifest(manifest, str(staging.out))
 
 
 def _discard(staging: Staging, created_out: bool) -> None:
@@ -188,10 +211,19 @@ def _water(water: str | os.PathLike | None, config: Config, plan: SurveyPlan) ->
     return water, read_survey_area(water, plan.survey.crs, what="water") if water else None
 
 
-def _plan(inputs: list[str] | tuple[str, ...], config: Config, aoi: str | os.PathLike | None) -> SurveyPlan:
-    """Scan the headers and plan the survey; an AOI off every tile's data stops here."""
+def _plan(inputs: list[str] | tuple[str, ...], config: Config, aoi: str | os.PathLike | None, out: Path) -> SurveyPlan:
+    """Scan the headers and plan the survey; an AOI off every tile's data stops here.
+
+    What the run writes into ``out`` (repaired point clouds, kept results, partial
+    folders) is never read as input, also when ``out`` lies inside an input folder.
+    """
+    written = (out / "points", out / "work", *out.glob(f"{PARTIAL_PREFIX}*"))
     survey = scan_survey(
-        inputs, crs=config.survey.crs, target_crs=config.survey.target_crs, on_error=config.survey.on_error
+        inputs,
+        crs=config.survey.crs,
+        target_crs=config.survey.target_crs,
+        on_error=config.survey.on_error,
+        exclude=written,
     )
     plan = plan_survey(survey, config, aoi=aoi)
     if not any(plan.tiles_of_cell.get(cell.id) for cell in plan.cells):  # the planned area's own cells hold none
@@ -291,6 +323,10 @@ def _run_rasters(
     _check_points_left(results, config)
     results.tiles = bin_tiles.results_by_file(results.tiles)
     results.failed = list({f["path"]: f for f in results.failed}.values())  # a split file's failed tasks: once
+    for empty in (r for r in results.tiles if not r.points_used):  # listed and warned like a skipped tile
+        reason = f"no point used: none of its {empty.points_read:,} points passes the filter ([filter])"
+        logger.warning("skipping %s: %s", empty.path, reason)
+        results.failed.append({"path": empty.path, "reason": reason})
     order = {cell.id: i for i, cell in enumerate(plan.cells)}
     results.cells.sort(key=lambda r: order[r.cell_id])
     results.written.sort(key=lambda r: order[r.cell_id])
@@ -496,6 +532,7 @@ def _write_products(
         cells=len(rasters.cells),
         points_read=sum(r.points_read for r in rasters.tiles),
         points_used=sum(r.points_used for r in rasters.tiles),
+        points_outside=sum(r.points_outside for r in rasters.tiles),
         seconds=time.perf_counter() - started,
         stage_seconds=timer.seconds,
         skipped=skipped,
@@ -544,9 +581,18 @@ class _Runner:
     :class:`~pipeline.errors.TaskError` line naming the task's tile or cell.
     """
 
-    def __init__(self, client: Any, bar: _Progress, staging: Staging | None = None, *, retries: int = 0) -> None:
+    def __init__(
+        self,
+        client: Any,
+        bar: _Progress,
+        staging: Staging | None = None,
+        *,
+        retries: int = 0,
+        no_worker_timeout_s: float = 60.0,
+    ) -> None:
         self.client = client
         self.retries = retries
+        self.no_worker_timeout_s = no_worker_timeout_s
         self.bar = bar
         self.staging = staging
         self.resumed_tasks = 0
@@ -606,8 +652,17 @@ class _Runner:
             for kept in futures:
                 if isinstance(kept, _Kept):
                     collect(kept.value)
-            for future in as_completed(pending):
-                collect(self._result(future))
+            with WorkerWatch(self.client, pending, self.no_worker_timeout_s) as watch:
+                for future in as_completed(pending):
+                    try:  # a result held by a dead worker is computed again: that waits for a worker too
+                        result = self._result(future)
+                    except TaskError:
+                        if watch.lost:
+                            raise watch.error() from None
+                        raise
+                    if watch.lost:
+                        raise watch.error()
+                    collect(result)
         except BaseException:
             self.client.cancel(pending)
             raise
@@ -657,22 +712,6 @@ def _holds_result_of(out: Path, config: Config) -> bool:
     except (OSError, ValueError):
         return False
     return bool(manifest.get("complete")) and manifest.get("config_key") == config_key(config)
-
-
-def _refuse_other_configuration(out: Path, config: Config, *, overwrite: bool) -> None:
-    """An output folder holding a result of another configuration is not replaced unless asked."""
-    manifest = out / "manifest.json"
-    if overwrite or not manifest.exists():
-        return
-    try:
-        previous = json.loads(manifest.read_text()).get("config_key")
-    except (OSError, ValueError):
-        previous = None
-    if previous is not None and previous != config_key(config):
-        raise OutputError(
-            f"{out}: holds the result of another configuration (manifest.json); "
-            "use --overwrite to replace it, or another --out"
-        )
 
 
 def run_key(plan: SurveyPlan, config: Config, aoi: Any, water: Any) -> str:

@@ -6,7 +6,7 @@ Everything a run writes goes into ``OUT/.holefill-partial-<id>/`` first::
         work/tiles/<tile key>/     stage 1: per-tile statistic binaries (key: file name + input fingerprint)
         work/cells/<cell id>.npz   stage 2: merged statistics of a cell and its halo
         work/holes/<cell id>.npz   detection: part labels of a cell core
-        work/holes/catalog.pkl     linking: the survey's hole catalog with causes
+        work/holes/catalog.npz     linking: the survey's hole catalog with causes
         work/fill/fill_<cell id>.npz  filling: the holes a cell owns: ids, heights, method codes, distances
         dsm/dsm_<cell id>.tif      the writer stage's rasters (also fill_mask/, fill_distance/,
                                    dsm_unfilled/)
@@ -50,13 +50,13 @@ import hashlib
 import json
 import logging
 import os
-import pickle
 import shutil
+import signal
 import socket
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -140,7 +140,7 @@ class Staging:
 
     @property
     def hole_catalog(self) -> Path:
-        return self.work / "holes" / "catalog.pkl"
+        return self.work / "holes" / "catalog.npz"
 
     def cell_fill(self, cell_id: str) -> Path:
         """The filled holes a cell owns (their first pixel lies in its core)."""
@@ -148,7 +148,7 @@ class Staging:
 
     def task_result(self, key: str) -> Path:
         """Where a finished task keeps its (small) result, for a resumed run."""
-        return self.work / "done" / f"{key}.pkl"
+        return self.work / "done" / f"{key}.npz"
 
     def kept(self, key: str) -> tuple[Any, str] | None:
         """The kept result of task ``key`` and where it came from (``resumed`` or ``reused``), if any.
@@ -184,7 +184,7 @@ class Staging:
             data = []
         else:
             return False
-        sources = [self.reuse_from / "done" / f"{key}.pkl", *(self.reuse_from / d for d in data)]
+        sources = [self.reuse_from / "done" / f"{key}.npz", *(self.reuse_from / d for d in data)]
         if not all(s.exists() for s in sources):
             return False
         targets = [self.task_result(key), *(self.work / d for d in data)]
@@ -218,22 +218,66 @@ class Staging:
         then visibly incomplete. ``replaces``: glob patterns of products an older run
         may have left in OUT that this run does not write again (e.g. the files of a
         sortie no longer planned); they are removed so that OUT never mixes two runs.
+
+        The commit is journaled (``commit.json`` in the staging folder: the products, which
+        of them this run wrote, ``keep_work``), so a commit cut short by SIGKILL or a lost
+        node is finished by ``--resume`` (:meth:`finish_commit`). Ctrl-C and SIGTERM are held
+        until it is done: a commit is renames, and once it starts the result is complete.
         """
+        journal = {
+            "products": list(products),
+            "written": [name for name in (*products, "work") if _has_content(self.root / name)],
+            "keep_work": keep_work,
+            "replaces": list(replaces),
+        }
+        with deferred_interrupts() as interrupted:
+            tmp = self.root / f"{COMMIT_FILE}.tmp"
+            tmp.write_text(json.dumps(journal))
+            os.replace(tmp, self.root / COMMIT_FILE)
+            self._apply_commit(journal)
+        if interrupted:
+            logger.warning("interrupted while the result was being moved into place; the result is complete")
+
+    @property
+    def commit_pending(self) -> bool:
+        """Whether an interrupted run of this folder had begun its commit (``--resume`` finishes it)."""
+        return (self.root / COMMIT_FILE).is_file()
+
+    def finish_commit(self) -> None:
+        """Finish the commit an interrupted run began (its journal says what it moves)."""
+        journal = _read_json(self.root / COMMIT_FILE)
+        if not isinstance(journal.get("products"), list) or not isinstance(journal.get("written"), list):
+            raise OutputError(f"{self.root / COMMIT_FILE}: the commit journal cannot be read; run without --resume")
+        safe = [n for n in journal["products"] + journal["written"] if isinstance(n, str) and _plain_name(n)]
+        if len(safe) != len(journal["products"]) + len(journal["written"]):
+            raise OutputError(f"{self.root / COMMIT_FILE}: the commit journal names a path outside the folder")
+        with deferred_interrupts() as interrupted:
+            self._apply_commit(journal)
+        if interrupted:
+            logger.warning("interrupted while the result was being moved into place; the result is complete")
+
+    def _apply_commit(self, journal: dict[str, Any]) -> None:
+        """Move what is still staged into OUT (idempotent: a product already moved stays)."""
+        products, written = tuple(journal["products"]), set(journal["written"])
+        keep_work = bool(journal.get("keep_work"))
         manifest = MANIFEST if MANIFEST in products else None
         if manifest is not None:
             (self.out / manifest).unlink(missing_ok=True)
-        for pattern in replaces:
+        for pattern in journal.get("replaces", ()):
             for stale in self.out.glob(pattern):
                 if stale.name not in products and stale.is_file():
                     stale.unlink()
         ordered = [name for name in products if name != manifest] + ([manifest] if manifest else [])
         for name in ordered + (["work"] if keep_work else []):
             source, target = self.root / name, self.out / name
+            staged = _has_content(source)
+            if not staged and name in written:
+                continue  # moved into place before the interruption
             if target.is_dir() and not target.is_symlink():
                 shutil.rmtree(target)
             elif target.exists() or target.is_symlink():
                 target.unlink()  # also a product an older run wrote and this one does not
-            if source.exists() and not (source.is_dir() and not any(source.iterdir())):
+            if staged:
                 os.replace(source, target)
         shutil.rmtree(self.root, ignore_errors=True)
         _unlock(self.out)
@@ -250,6 +294,37 @@ class Staging:
     def keep_for_resume(self) -> None:
         """An interrupted run: keep the folder (finished tasks' results) for ``--resume``; unlock."""
         _unlock(self.out)
+
+
+def _has_content(path: Path) -> bool:
+    """A staged product: a file, or a folder that is not empty."""
+    return path.exists() and not (path.is_dir() and not any(path.iterdir()))
+
+
+def _plain_name(name: str) -> bool:
+    return name not in ("", ".", "..") and "/" not in name and "\\" not in name
+
+
+@contextlib.contextmanager
+def deferred_interrupts() -> Iterator[list[int]]:
+    """Hold Ctrl-C and SIGTERM until the block is done; the list says which arrived.
+
+    Only in the main thread (where Python runs signal handlers); a signal the process
+    ignores (a run started in the background of a shell) stays ignored.
+    """
+    arrived: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield arrived
+        return
+    previous = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            previous[signum] = signal.signal(signum, lambda s, _frame: arrived.append(s))
+    try:
+        yield arrived
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 def _link_tree(source: Path, target: Path) -> None:
@@ -282,12 +357,14 @@ def kept_result(path: Path) -> Any | None:
         return None
     try:
         return load_object(path)
-    except (OSError, ValueError, EOFError, pickle.UnpicklingError, AttributeError):
+    except (OSError, ValueError) as e:  # another version, or content this holefill did not write: recompute
+        logger.warning("%s: not used, the task runs again (%s)", path.name, e)
         return None
 
 
 PARTIAL_PREFIX = ".holefill-partial-"
 RUN_FILE = "run.json"
+COMMIT_FILE = "commit.json"
 LOCK_FILE = ".holefill.lock"
 MANIFEST = "manifest.json"
 
@@ -402,10 +479,17 @@ def disk_full(error: OSError, folder: Path) -> bool:
 
 
 def input_fingerprint(path: str, *parts: object) -> str:
-    """A short stable key of an input file (path, size, modification time) and what it is read with."""
+    """A short stable key of an input file (path, size, times, inode) and what it is read with.
+
+    The change time and inode are part of it: a file rewritten with the same size and
+    a restored modification time (``touch -r``, ``rsync -t``) has another change time,
+    which no program can set, so its old decoding and checksum are not reused.
+    """
     try:
         stat = os.stat(path)
-        identity: tuple[object, ...] = (os.path.abspath(path), stat.st_size, stat.st_mtime_ns)
+        identity: tuple[object, ...] = (
+            os.path.abspath(path), stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino
+        )  # fmt: skip
     except OSError:
         identity = (os.path.abspath(path),)
     return hashlib.sha1(repr((identity, parts)).encode()).hexdigest()[:12]

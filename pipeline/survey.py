@@ -89,27 +89,40 @@ class Survey:
         return Density(self.point_count, pulses, area, first)
 
 
-def find_inputs(inputs: list[str] | tuple[str, ...]) -> list[Path]:
+def find_inputs(inputs: list[str] | tuple[str, ...], *, exclude: tuple[Path, ...] = ()) -> list[Path]:
     """Expand files, folders (their ``*.las``/``*.laz``, recursively) and globs.
+
+    ``exclude``: folders holefill writes (the output's ``points/``, ``work/``, partial
+    folders): a folder or glob never yields a file under them, so a result written
+    inside an input folder is never read back as input; a file named there is refused.
 
     Raises
     ------
     InputDataError
         When an input names nothing, or when the whole list yields no file.
     """
+    excluded = tuple(folder.resolve() for folder in exclude)
+
+    def written_here(path: Path) -> bool:
+        return any(path.resolve().is_relative_to(folder) for folder in excluded)
+
     found: list[Path] = []
     for item in inputs:
         path = Path(item)
         if path.is_dir():
             candidates = [p for p in path.rglob("*") if p.suffix.lower() in POINT_CLOUD_SUFFIXES]
             matches = sorted(p for p in candidates if p.is_file() or (p.is_symlink() and not p.exists()))
+            matches = [p for p in matches if not written_here(p)]
             if not matches:
                 raise InputDataError(path, "folder holds no .las or .laz file")
             found.extend(matches)
         elif path.is_file():
+            if written_here(path):
+                raise InputDataError(path, "lies in a folder this run writes (--out): it cannot be an input")
             found.append(path)
         elif glob.has_magic(item):
             matches = sorted(Path(p) for p in glob.glob(item, recursive=True) if Path(p).is_file())
+            matches = [p for p in matches if not written_here(p)]
             if not matches:
                 raise InputDataError(item, "pattern matches no file")
             found.extend(matches)
@@ -127,6 +140,7 @@ def scan_survey(
     crs: str = "",
     target_crs: str = "",
     on_error: str = "fail",
+    exclude: tuple[Path, ...] = (),
 ) -> Survey:
     """Read every header and decide the survey CRS.
 
@@ -140,13 +154,15 @@ def scan_survey(
         If given, every tile is reprojected to it while streaming.
     on_error : {"fail", "skip"}
         Whether a bad tile stops the scan or is skipped and listed.
+    exclude : tuple of Path
+        Folders whose files are never inputs (what the run writes: :func:`find_inputs`).
 
     Raises
     ------
     InputDataError, CRSError
         With the file named; a survey left with no tile raises too.
     """
-    paths = find_inputs(inputs)
+    paths = find_inputs(inputs, exclude=exclude)
     assigned = _parse_crs(crs, "--crs") if crs else None
     target = _parse_crs(target_crs, "--target-crs") if target_crs else None
     headers, skipped = _read_headers(paths, assigned, on_error)

@@ -9,12 +9,13 @@ import struct
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import shapely
 from click.testing import CliRunner
 
 from pipeline.cli import main
-from pipeline.io.vector import write_layer
+from pipeline.io.vector import read_layer, write_layer
 
 from .lasfiles import random_points, write_points
 
@@ -119,3 +120,49 @@ def test_scores_are_valid_json_when_no_hole_is_scored():
         HoleScore(iou=1.0, true_hole_px=0, detected_px=0, holes=0, cause_correct=0).as_dict(), allow_nan=False
     )
     assert json.loads(text)["cause_accuracy"] is None
+
+
+def test_laz_header_that_under_reports_its_points_is_refused(runner, tmp_path, rng):
+    """LAS 1.4's 64-bit count (offset 247) halved in a LAZ file: laspy would decode half the points."""
+    path = write_points(tmp_path / "half.laz", *random_points(rng, 120_000))  # three LAZ chunks of 50,000
+    count = struct.unpack_from("<Q", path.read_bytes(), 247)[0]
+    patch(path, 247, "<Q", count // 2)
+    result = run(runner, path, "--out", tmp_path / "o")
+    line = one_error_line(result)
+    assert result.exit_code == 3 and f"half.laz: header point count is {count // 2:,}" in line
+    assert "chunk table holds at least 100,001 points" in line
+    assert not (tmp_path / "o").exists()
+
+
+def test_points_outside_the_header_bounds_are_refused(runner, tmp_path, rng):
+    path = write_points(tmp_path / "short.las", *random_points(rng, 5000))
+    max_x = struct.unpack_from("<d", path.read_bytes(), 179)[0]
+    patch(path, 179, "<d", max_x - 5.0)  # max x 5 m short of the points
+    result = run(runner, path, "--out", tmp_path / "o")
+    line = one_error_line(result)
+    assert result.exit_code == 3 and "short.las:" in line and "lie outside the bounds its header declares" in line
+    assert not (tmp_path / "o").exists()
+    # with --on-error skip it is a skipped tile, named in the manifest and the report's first warnings
+    write_points(tmp_path / "good.las", *random_points(rng, 5000, (1100.0, 2000.0, 1200.0, 2080.0)))
+    result = run(runner, path, tmp_path / "good.las", "--out", tmp_path / "o", "--on-error", "skip")
+    assert result.exit_code == 5, result.output
+    manifest = json.loads((tmp_path / "o" / "manifest.json").read_text())
+    assert [Path(s["path"]).name for s in manifest["skipped"]] == ["short.las"]
+
+
+def test_a_tile_that_yields_no_point_is_listed_like_a_skipped_tile(runner, tmp_path, rng):
+    folder = tmp_path / "tiles"
+    folder.mkdir()
+    write_points(folder / "a.laz", *random_points(rng, 5000, (1000.0, 2000.0, 1100.0, 2100.0)))
+    x, y, z = random_points(rng, 5000, (1100.0, 2000.0, 1200.0, 2100.0))
+    write_points(folder / "b.laz", x, y, z, withheld=np.ones(len(x), bool))  # every point withheld
+    result = run(runner, folder, "--out", tmp_path / "o")
+    assert result.exit_code == 5, result.output
+    assert "skipping" in result.output and "b.laz: no point used" in result.output
+    manifest = json.loads((tmp_path / "o" / "manifest.json").read_text())
+    assert [Path(s["path"]).name for s in manifest["skipped"]] == ["b.laz"]
+    assert manifest["summary"]["points_used"] < manifest["summary"]["points_read"]
+    report = (tmp_path / "o" / "report.html").read_text()
+    assert "Look at first" in report and "b.laz" in report
+    tiles = read_layer(tmp_path / "o" / "holes.gpkg", "tiles")
+    assert sorted(tiles["status"]) == ["no points", "ok"]

@@ -165,7 +165,9 @@ def test_split_copc_gives_the_products_of_the_whole_file_and_of_the_laz_tiles(sy
     assert split.holes["listed"] > 0
     same_outputs(tmp_path / "whole", tmp_path / "split", estimated_tolerance=1.0)
     assert "holes" in list_layers(tmp_path / "split" / "holes.gpkg")
-    same_outputs(tmp_path / "tiles", tmp_path / "split", skip_layers=("tiles",), estimated_tolerance=1.0)  # the tiles layer lists other files
+    same_outputs(
+        tmp_path / "tiles", tmp_path / "split", skip_layers=("tiles",), estimated_tolerance=1.0
+    )  # the tiles layer lists other files
 
 
 @pytest.mark.slow
@@ -188,7 +190,7 @@ def test_killed_split_run_resumes_to_the_same_outputs(synthetic, tmp_path):
     wait_for_kept_tiles(out, 6, killed)
     os.killpg(killed.pid, signal.SIGKILL)
     killed.wait(timeout=30)
-    kept = list(out.glob(".holefill-partial-*/work/done/rasterize-*-part*.pkl"))
+    kept = list(out.glob(".holefill-partial-*/work/done/rasterize-*-part*.npz"))
     assert len(kept) >= 6  # split tasks keep their results under file + fingerprint + part
     resumed = holefill(copc, "--out", str(out), "--resume", *settings)
     _, err = resumed.communicate(timeout=300)

@@ -308,3 +308,12 @@ def test_a_run_without_holes_keeps_its_map(tmp_path, rng, dask_client):
     got = read_report_inputs(out)
     assert got is not None and got.holes == ()
     assert "<svg class='map'" in (out / "report.html").read_text()
+
+
+def test_points_not_used_are_named_first():
+    """Points outside their header bounds (a reprojected or PDAL read) are the first thing to look at."""
+    record = manifest()
+    record["summary"]["points_outside"] = 63_226
+    page = render_report(record, largest())
+    assert "Look at first" in page and "63,226 points lie outside" in page
+    assert "points used" in page

@@ -47,7 +47,7 @@ def holefill(*args: str, **kwargs) -> subprocess.Popen:
 def wait_for_kept_tiles(out: Path, n: int, process: subprocess.Popen, timeout: float = 120.0) -> None:
     started = time.monotonic()
     while time.monotonic() - started < timeout:
-        if len(list(out.glob(".holefill-partial-*/work/done/rasterize-*.pkl"))) >= n:
+        if len(list(out.glob(".holefill-partial-*/work/done/rasterize-*.npz"))) >= n:
             return
         assert process.poll() is None, process.communicate()
         time.sleep(0.05)
@@ -266,7 +266,8 @@ def test_manifest_is_written_last_and_replaced_first(survey, tmp_path):
     original = os.replace
 
     def spy(source, target):
-        moved.append((Path(target).name, (out / "manifest.json").exists()))
+        if Path(target).parent == out:  # what moves into OUT (the commit journal stays in the staging folder)
+            moved.append((Path(target).name, (out / "manifest.json").exists()))
         return original(source, target)
 
     os.replace = spy
@@ -371,3 +372,110 @@ def test_a_result_of_another_configuration_is_not_replaced_unless_asked(tmp_path
     assert result.exit_code == 4 and "holds the result of another configuration" in result.output
     assert (out / "manifest.json").read_text() == before
     assert runner.invoke(main, [*base, "--set", "fill.enabled=false", "--overwrite"]).exit_code == 0
+
+
+def wait_for_commit(out: Path, product: str, process: subprocess.Popen, timeout: float = 300.0) -> None:
+    """Wait until the run stages its manifest (the report, then the commit are next), then until ``OUT/product``."""
+    started = time.monotonic()
+    while not list(out.glob(".holefill-partial-*/manifest.json")):
+        assert process.poll() is None and time.monotonic() - started < timeout, process.communicate()
+        time.sleep(0.002)
+    while not (out / product).exists():  # the commit is renames: a few milliseconds
+        assert process.poll() is None, process.communicate()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGKILL, signal.SIGINT])
+def test_an_interrupt_during_the_commit_leaves_a_result_that_resume_completes(survey, reference, tmp_path, signum):
+    tiles = str(survey / "tiles")
+    out = tmp_path / "out"
+    run = holefill(tiles, "--out", str(out), preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    wait_for_commit(out, "dsm", run)
+    os.killpg(run.pid, signum)
+    _, err = run.communicate(timeout=60)
+    if signum == signal.SIGINT:  # held until the commit is done: the result stands
+        assert run.returncode == 0, err
+        assert "the result is complete" in err
+    else:
+        assert run.returncode == -signal.SIGKILL
+        assert not (out / "manifest.json").exists(), "the kill came after the commit"
+        assert list(out.glob(".holefill-partial-*/commit.json"))
+        resumed = holefill(tiles, "--out", str(out), "--resume")
+        _, err = resumed.communicate(timeout=300)
+        assert resumed.returncode == 0, err
+    assert json.loads((out / "manifest.json").read_text())["complete"]
+    assert not list(out.glob(".holefill-partial-*")) and not (out / ".holefill.lock").exists()
+    same_outputs(reference, out)
+
+
+def test_sigterm_once_the_manifest_is_in_place_exits_0_and_cleans_up(survey, tmp_path):
+    out = tmp_path / "out"
+    run = holefill(str(survey / "tiles"), "--out", str(out))
+    wait_for_commit(out, "manifest.json", run)
+    run.send_signal(signal.SIGTERM)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 0, err
+    assert not list(out.glob(".holefill-partial-*")) and not (out / ".holefill.lock").exists()
+
+
+def test_planted_results_in_the_output_folder_run_no_code_and_are_recomputed(survey, reference, tmp_path):
+    """``OUT/work`` can be written by anyone who can write OUT: what a run reads back there is data only."""
+    from .test_plain_data import planted_pickle, planted_tree
+
+    tiles = str(survey / "tiles")
+    out = tmp_path / "out"
+    first = holefill(tiles, "--out", str(out), "--incremental")
+    assert first.wait(timeout=300) == 0, first.communicate()
+    kept = sorted((out / "work" / "done").glob("rasterize-*.npz"))
+    marker = tmp_path / "ran"
+    planted_pickle(kept[0], marker)  # a pickle that runs a shell command when loaded
+    planted_tree(kept[1], {"$c": "subprocess:Popen", "v": {}})
+    planted_pickle(kept[2].with_suffix(".pkl"), marker)  # the name older holefills read
+    again = holefill(tiles, "--out", str(out), "--incremental")
+    _, err = again.communicate(timeout=300)
+    assert again.returncode == 0, err
+    assert not marker.exists()
+    assert "not used, the task runs again" in err
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["summary"]["reused_tasks"] > 0
+    same_outputs(reference, out)
+
+
+def test_a_run_whose_workers_all_die_stops_with_exit_1_in_bounded_time(survey, tmp_path, real_cluster):
+    """No worker left (no nanny restarts them): the run stops with one line instead of waiting for ever."""
+    address, workers = real_cluster
+    out = tmp_path / "out"
+    run = holefill(str(survey / "tiles"), "--out", str(out), "--scheduler", address,
+                   "--set", "dask.no_worker_timeout_s=3")  # fmt: skip
+    wait_for_kept_tiles(out, 1, run)
+    for worker in workers:
+        os.killpg(worker.pid, signal.SIGKILL)
+    killed = time.monotonic()
+    _, err = run.communicate(timeout=120)
+    assert run.returncode == 1, err
+    assert "no Dask worker alive for 3 s (dask.no_worker_timeout_s)" in err and "Traceback" not in err
+    assert time.monotonic() - killed < 100  # not for ever (a loaded 2-core machine takes tens of seconds)
+    assert len(list(out.glob(".holefill-partial-*"))) == 1  # the finished tasks are kept for --resume
+
+
+def test_a_tile_rewritten_with_the_same_size_and_time_is_decoded_again(survey, tmp_path):
+    """The manifest's checksums describe the bytes actually read, even when size and mtime were kept."""
+    import hashlib
+    import shutil
+
+    tiles = tmp_path / "tiles"
+    shutil.copytree(survey / "tiles", tiles)
+    out = tmp_path / "out"
+    first = holefill(str(tiles), "--out", str(out), "--incremental")
+    assert first.wait(timeout=300) == 0, first.communicate()
+    tile = sorted(tiles.glob("*.laz"))[0]
+    stat = tile.stat()
+    data = bytearray(tile.read_bytes())
+    data[26:32] = b"edited"  # same size: the header's system identifier changed ...
+    tile.write_bytes(bytes(data))
+    os.utime(tile, ns=(stat.st_atime_ns, stat.st_mtime_ns))  # ... and the old modification time restored
+    again = holefill(str(tiles), "--out", str(out), "--incremental")
+    _, err = again.communicate(timeout=300)
+    assert again.returncode == 0, err
+    manifest = json.loads((out / "manifest.json").read_text())
+    record = next(i for i in manifest["inputs"] if Path(i["path"]).name == tile.name)
+    assert record["sha256"] == hashlib.sha256(bytes(data)).hexdigest()

@@ -11,7 +11,8 @@ knows how each kind of result is stored:
   header cost more than the merge itself);
 - stage 2, per cell: the merged statistics of the cell and its halo (``.npz``);
 - detection, per cell: the part-label raster of the cell core (``.npz``);
-- linking, per survey: the hole catalog (a pickle of plain numpy structures);
+- linking, per survey: the hole catalog, and every task's small result: data-only files
+  (:mod:`pipeline.io.plain_data`, never a pickle);
 - filling, per fill task: the filled holes' ids, heights, method codes and
   distances over the task's window (``.npz``).
 """
@@ -19,7 +20,6 @@ knows how each kind of result is stored:
 from __future__ import annotations
 
 import os
-import pickle
 from pathlib import Path
 from typing import Any
 
@@ -27,9 +27,10 @@ import numpy as np
 
 from ..grid import PixelWindow
 from ..rasterize import STATISTIC_DTYPES, STATISTIC_NAMES, PixelStatistics
+from . import plain_data
 
 #: Bumped whenever the layout of a kept result changes, so stale files are never read.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 def save_tile_statistics(folder: str | os.PathLike, statistics: PixelStatistics, shared_keys: np.ndarray) -> None:
@@ -117,20 +118,17 @@ def load_task_fill(path: str | os.PathLike) -> tuple[PixelWindow, np.ndarray, np
 
 
 def save_object(path: str | os.PathLike, value: Any) -> None:
-    """Pickle a survey-wide result (plain dataclasses of numpy arrays) with the format version."""
-    tmp = Path(f"{path}.tmp")
-    with tmp.open("wb") as fh:
-        pickle.dump((FORMAT_VERSION, value), fh, protocol=pickle.HIGHEST_PROTOCOL)
-    os.replace(tmp, path)
+    """Keep a task's result or a survey-wide one (dataclasses of numpy arrays, scalars, strings) as data only.
+
+    Never a pickle: the output folder may be written by others, and reading a kept
+    result must not run code (:mod:`pipeline.io.plain_data`).
+    """
+    plain_data.dump(path, value, version=FORMAT_VERSION)
 
 
 def load_object(path: str | os.PathLike) -> Any:
-    """What :func:`save_object` stored; raises ``ValueError`` for another format version."""
-    with Path(path).open("rb") as fh:
-        version, value = pickle.load(fh)
-    if version != FORMAT_VERSION:
-        raise ValueError(f"{path}: intermediate format {version}, this holefill reads {FORMAT_VERSION}")
-    return value
+    """What :func:`save_object` stored; raises ``ValueError`` for anything else (another version, other content)."""
+    return plain_data.load(path, version=FORMAT_VERSION)
 
 
 def save_raw(path: Path, array: np.ndarray) -> None:

@@ -167,6 +167,9 @@ def read_header(path: str | os.PathLike) -> TileHeader:
             )
     elif file_size <= header.offset_to_point_data:
         raise InputDataError(path, "LAZ file ends before its point data starts (truncated)")
+    elif not is_copc:  # a COPC file's count is checked against its hierarchy
+        _check_laz_count(path, header, count)
+    _check_legacy_count(path, header, count)
 
     crs_wkt, crs_problem = None, None
     try:
@@ -192,6 +195,62 @@ def read_header(path: str | os.PathLike) -> TileHeader:
         points_by_return=tuple(int(c) for c in header.number_of_points_by_return),
         copc=copc,
     )
+
+
+def _check_laz_count(path: Path, header: Any, count: int) -> None:
+    """Refuse a LAZ header that declares fewer points than its chunk table holds.
+
+    laspy decodes exactly the declared count, so an under-reporting header would drop
+    the rest silently. The chunk table (a seek and a few bytes) says how many chunks
+    the file holds: of ``chunk_size`` points each but the last (or their own counts,
+    with variable-size chunks). A file without a readable table is decoded as declared.
+    """
+    import lazrs
+
+    laszip = next((v for v in header.vlrs if getattr(v, "record_id", None) == 22204), None)
+    if laszip is None:
+        return
+    try:
+        vlr = lazrs.LazVlr(laszip.record_data)
+        with path.open("rb") as fh:
+            fh.seek(header.offset_to_point_data)
+            table = lazrs.read_chunk_table(fh, vlr)
+    except Exception:  # no table (a streaming writer's file) or an unreadable one: nothing to compare
+        return
+    if not table:
+        return
+    if vlr.uses_variable_size_chunks():
+        at_least = sum(int(points) for points, _ in table)
+    else:
+        at_least = (len(table) - 1) * int(vlr.chunk_size()) + 1
+    if count < at_least:
+        raise InputDataError(
+            path,
+            f"header point count is {count:,} but the file's LAZ chunk table holds at least {at_least:,} points: "
+            f"the header under-reports its points (refused rather than dropping them; repair the header)",
+        )
+
+
+#: Byte offset of the legacy 32-bit point count in every LAS header (LAS 1.4 R15, table 3).
+LEGACY_COUNT_OFFSET = 107
+
+
+def _check_legacy_count(path: Path, header: Any, count: int) -> None:
+    """Refuse a LAS 1.4 header whose legacy 32-bit point count (when set) contradicts its 64-bit one."""
+    if (header.version.major, header.version.minor) < (1, 4):
+        return
+    try:
+        with path.open("rb") as fh:
+            fh.seek(LEGACY_COUNT_OFFSET)
+            legacy = int.from_bytes(fh.read(4), "little")
+    except OSError:
+        return
+    if legacy and legacy != count:
+        raise InputDataError(
+            path,
+            f"header declares {count:,} points (LAS 1.4 count) but {legacy:,} (legacy count): the header "
+            "contradicts itself (repair it)",
+        )
 
 
 def _copc_octree(path: Path, count: int) -> Any:

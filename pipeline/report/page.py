@@ -114,6 +114,7 @@ def _cards(manifest: dict[str, Any]) -> str:
     cards = [
         (f"{summary['tiles']:,}", "tiles"),
         (_count(summary["points_read"]), "points read"),
+        (_count(summary.get("points_used", summary["points_read"])), "points used"),
     ]
     if holes:
         cards += [
@@ -141,6 +142,11 @@ def _warnings(manifest: dict[str, Any], inputs: ReportInputs | None) -> str:
         items.append("the manifest says this result is <b>not complete</b>")
     if manifest.get("skipped"):
         items.append(f"{len(manifest['skipped']):,} input tiles were skipped (listed under Skipped tiles)")
+    if summary.get("points_outside"):
+        items.append(
+            f"{summary['points_outside']:,} points lie outside their tile's header bounds and were not used "
+            "(see the log and manifest.json, inputs)"
+        )
     if summary.get("points_used", 1) == 0:
         items.append("no point was used: check the filter settings (filter.keep_classes, filter.drop_classes)")
     if holes:

@@ -241,13 +241,20 @@ def merge_sums(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[
     return (unique_keys % 65536)[order], (unique_keys // 65536)[order], out[order]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TrajectorySums:
     """The sums of a tile, a file or the survey: rows keyed by (line, time bin); ``+`` merges."""
 
     lines: np.ndarray
     bins: np.ndarray
     values: np.ndarray
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, TrajectorySums) and all(
+            np.array_equal(getattr(self, name), getattr(other, name)) for name in ("lines", "bins", "values")
+        )
+
+    __hash__ = None  # type: ignore[assignment]  # arrays: equal, not hashable
 
     @classmethod
     def empty(cls) -> TrajectorySums:

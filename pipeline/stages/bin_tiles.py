@@ -317,6 +317,7 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
         read += len(chunk) if decoded else 0  # handed-over points were counted by the top task
         used += n_used
         outside += n_outside
+    _check_header_bounds(task, transformer is None, read, outside)
     save_tile_statistics(task.output_dir, accumulator.statistics, accumulator.voxel_keys(task.shared_windows))
     return TileResult(
         tile_index=task.tile_index,
@@ -349,6 +350,20 @@ def _trajectory_sums(
             origin=origin,
         )
     )  # fmt: skip
+
+
+def _check_header_bounds(task: TileTask, same_crs: bool, read: int, outside: int) -> None:
+    """Refuse a file whose points lie outside its header bounds: the header lies, and its grid left them out.
+
+    Only where the bounds are the file's own (a whole file read by laspy in its own CRS); a
+    reprojected or PDAL-filtered file's stray points stay a warning and a line of the report.
+    """
+    if outside and same_crs and task.role == "whole" and task.pdal is None:
+        raise InputDataError(
+            task.path,
+            f"{outside:,} of {read:,} points lie outside the bounds its header declares: the header is wrong "
+            "(refused rather than dropping them; repair the header, e.g. with lasinfo -repair_bb)",
+        )
 
 
 def rasterize_tile_or_skip(task: TileTask, *after: object) -> TileResult | TileFailure:

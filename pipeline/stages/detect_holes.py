@@ -94,10 +94,14 @@ class SensorGeometry:
     """
 
     lines: tuple[FlightLine, ...]
-    swaths: tuple[shapely.Geometry, ...]
+    swaths_wkb: tuple[bytes, ...]  # one polygon per line (WKB: kept results hold data only)
     points_in_lines: int
     points_timed: int
     points_used: int
+
+    @property
+    def swaths(self) -> tuple[shapely.Geometry, ...]:
+        return tuple(shapely.from_wkb(w) for w in self.swaths_wkb)
 
     @property
     def complete(self) -> bool:
@@ -127,7 +131,7 @@ def sensor_geometry(tiles: list[TileResult], plan: SurveyPlan, config: Config) -
     )
     return SensorGeometry(
         lines=tuple(lines),
-        swaths=tuple(swath_polygon(line) for line in lines),
+        swaths_wkb=tuple(shapely.to_wkb(swath_polygon(line)) for line in lines),
         points_in_lines=sum(line.points for line in lines),
         points_timed=sums.points,
         points_used=sum(t.points_used for t in tiles),
@@ -143,7 +147,8 @@ def sight_inputs(
     reach_px = max(1, math.ceil(reach_m / pixel_m))
     cells = plan.cell_by_id()
     paths = {r.cell_id: r.statistics_path for r in merged}
-    boxes = shapely.STRtree(list(geometry.swaths))
+    swaths = geometry.swaths
+    boxes = shapely.STRtree(list(swaths))
     cores = {cell_id: cells[cell_id].window for cell_id in paths}
     out = {}
     for cell_id in paths:
@@ -153,7 +158,7 @@ def sight_inputs(
         out[cell_id] = SightInputs(
             tracks=tuple(geometry.lines[i].sensor for i in near),
             max_scan_angles=tuple(geometry.lines[i].max_scan_angle_deg for i in near),
-            swaths=tuple(shapely.to_wkb(geometry.swaths[i]) for i in near),
+            swaths=tuple(geometry.swaths_wkb[i] for i in near),
             reach_px=reach_px,
             neighbours=tuple(
                 (core, paths[other]) for other, core in cores.items() if not core.intersection(window).is_empty
