@@ -127,6 +127,12 @@ class CausesConfig:
     water_min_mask_fraction: float = _opt(
         0.5, "water_mask rule: share of the hole inside the given water polygons.", ge=0, le=1
     )
+    covered_min_fraction: float = _opt(
+        0.5,
+        "covered rule: share of the hole under points the class filter left out (a ground-only model).",
+        ge=0,
+        le=1,
+    )
     gap_min_fraction: float = _opt(
         0.5,
         "coverage_gap rule (missed coverage): share of the hole outside every flight line's swath.",
@@ -312,7 +318,7 @@ class FlightPlanConfig:
     causes: list[str] = _opt(
         ["missed_coverage"],
         "Hole causes that are re-flown; the others are listed, not flown.",
-        item_choices=("occlusion", "water", "missed_coverage", "no_return", "unknown"),
+        item_choices=("occlusion", "water", "missed_coverage", "no_return", "covered", "unknown"),
     )
     min_area_m2: float = _opt(25.0, "Holes smaller than this (m2) are not re-flown.", ge=0)
     altitude_agl_m: float = _opt(

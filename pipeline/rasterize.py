@@ -47,9 +47,12 @@ STATISTIC_DTYPES: dict[str, type] = {
     "voxels": np.uint16,
     "water": np.uint16,
     "source": np.uint16,
+    "covered": np.uint16,
 }
 STATISTIC_NAMES = tuple(STATISTIC_DTYPES)
 WATER_CLASS = 9
+#: ASPRS noise classes (low and high noise): points a filter drops cover nothing.
+NOISE_CLASSES = (7, 18)
 
 
 @dataclass
@@ -71,6 +74,9 @@ class PixelStatistics:
     source : ndarray of uint16, shape (M, N)
         The highest ``point_source_id + 1`` of the pixel's points (0: none); the
         flight line that covered it, whatever the order the points came in.
+    covered : ndarray of uint16, shape (M, N)
+        Points the class filter left out (not noise, not withheld) per pixel: a ground-only
+        model's void under them is *covered* (by a building, by trees), not unmeasured.
     """
 
     window: PixelWindow
@@ -80,6 +86,7 @@ class PixelStatistics:
     voxels: np.ndarray
     water: np.ndarray
     source: np.ndarray
+    covered: np.ndarray
 
     @classmethod
     def empty(cls, window: PixelWindow) -> PixelStatistics:
@@ -92,6 +99,7 @@ class PixelStatistics:
             voxels=np.zeros(shape, np.uint16),
             water=np.zeros(shape, np.uint16),
             source=np.zeros(shape, np.uint16),
+            covered=np.zeros(shape, np.uint16),
         )
 
     def crop(self, window: PixelWindow) -> PixelStatistics:
@@ -213,6 +221,31 @@ class HeightMapAccumulator:
         self.overflow.size += added
         return int(used), int(outside)
 
+    def add_counts(
+        self,
+        name: str,
+        x: np.ndarray,
+        y: np.ndarray,
+        which: np.ndarray,
+        *,
+        scales: tuple[float, float, float] = (1.0, 1.0, 1.0),
+        offsets: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> None:
+        """Add, per pixel, the points ``which`` of a chunk to the count statistic ``name`` (``covered``, ``water``).
+
+        For points the rasters leave out: what they tell is evidence, not height.
+        """
+        resolution, col_min, row_top, _, lattice_offset = self._geometry
+        w = self.window
+        px = x[which] * scales[0] + offsets[0]
+        py = y[which] * scales[1] + offsets[1]
+        rows = row_top - np.floor(py / resolution + lattice_offset).astype(np.int64) - w.row_off
+        cols = np.floor(px / resolution + lattice_offset).astype(np.int64) - col_min - w.col_off
+        inside = (rows >= 0) & (rows < w.height) & (cols >= 0) & (cols < w.width)
+        counts = np.bincount(rows[inside] * w.width + cols[inside], minlength=w.height * w.width)
+        target = getattr(self.statistics, name).reshape(-1)
+        target[:] = np.minimum(target + counts, 65535)
+
     def voxel_keys(self, windows: tuple[PixelWindow, ...]) -> np.ndarray:
         """Sorted distinct voxel keys of the pixels inside ``windows`` (shared with other tiles)."""
         grid_width = self._geometry[3]
@@ -255,6 +288,22 @@ def point_filter_mask(
     if drop_withheld:
         keep &= ~withheld
     return keep
+
+
+def removed_by_class_filter(
+    classification: np.ndarray, withheld: np.ndarray, keep: np.ndarray, *, filters_classes: bool
+) -> np.ndarray | None:
+    """The points the class filter left out that are neither noise nor withheld (None: there are none).
+
+    ``filters_classes``: whether the filter leaves out anything but noise (a ground-only model).
+    Water points among them are evidence of water, not of a cover (:func:`removed_water`).
+    """
+    if not filters_classes:
+        return None
+    noise = np.zeros(256, bool)
+    noise[list(NOISE_CLASSES)] = True
+    removed = ~keep & ~withheld & ~noise[classification]
+    return removed if removed.any() else None
 
 
 def keys_in_windows(keys: np.ndarray, windows: tuple[PixelWindow, ...], grid_width: int) -> np.ndarray:
@@ -314,6 +363,7 @@ def merge_statistics(
         dst.count += src.count
         dst.water += src.water
         np.maximum(dst.source, src.source, out=dst.source)
+        dst.covered[...] = np.minimum(dst.covered.astype(np.uint32) + src.covered, 65535)
         local_shared = shared[overlap.slices_within(window)]
         dst.voxels += np.where(local_shared, 0, src.voxels).astype(np.uint16)
         if len(keys):

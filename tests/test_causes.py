@@ -85,6 +85,7 @@ def test_a_changed_strip_key_changes_missed_coverage():
 def test_rule_order_is_one_table():
     assert [rule for rule, _ in RULES] == [
         "water_mask",
+        "covered",
         "missing_tile",
         "coverage_gap",
         "water_points",

@@ -62,3 +62,23 @@ def test_a_canal_with_water_at_its_edge_is_water(shared_data, tmp_path, dask_cli
     canal = holes[(holes["area_m2"] > 1000) & (holes["area_m2"] < 1100)]
     assert list(canal["cause"]) == ["water"], holes[["area_m2", "cause", "cause_rule"]]
     assert (holes[holes["area_m2"] >= 40]["cause"] != "occlusion").all()
+
+
+def test_a_ground_model_s_voids_under_buildings_and_trees_are_covered(tmp_path, dask_client):
+    """``filter.keep_classes = [2]``: the voids under the roofs and crowns the filter left out are ``covered``."""
+    from pipeline.synth import generate_survey, preset
+
+    spec = preset("demo", width_m=300.0, height_m=200.0, water=False, missed_line=None, building_density=5.0, seed=5)
+    survey = generate_survey(tmp_path / "tiles", spec)
+    out = tmp_path / "out"
+    run_survey([str(tmp_path / "tiles")], out, load_config(overrides=["filter.keep_classes=[2]"]), client=dask_client)
+    holes = read_layer(out / "holes.gpkg", "holes")
+    covered = holes[holes["cause"] == "covered"]
+    assert len(covered) >= 5 and covered["area_m2"].sum() > 0.5 * holes["area_m2"].sum(), holes["cause"].value_counts()
+    # a covered void lies where the surface stands above the ground: a roof or a crown
+    from pipeline.io.raster import geometry_mask
+
+    raised = survey.truth_dsm - np.nanmin(survey.truth_dsm) > 3.0
+    for geometry in covered.geometry:
+        inside = geometry_mask(geometry, survey.transform, raised.shape)
+        assert raised[inside].mean() > 0.5

@@ -21,12 +21,13 @@ from .stats import HoleStats, _hist_quantiles, ring_metrics, shape_metrics
 __all__ = ["CAUSE_DTYPE", "CAUSES", "CONFIG_KEYS", "RULES", "CauseRules", "classify_causes"]
 
 #: Causes :func:`classify_causes` can return.
-CAUSES: tuple[str, ...] = ("occlusion", "water", "missed_coverage", "no_return", "unknown")
+CAUSES: tuple[str, ...] = ("occlusion", "water", "missed_coverage", "no_return", "covered", "unknown")
 
 #: The rules in the order they are tried (the first that holds wins): (rule, cause).
 #: A hole no rule claims is ``unknown`` / ``none`` (``no_ring`` without any measured neighbour).
 RULES: tuple[tuple[str, str], ...] = (
     ("water_mask", "water"),
+    ("covered", "covered"),
     ("missing_tile", "missed_coverage"),
     ("coverage_gap", "missed_coverage"),
     ("water_points", "water"),
@@ -63,6 +64,8 @@ class CauseRules:
         Height-jump threshold in z units, as used for detection (``holes.jump_threshold_m``).
     water_min_mask_fraction, water_min_point_fraction
         ``water_mask`` / ``water_points`` rules.
+    covered_min_fraction
+        ``covered`` rule.
     gap_min_fraction
         ``coverage_gap`` and ``missing_tile`` rules.
     occlusion_min_jump_fraction
@@ -93,6 +96,7 @@ class CauseRules:
     pixel_size: float
     jump_threshold: float
     water_min_mask_fraction: float
+    covered_min_fraction: float
     gap_min_fraction: float
     water_min_point_fraction: float
     occlusion_min_jump_fraction: float
@@ -332,6 +336,8 @@ def _rule_conditions(stats: HoleStats, ring: _RingEvidence, rules: CauseRules) -
         # seen unobstructed, nothing came back, and water was measured at its edge
         "water_edge": (stats["seen_px"] > 0) & (stats["ring_water_px"] > 0),
         "water_mask": stats["water_mask_px"] / area1 >= rules.water_min_mask_fraction,
+        # a ground-only model's void under the points it left out: a building, trees
+        "covered": stats["covered_px"] / area1 >= rules.covered_min_fraction,
         "missing_tile": stats["missing_tile_px"] / area1 >= rules.gap_min_fraction,
         "coverage_gap": stats["gap_px"] / area1 >= rules.gap_min_fraction,
         "water_points": (ring.has_ring & (stats["ring_water_px"] / ring.size >= rules.water_min_point_fraction))

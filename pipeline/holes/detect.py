@@ -112,7 +112,9 @@ class CellHoles:
 
 
 #: The arrays of :func:`detect_cell_holes`, in the order of its parameters.
-_INPUTS = ("count", "zmax", "zmin", "aoi", "water_points", "water_mask", "flight_line", "coverage", "sight")
+_INPUTS = (
+    "count", "zmax", "zmin", "aoi", "water_points", "water_mask", "flight_line", "coverage", "sight", "covered",
+)  # fmt: skip
 
 
 def detect_cell_holes(
@@ -133,6 +135,7 @@ def detect_cell_holes(
     flight_line: np.ndarray | None = None,
     coverage: np.ndarray | None = None,
     sight: np.ndarray | None = None,
+    covered: np.ndarray | None = None,
     min_area_px: int = 0,
 ) -> CellHoles:
     """Find, classify and measure the hole parts of one cell.
@@ -171,6 +174,8 @@ def detect_cell_holes(
     sight : ndarray of uint8, same shape, optional
         Per hole pixel, whether the sensor could see it (:func:`pipeline.sensor.sight.sight_classes`):
         counted in ``blocked_px`` (hidden from every line that swept it) and ``seen_px``.
+    covered : ndarray of bool, same shape, optional
+        Pixels holding points the class filter left out (a ground-only model): counted in ``covered_px``.
     min_area_px : int
         Closed parts (touching neither the core edge nor the AOI boundary) smaller than this are settled
         here as small voids: counted in ``small_void_count``/``small_void_px``, labelled -1, not listed.
@@ -185,7 +190,8 @@ def detect_cell_holes(
     ValueError
         On arrays of the wrong shape, a bad parameter, or a halo narrower than needed.
     """
-    arrays = dict(zip(_INPUTS, (count, zmax, zmin, aoi, water_points, water_mask, flight_line, coverage, sight)))
+    inputs = (count, zmax, zmin, aoi, water_points, water_mask, flight_line, coverage, sight, covered)
+    arrays = dict(zip(_INPUTS, inputs))
     work = _checked_work(
         arrays, cell, grid_window, connectivity=connectivity, local_radius_px=local_radius_px, height_bin=height_bin
     )
@@ -317,6 +323,7 @@ class _Work(NamedTuple):
     missing_tile: np.ndarray | None  # inside a missing tile's square
     blocked: np.ndarray | None  # swept by some swath, hidden from every line that swept it
     seen: np.ndarray | None  # seen unobstructed by some line
+    covered: np.ndarray | None  # holds points the class filter left out
 
     def core(self, arr: np.ndarray) -> np.ndarray:
         """The view of a work-window array over the core."""
@@ -377,6 +384,7 @@ def _work_arrays(arrays: dict[str, np.ndarray | None], cell: Cell, R: int) -> _W
         missing_tile=None if coverage_w is None else coverage_w == 3,
         blocked=None if sight_w is None else sight_w == BLOCKED,
         seen=None if sight_w is None else sight_w == SEEN,
+        covered=view("covered", False, bool),
     )
 
 
@@ -571,6 +579,7 @@ def _pixel_statistics(
         ("missing_tile_px", work.missing_tile),
         ("blocked_px", work.blocked),
         ("seen_px", work.seen),
+        ("covered_px", work.covered),
     ):
         cols[name] = (
             np.zeros(n, np.int64) if where is None else np.bincount(labels[work.core(where)], minlength=n + 1)[1:]

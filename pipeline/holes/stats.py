@@ -74,6 +74,7 @@ STATS_COLUMNS: dict[str, tuple[type, str, str]] = {
     "missing_tile_px": (np.int64, "sum", "hole pixels inside the square of a missing tile (counted in gap_px too)"),
     "blocked_px": (np.int64, "sum", "hole pixels swept by a swath but hidden from every line that swept them"),
     "seen_px": (np.int64, "sum", "hole pixels some line saw unobstructed (it returned nothing)"),
+    "covered_px": (np.int64, "sum", "hole pixels under points the class filter left out (a ground-only model)"),
     "touches_data": (np.bool_, "any", "a measured pixel is 4-adjacent somewhere"),
 }
 

@@ -23,6 +23,7 @@ CAUSE_COLOURS = {
     "water": "#0072b2",
     "missed_coverage": "#d55e00",
     "no_return": "#009e73",
+    "covered": "#56b4e9",
     "unknown": "#cc79a7",
 }
 _OTHER_COLOUR = "#666666"

@@ -27,7 +27,13 @@ from ..io.copc import iter_copc_nodes, load_point_chunk, save_point_chunk
 from ..io.intermediate import save_tile_statistics
 from ..io.las import PointChunk, PulseFields, iter_point_chunks
 from ..plan import SurveyPlan
-from ..rasterize import WATER_CLASS, HeightMapAccumulator, point_filter_mask
+from ..rasterize import (
+    NOISE_CLASSES,
+    WATER_CLASS,
+    HeightMapAccumulator,
+    point_filter_mask,
+    removed_by_class_filter,
+)
 from ..reads import Node, cell_of
 from ..sensor.sums import TrajectorySums, trajectory_sums
 from ..staging import Staging, input_fingerprint
@@ -41,6 +47,11 @@ class PointFilter:
     drop_classes: tuple[int, ...] = (7, 18)
     keep_classes: tuple[int, ...] = ()
     drop_withheld: bool = True
+
+    @property
+    def filters_classes(self) -> bool:
+        """Whether the filter leaves out more than noise: the points it drops then cover the ground."""
+        return bool(self.keep_classes) or bool(set(self.drop_classes) - set(NOISE_CLASSES))
 
 
 @dataclass(frozen=True)
@@ -300,20 +311,28 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
         )
         evidence = {"water": chunk.classification == WATER_CLASS, "source": chunk.point_source_id}
         is_ground = keep & (chunk.classification == GROUND_CLASS)
+        removed = removed_by_class_filter(chunk.classification, chunk.withheld, keep, filters_classes=f.filters_classes)
+        # the sensor's geometry comes from every return but noise, whatever the model keeps
+        sensed = keep if removed is None else keep | removed
+
         if transformer is None:
             n_used, n_outside = accumulator.add(
                 chunk.X, chunk.Y, chunk.Z, keep, scales=chunk.scales, offsets=chunk.offsets, **evidence
             )
             ground += count_ground_at_zero(chunk.Z, is_ground, scale=chunk.scales[2], offset=chunk.offsets[2])
             if chunk.pulses is not None:
-                sums.append(_trajectory_sums(chunk, chunk.coordinates(), keep, origin))
+                sums.append(_trajectory_sums(chunk, chunk.coordinates(), sensed, origin))
+            if removed is not None:
+                _count_left_out(accumulator, removed, evidence["water"], chunk.X, chunk.Y, chunk.scales, chunk.offsets)
         else:
             x, y, z = chunk.coordinates()
             x, y = transformer.transform(x, y)
             n_used, n_outside = accumulator.add(x, y, z, keep, **evidence)
             ground += count_ground_at_zero(z, is_ground)
             if chunk.pulses is not None:
-                sums.append(_trajectory_sums(chunk, (x, y, z), keep, origin))
+                sums.append(_trajectory_sums(chunk, (x, y, z), sensed, origin))
+            if removed is not None:
+                _count_left_out(accumulator, removed, evidence["water"], x, y)
         read += len(chunk) if decoded else 0  # handed-over points were counted by the top task
         used += n_used
         outside += n_outside
@@ -332,6 +351,20 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
         ground=ground,
         trajectory=TrajectorySums.merged(sums),
     )
+
+
+def _count_left_out(
+    accumulator: HeightMapAccumulator,
+    removed: np.ndarray,
+    water: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    scales: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    offsets: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> None:
+    """Points the class filter left out: water is evidence of water, the others of a cover (buildings, trees)."""
+    accumulator.add_counts("water", x, y, removed & water, scales=scales, offsets=offsets)
+    accumulator.add_counts("covered", x, y, removed & ~water, scales=scales, offsets=offsets)
 
 
 def _trajectory_sums(

@@ -422,6 +422,7 @@ def _cell_holes(
         # outside every tile's extent counts as a missing tile's pixel: the delivery stops short there
         coverage=None if coverage is None else np.where(coverage == OUTSIDE_TILE_EXTENTS, IN_MISSING_TILE, coverage),
         sight=sight,
+        covered=stats.covered > 0 if stats.covered.size else None,
         min_area_px=params.min_area_px,
         local_radius_px=HOLE_CONTEXT_PX,
     )
