@@ -30,6 +30,7 @@ from . import __version__
 from .cluster import ClusterStart, dask_client
 from .config import Config, config_key, to_dict
 from .errors import DiskFullError, HolefillError, InputDataError, OutputError, TaskError
+from .footprint_density import measure_footprint
 from .ground_level import NO_TERRAIN, GroundLevel
 from .holes.coverage import CoverageGaps
 from .io.checksums import input_record, output_records
@@ -44,7 +45,7 @@ from .outputs import (
     write_mosaics,
     write_survey_layers,
 )
-from .plan import SurveyPlan, plan_survey
+from .plan import SurveyPlan, needs_density, plan_survey
 from .report import ReportInputs, read_report_inputs, write_report
 from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells, write_points, write_rasters
 from .stages.bin_tiles import TileFailure, TileResult
@@ -193,6 +194,8 @@ def _plan(inputs: list[str] | tuple[str, ...], config: Config, aoi: str | os.Pat
     survey = scan_survey(
         inputs, crs=config.survey.crs, target_crs=config.survey.target_crs, on_error=config.survey.on_error
     )
+    if needs_density(config):
+        survey = measure_footprint(survey)
     plan = plan_survey(survey, config, aoi=aoi)
     if not plan.cells:
         raise InputDataError(aoi or "INPUT", "the survey area does not overlap the data of any tile")
@@ -460,7 +463,9 @@ def _write_products(
     write_mosaics(staging, plan, rasters.written)
     gpkg = staging.product("holes.gpkg")
     write_survey_layers(gpkg, plan, rasters.tiles, rasters.cells, rasters.written, skipped)
-    hole_summary = write_hole_layers(gpkg, plan, config, holes, detected, fills) if holes is not None else {}
+    hole_summary = (
+        write_hole_layers(gpkg, plan, config, holes, detected, fills, rasters.written) if holes is not None else {}
+    )
     vrt = staging.product("dsm.vrt")
     flight_summary: dict[str, Any] = {}
     heights = sum((r.ground for r in rasters.tiles), GroundLevel())
