@@ -26,7 +26,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from . import __version__
+from . import __version__, interrupt
 from .cluster import ClusterStart, dask_client
 from .config import Config, config_key, to_dict
 from .errors import DiskFullError, HolefillError, InputDataError, OutputError, TaskError
@@ -131,6 +131,7 @@ def run_survey(
             )
         except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError):
             # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
+            interrupt.acknowledge()  # a second TERM must not cut the unlock short
             staging.keep_for_resume()
             raise
         except BaseException:
@@ -159,6 +160,7 @@ def _publish(
             raise _disk_full_error(staging, "the products") from None
         raise
     flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
+    interrupt.begin_commit()  # a TERM from here on is ignored: the run completes (exit 0)
     staging.commit(PRODUCTS + flight_files, keep_work=keep_work, replaces=FLIGHTPLAN_PRODUCTS)
     return summary
 
