@@ -338,3 +338,28 @@ def test_jobqueue_driver_cancelled_while_waiting_for_workers_closes_its_cluster(
     assert (tmp_path / "closed").exists()  # the cluster closed: pending worker jobs cancelled
     options = (tmp_path / "options").read_text()
     assert "'walltime', '12:30:00'" in options and "--lifetime" in options and "--signal" not in options
+
+
+def _run_cron_line(line: str, tmp_path: Path, status: int) -> subprocess.CompletedProcess:
+    """The nightly cron command, as cron's bash runs it, with its paths in ``tmp_path`` and a stub holefill."""
+    stub = tmp_path / "holefill"
+    stub.write_text(f"#!/bin/bash\necho 'holefill output'\nexit {status}\n")
+    stub.chmod(0o755)
+    command = line.split(None, 5)[5].replace("\\%", "%").replace("/var/log/holefill", str(tmp_path / "logs"))
+    command = command.replace("/var/lock", str(tmp_path)).replace("/opt/holefill/.venv/bin/holefill", str(stub))
+    return subprocess.run(["bash", "-c", command], capture_output=True, text=True, timeout=60)
+
+
+@pytest.mark.skipif(shutil.which("flock") is None or shutil.which("timeout") is None, reason="needs flock, timeout")
+def test_cron_night_creates_its_log_folder_and_mails_one_line_when_it_fails_or_is_skipped(tmp_path):
+    run = next(line for line in _cron_entries(WORKFLOWS / "schedule" / "holefill.crontab") if " run " in line)
+    done = _run_cron_line(run, tmp_path, 0)
+    assert done.returncode == 0 and done.stdout == "" and done.stderr == ""  # cron mails nothing
+    assert "holefill output" in next((tmp_path / "logs").glob("nightly-*.log")).read_text()
+    failed = _run_cron_line(run, tmp_path, 3)
+    assert failed.stdout.startswith("holefill: exit 3 ") and "nightly-" in failed.stdout  # cron mails this line
+    holder = subprocess.Popen(["flock", str(tmp_path / "holefill-nightly.lock"), "sleep", "30"])
+    time.sleep(0.5)  # the previous night still runs
+    skipped = _run_cron_line(run, tmp_path, 0)
+    holder.kill()
+    assert skipped.stdout.startswith("holefill: night skipped")
