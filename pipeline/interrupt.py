@@ -35,10 +35,12 @@ class _State:
     acknowledged: bool = False  # the run is stopping (its handler caught the KeyboardInterrupt)
     committed: bool = False  # the commit began: later TERMs are ignored
     watchdog: threading.Thread | None = None
+    epoch: int = 0  # counts installs: a watchdog of an earlier run stops
 
     def reset(self) -> None:
         self.requested = self.acknowledged = self.committed = False
         self.watchdog = None
+        self.epoch += 1
 
 
 STATE = _State()
@@ -50,16 +52,20 @@ def on_terminate(signum: int, frame: Any) -> None:
         return
     if not STATE.requested:
         STATE.requested = True
-        STATE.watchdog = threading.Thread(target=_reraise_until_answered, name="holefill-term", daemon=True)
+        STATE.watchdog = threading.Thread(
+            target=_reraise_until_answered, args=(STATE.epoch,), name="holefill-term", daemon=True
+        )
         STATE.watchdog.start()
     raise KeyboardInterrupt
 
 
-def _reraise_until_answered() -> None:
+def _reraise_until_answered(epoch: int) -> None:
     stopped = threading.Event()
     while not stopped.wait(RERAISE_AFTER_S):
-        if STATE.acknowledged or STATE.committed:
+        if STATE.acknowledged or STATE.committed or STATE.epoch != epoch:
             return
+        if signal.getsignal(signal.SIGTERM) is not on_terminate:
+            return  # the handler is gone (the command ended): never kill the process
         os.kill(os.getpid(), signal.SIGTERM)  # the handler runs again in the main thread
 
 

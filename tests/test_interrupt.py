@@ -15,8 +15,9 @@ from pipeline import interrupt
 def handler():
     previous = interrupt.install()
     yield
+    interrupt.STATE.reset()  # before the handler goes: a watchdog left over stops
     signal.signal(signal.SIGTERM, previous)
-    interrupt.STATE.reset()
+    time.sleep(interrupt.RERAISE_AFTER_S + 0.2)  # and has stopped before the next test
 
 
 def term() -> None:
