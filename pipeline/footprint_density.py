@@ -43,6 +43,7 @@ import shapely
 from pyproj import CRS, Transformer
 
 from .density import BLOCK_PULSES, Density, narrow_width, sampling_gap_width_m
+from .errors import InputDataError
 from .grid import Grid
 from .io.las import iter_xy
 from .survey import Survey, Tile, source_crs_for_task
@@ -162,7 +163,7 @@ def measure_footprint(survey: Survey, *, workers: int | None = None) -> Survey:
     block = base_block(survey)
     threads = max(1, min(len(survey.tiles), workers or min(8, os.cpu_count() or 1)))
     with ThreadPoolExecutor(max_workers=threads) as pool:
-        parts = list(pool.map(lambda t: _count_tile(t, survey, block, first), survey.tiles))
+        parts = list(pool.map(lambda t: _count_tile_or_none(t, survey, block, first), survey.tiles))
     blocks = choose_level(merge_blocks(parts, block))
     pulses = int(blocks.count.sum())
     area_m2 = blocks.occupied * (blocks.block * survey.horizontal_unit_m) ** 2
@@ -177,6 +178,19 @@ def measure_footprint(survey: Survey, *, workers: int | None = None) -> Survey:
         measured.seconds,
     )
     return replace(survey, footprint=measured)
+
+
+def _count_tile_or_none(
+    tile: Tile, survey: Survey, block: float, first_only: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A tile's counts; none for a tile that cannot be decoded: stage 1 fails it or skips it
+    (``survey.on_error``) with the same message, and the density comes from the others."""
+    try:
+        return _count_tile(tile, survey, block, first_only)
+    except InputDataError as e:
+        logger.debug("density pre-pass: %s", e)
+        empty = np.zeros(0, np.int64)
+        return empty, empty, empty
 
 
 def _count_tile(
