@@ -3,9 +3,10 @@
 Runs holefill with the default configuration (plus the CRS a file lacks,
 ``compare_outputs.MISSING_CRS``) on each file of ../shared/data, one at a time on
 one local cluster, and prints a Markdown table (the one in docs/performance.md,
-"Real surveys with default settings"). The density is the scan's, from the
-headers: first returns per m² over the tile bounds where the header's per-return
-counts add up, else all points (marked *). A failed run is a row with its error.
+"Real surveys with default settings"). The density is the one the run sized its
+pixels with: first returns per m² on the data footprint (the pre-pass of
+``pipeline.footprint_density``) where the headers' per-return counts add up, else
+all points (marked *). A failed run is a row with its error.
 
 Usage::
 
@@ -25,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from compare_outputs import MISSING_CRS, SHARED_DATA
 
 HEADER = (
-    "| file | density (pts/m², header) | pixel (m) | cell (m) | holes | by cause | "
+    "| file | density (pts/m², footprint) | pixel (m) | cell (m) | holes | by cause | "
     "small voids + sampling gaps | min area (m²) | seconds |\n"
     "|---|---|---|---|---|---|---|---|---|"
 )

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import click
 
-from . import __version__
+from . import __version__, interrupt
 from .errors import ClusterError, ConfigError, CRSError, HolefillError, InputDataError, OutputError, TaskError
 
 #: Exit status per error class (the first matching class wins).
@@ -36,7 +36,7 @@ class _Group(click.Group):
     """Turn holefill's exceptions into one clear line on stderr and an exit status."""
 
     def invoke(self, ctx: click.Context):
-        previous = signal.signal(signal.SIGTERM, _terminate)
+        previous = interrupt.install()
         try:
             return super().invoke(ctx)
         except HolefillError as e:
@@ -46,6 +46,7 @@ class _Group(click.Group):
                 _note("holefill: finished tasks are kept: run again with --resume to continue", level="error")
             ctx.exit(code)
         except KeyboardInterrupt:
+            interrupt.acknowledge()
             _note(
                 "holefill: interrupted; finished tasks are kept: run again with --resume to continue",
                 level="error",
@@ -53,18 +54,21 @@ class _Group(click.Group):
             )
             ctx.exit(EXIT_INTERRUPTED)
         finally:
-            signal.signal(signal.SIGTERM, previous)
+            # the holefill command exits now, its outcome settled: a TERM while Python shuts
+            # down (Dask's atexit clean-up) must not turn it into 143
+            signal.signal(signal.SIGTERM, signal.SIG_IGN if _is_the_command() else previous)
+
+
+def _is_the_command() -> bool:
+    """Whether this process is the ``holefill`` command (not a program or a test calling the CLI in-process)."""
+    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+    return Path(sys.argv[0]).name == "holefill" or getattr(spec, "name", "") in ("pipeline.cli", "pipeline.__main__")
 
 
 #: Exit status of a run stopped by Ctrl-C or SIGTERM (what shells and schedulers expect).
 EXIT_INTERRUPTED = 130
 #: Exit status of a run that wrote its outputs but skipped tiles (``--on-error skip``), listed in the manifest.
 EXIT_PARTIAL = 5
-
-
-def _terminate(signum, frame) -> None:
-    """SIGTERM (timeout, SLURM, systemd) stops a run the way Ctrl-C does."""
-    raise KeyboardInterrupt
 
 
 class _Output:

@@ -1,8 +1,9 @@
 """Point density and what it supports: the pixel size, the cell size, what a sampling gap is.
 
-Everything here is a small pure function of numbers read from headers (point
-counts, per-return counts, bounds): no point is decoded, so a survey of
-hundreds of tiles is sized in the time its headers take to read.
+Small pure functions of counts and areas. The survey's density is measured on
+the data footprint by a pre-pass over the points' x, y
+(:mod:`pipeline.footprint_density`); without it (nothing "auto" to settle) it is
+the header counts over the tile bounds, a lower bound.
 
 The rules, in survey terms:
 
@@ -13,17 +14,23 @@ The rules, in survey terms:
   for a scanner's regular one). IGN's 0.5 m DSMs from about 18 first returns/m²
   meet it (4.5 per pixel).
 - The nominal point spacing is ``1 / sqrt(first-return density)``. A void
-  narrower than :data:`SAMPLING_GAP_SPACINGS` spacings can be the scan pattern
-  (between scan lines, between a rotating scanner's loops), not a missing
-  surface: it is a *sampling gap*, filled as part of the DSM and counted, never
-  listed as a hole. ``holes.min_area_m2 = "auto"`` is the area of such a gap, a
-  square of that width, and never less than :data:`MIN_AREA_FLOOR_M2`.
+  narrower than :data:`SAMPLING_GAP_SPACINGS` spacings *across* (:func:`void_width`:
+  a strip's width, a compact void's side) can be the
+  scan pattern (between scan lines, between a rotating scanner's loops), not a
+  missing surface: it is a *sampling gap*, filled as part of the DSM and counted,
+  never listed as a hole. The spacing is the local one, from the footprint's
+  blocks around the void; a void wider than that in both directions is never a
+  sampling gap. ``holes.min_area_m2 = "auto"`` is the area of such a gap at the
+  survey's spacing, a square of that width, and never less than
+  :data:`MIN_AREA_FLOOR_M2`.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+import numpy as np
 
 #: Pixel sizes ``grid.resolution_m = "auto"`` chooses from (metres), finest first.
 STANDARD_PIXEL_SIZES_M: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0, 4.0, 5.0, 10.0)
@@ -33,6 +40,11 @@ AUTO_PULSES_PER_PIXEL = 4.0
 
 #: Voids narrower than this many nominal point spacings are sampling gaps.
 SAMPLING_GAP_SPACINGS = 4.0
+
+#: Pulses a footprint block holds on average at the block size the footprint is measured
+#: with: a block inside the data is empty by chance with probability e^-8 (0.03 %) for a
+#: random pattern, fewer for a scanner's regular one (:mod:`pipeline.footprint_density`).
+BLOCK_PULSES = 8.0
 
 #: ``holes.min_area_m2 = "auto"`` is never below this (the fixed default it replaces).
 MIN_AREA_FLOOR_M2 = 4.0
@@ -62,6 +74,7 @@ class Density:
     pulses: int
     area_m2: float
     first_returns: bool
+    area_source: str = "tile bounds"  # or "data footprint" (pipeline.footprint_density)
 
     @property
     def points_per_m2(self) -> float:
@@ -83,6 +96,7 @@ class Density:
             "points": self.points,
             "first_returns": self.pulses if self.first_returns else None,
             "area_m2": round(self.area_m2, 2),
+            "area_source": self.area_source,
             "points_per_m2": round(self.points_per_m2, 4),
             "first_returns_per_m2": round(self.pulses_per_m2, 4) if self.first_returns else None,
             "spacing_m": round(self.spacing_m, 4),
@@ -151,6 +165,41 @@ def sampling_gap_width_m(spacing_m: float, *, spacings: float = SAMPLING_GAP_SPA
     return spacings * spacing_m
 
 
+def narrow_width(area: np.ndarray | float, edge_length: np.ndarray | float) -> np.ndarray:
+    """The narrow side of the rectangle with the same area and perimeter: a void's width across.
+
+    ``(P - sqrt(P^2 - 16 A)) / 4``: exact for rectangles (a strip's width, a square's
+    side) and for strips that bend (a gap between a rotating scanner's loops), 1 for
+    a plus of five pixels; shapes more compact than a square (a disc) give ``P / 4``
+    (0.79 of a disc's diameter). A staircase edge (a diagonal strip at pixel level)
+    is longer than the true one, so a diagonal strip reads up to sqrt(2) narrower.
+
+    >>> narrow_width(np.array([9.0, 5.0, 20.0]), np.array([12.0, 12.0, 24.0])).tolist()
+    [3.0, 1.0, 2.0]
+    """
+    area = np.asarray(area, np.float64)
+    edge = np.asarray(edge_length, np.float64)
+    return (edge - np.sqrt(np.maximum(edge * edge - 16.0 * area, 0.0))) / 4.0
+
+
+def void_width(area: np.ndarray, edge_length: np.ndarray, moment_width: np.ndarray) -> np.ndarray:
+    """A void's width across, the figure the sampling-gap rule compares: the larger of two estimates.
+
+    :func:`narrow_width` is exact for strips, straight or bent, but a pixel-level
+    notch (one point jittered into a 3 x 3 px void: area 8, edge 14) lengthens the
+    edge and reads 1.44 px. ``min(moment width, 4 area / edge)`` is a compact void's
+    side (3 x 3 px: 3) and never more than twice a strip's width. Taking the larger
+    never calls a void wider than the gap in both directions a gap.
+
+    >>> void_width(np.array([8.0, 9.0]), np.array([14.0, 20.0]), np.array([2.9, 9.0])).tolist()
+    [2.2857142857142856, 1.8]
+    """
+    area = np.asarray(area, np.float64)
+    edge = np.maximum(np.asarray(edge_length, np.float64), 1.0)
+    compact = np.minimum(np.asarray(moment_width, np.float64), 4.0 * area / edge)
+    return np.maximum(narrow_width(area, edge), compact)
+
+
 def auto_min_area_m2(spacing_m: float, *, floor_m2: float = MIN_AREA_FLOOR_M2) -> float:
     """``holes.min_area_m2 = "auto"``: a square sampling gap, never below ``floor_m2``.
 
@@ -164,15 +213,18 @@ def auto_min_area_m2(spacing_m: float, *, floor_m2: float = MIN_AREA_FLOOR_M2) -
 
 __all__ = [
     "AUTO_PULSES_PER_PIXEL",
+    "BLOCK_PULSES",
     "MIN_AREA_FLOOR_M2",
     "SAMPLING_GAP_SPACINGS",
     "STANDARD_PIXEL_SIZES_M",
     "Density",
     "auto_min_area_m2",
     "auto_resolution_m",
+    "narrow_width",
     "nominal_spacing_m",
     "pulse_count",
     "round_cell_size",
     "sampling_gap_width_m",
     "supported_resolution_m",
+    "void_width",
 ]

@@ -219,8 +219,13 @@ def write_hole_layers(
     holes: HoleSet,
     detected: list[DetectResult],
     fills: list[HoleFill] | None = None,
+    written: list[WriteResult] | None = None,
 ) -> dict[str, Any]:
-    """The ``holes``, ``hole_parts``, ``vertical_holes`` and ``walls`` layers; returns the report's counts."""
+    """The ``holes``, ``hole_parts``, ``vertical_holes`` and ``walls`` layers; returns the report's counts.
+
+    ``written``: the writer stage's results, whose filled pixels (those of ``fill_mask``)
+    the fill figures add up.
+    """
     crs = plan.grid.crs_wkt
     part_outlines = {
         (cell_index, label): shapely.from_wkb(wkb)
@@ -260,7 +265,7 @@ def write_hole_layers(
         "height_jump_px": int(sum(d.jump_px for d in detected)),
         "aoi_area_m2": round(sum(d.aoi_px for d in detected) * plan.pixel_area_m2, 2),
         "largest": sorted(hole_records, key=lambda r: -r["area_m2"])[:20],
-        "fill": _fill_counts(plan, catalog, fills) if fills is not None else {},
+        "fill": _fill_counts(plan, catalog, fills, listed, written or []) if fills is not None else {},
     }
 
 
@@ -332,16 +337,28 @@ def _fill_fields(fill: HoleFill | None, plan: SurveyPlan) -> dict[str, Any]:
     }
 
 
-def _fill_counts(plan: SurveyPlan, catalog, fills: list[HoleFill]) -> dict[str, Any]:
-    """Fill figures for the manifest and the report: holes and pixels by status and method."""
+def _fill_counts(
+    plan: SurveyPlan, catalog, fills: list[HoleFill], listed: set[int], written: list[WriteResult]
+) -> dict[str, Any]:
+    """Fill figures for the manifest and the report: holes and pixels by status and method.
+
+    ``filled_area_m2`` is what ``fill_mask`` holds (the writer counts its filled pixels
+    per cell core), split into the listed holes and the small voids (those under the
+    minimum area, sampling gaps, and the small voids closed inside a cell, which the
+    writer fills itself).
+    """
     by_status = collections.Counter(f.status for f in fills)
     by_method = collections.Counter(f.method for f in fills if f.status == FILLED)
     area = {int(h["hole_id"]): float(h["area_px"]) for h in catalog.holes}
     skipped_m2 = sum(area.get(f.hole_id, 0.0) for f in fills if f.status != FILLED) * plan.pixel_area_m2
+    listed_px = sum(f.pixels for f in fills if f.hole_id in listed)
+    filled_px = sum(r.filled_px for r in written) if written else sum(f.pixels for f in fills)
     return {
         "holes_by_status": dict(sorted(by_status.items())),
         "holes_by_method": dict(sorted(by_method.items())),
-        "filled_area_m2": round(sum(f.pixels for f in fills) * plan.pixel_area_m2, 2),
+        "filled_area_m2": round(filled_px * plan.pixel_area_m2, 2),
+        "filled_holes_area_m2": round(listed_px * plan.pixel_area_m2, 2),
+        "filled_small_voids_area_m2": round(max(filled_px - listed_px, 0) * plan.pixel_area_m2, 2),
         "skipped_area_m2": round(skipped_m2, 2),
     }
 

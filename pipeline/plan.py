@@ -341,6 +341,12 @@ def _area_squares(area: SurveyArea) -> list[Bounds]:
     return [grid.square_bounds(s) for s in grid.squares] + list(area.missing_tiles)
 
 
+def needs_density(config: Config) -> bool:
+    """Whether the run settles something from the survey's density ("auto" pixel size or minimum hole area),
+    so that it is worth measuring on the data footprint (:func:`pipeline.footprint_density.measure_footprint`)."""
+    return config.grid.resolution_m == AUTO or (config.holes.enabled and config.holes.min_area_m2 == AUTO)
+
+
 def plan_sizing(density: Density, config: Config) -> Sizing:
     """Settle ``grid.resolution_m`` ("auto" or a number) and round ``grid.cell_size_m`` to whole pixels.
 

@@ -26,10 +26,11 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from . import __version__
+from . import __version__, interrupt
 from .cluster import ClusterStart, WorkerWatch, dask_client
 from .config import Config, config_key, to_dict
 from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, TaskError
+from .footprint_density import measure_footprint
 from .ground_level import NO_TERRAIN, GroundLevel
 from .holes.coverage import CoverageGaps
 from .io.checksums import input_record, output_records
@@ -45,7 +46,7 @@ from .outputs import (
     write_mosaics,
     write_survey_layers,
 )
-from .plan import SurveyPlan, plan_survey
+from .plan import SurveyPlan, needs_density, plan_survey
 from .report import ReportInputs, read_report_inputs, write_report
 from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells, write_points, write_rasters
 from .stages.bin_tiles import TileFailure, TileResult
@@ -141,6 +142,7 @@ def run_survey(
             )
         except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError, ClusterError):
             # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
+            interrupt.acknowledge()  # a second TERM must not cut the unlock short
             staging.keep_for_resume()
             raise
         except BaseException:
@@ -181,6 +183,7 @@ def _publish(
             raise _disk_full_error(staging, "the products") from None
         raise
     flight_files = tuple(os.path.basename(f) for f in summary.flightplan.get("files", []))
+    interrupt.begin_commit()  # a TERM from here on is ignored: the run completes (exit 0)
     staging.commit(PRODUCTS + flight_files, keep_work=keep_work, replaces=FLIGHTPLAN_PRODUCTS)
     return summary
 
@@ -225,6 +228,8 @@ def _plan(inputs: list[str] | tuple[str, ...], config: Config, aoi: str | os.Pat
         on_error=config.survey.on_error,
         exclude=written,
     )
+    if needs_density(config):
+        survey = measure_footprint(survey)
     plan = plan_survey(survey, config, aoi=aoi)
     if not any(plan.tiles_of_cell.get(cell.id) for cell in plan.cells):  # the planned area's own cells hold none
         raise InputDataError(aoi or "INPUT", "the survey area does not overlap the data of any tile")
@@ -508,7 +513,9 @@ def _write_products(
     write_mosaics(staging, plan, rasters.written)
     gpkg = staging.product("holes.gpkg")
     write_survey_layers(gpkg, plan, rasters.tiles, rasters.cells, rasters.written, skipped)
-    hole_summary = write_hole_layers(gpkg, plan, config, holes, detected, fills) if holes is not None else {}
+    hole_summary = (
+        write_hole_layers(gpkg, plan, config, holes, detected, fills, rasters.written) if holes is not None else {}
+    )
     vrt = staging.product("dsm.vrt")
     flight_summary: dict[str, Any] = {}
     heights = sum((r.ground for r in rasters.tiles), GroundLevel())

@@ -120,6 +120,9 @@ class Staging:
         except OSError as e:
             _unlock(out)
             raise OutputError(f"{out}: output folder cannot be created or written: {e.strerror or e}") from None
+        except BaseException:  # a TERM while the folder is being set up must not leave the lock
+            _unlock(out)
+            raise
         previous_work = out / "work"
         reuse_from = previous_work if incremental and (previous_work / "done").is_dir() else None
         return cls(out, root, resumed, reuse_from)

@@ -124,6 +124,19 @@ def test_sigterm_stops_like_ctrl_c_and_a_later_run_cleans_up(survey, tmp_path):
     assert not list(out.glob(".holefill-partial-*"))
 
 
+def test_two_terms_as_scancel_sends_them_leave_no_lock(survey, tmp_path):
+    """scancel signals every process of the job and the batch script passes its own TERM on."""
+    out = tmp_path / "out"
+    run = holefill(str(survey / "tiles"), "--out", str(out))
+    wait_for_kept_tiles(out, 2, run)
+    run.send_signal(signal.SIGTERM)
+    time.sleep(0.02)
+    run.send_signal(signal.SIGTERM)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 130, err
+    assert "Traceback" not in err and not (out / ".holefill.lock").exists()
+
+
 def test_ctrl_c_to_the_process_group_exits_130_in_one_line_and_resumes(survey, reference, tmp_path):
     """A terminal's Ctrl-C reaches the client and every worker process at once."""
     tiles = str(survey / "tiles")

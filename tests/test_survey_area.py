@@ -137,8 +137,11 @@ def test_data_stopping_short_of_its_square_is_missed_coverage(shared_data, tmp_p
     out = tmp_path / "out"
     run_survey([str(p) for p in names], out, load_config(), client=dask_client)
     holes = read_layer(out / "holes.gpkg", "holes")
-    assert len(holes) == 1, holes[["area_m2", "cause", "cause_rule"]]
-    hole = holes.iloc[0]
+    # besides the strip, voids wider across than 4 point spacings (0.8 m here) are listed since
+    # issue 21: a 2 x 2 m scan shadow beside a roof
+    others = holes[holes["cause"] != "missed_coverage"]
+    assert len(holes) - len(others) == 1 and (others["cause"] == "occlusion").all() and (others["area_m2"] <= 10).all()
+    hole = holes[holes["cause"] == "missed_coverage"].iloc[0]
     assert (hole["cause"], hole["cause_rule"]) == ("missed_coverage", "missing_tile")
     xmin, _, xmax, _ = hole.geometry.bounds
     assert 770541 <= xmin and xmax <= 770551 and 300 <= hole["area_m2"] <= 420

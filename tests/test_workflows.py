@@ -11,11 +11,14 @@ with ``holefill <command> --help``.
 from __future__ import annotations
 
 import ast
+import os
 import re
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -57,7 +60,10 @@ def test_batch_scripts_stop_with_sigterm_and_resume(script):
     if "jobqueue_run.py" in text:  # the driver job: the holefill command is in the script it runs
         text += (WORKFLOWS / "slurm" / "jobqueue_run.py").read_text()
     assert "--resume" in text and "--no-progress" in text
-    assert re.search(r"^#SBATCH --signal=B:\w+@\d+", text, re.M), "no signal before the time limit"
+    # a stop before the time limit that follows the job's own limit (not a fixed --signal lead)
+    assert "time_left_s" in text and "kill -USR1" in text, "no stop before the time limit"
+    assert not re.search(r"^#SBATCH --signal", text, re.M), "a fixed lead fires at once when --time is shortened"
+    assert 'echo "holefill: exit $status ($(meaning "$status"))"' in text, "the exit status is not logged"
     assert "kill -TERM" in text and "scontrol requeue" in text and "#SBATCH --requeue" in text
 
 
@@ -279,3 +285,81 @@ def test_the_allow_list_is_only_for_what_is_not_merged_yet():
     run_options = _options(_help("run"))
     assert {"--out", "--config", "--set", "--workers", "--scheduler", "--no-progress"} <= run_options
     assert set(NOT_YET_MERGED) <= {"run"} and NOT_YET_MERGED.get("run", set()) <= {"--resume"}
+
+
+STUB_JOBQUEUE = """
+import pathlib, sys, time
+MARK = pathlib.Path(sys.argv[1]).parent
+class SLURMCluster:
+    scheduler_address = "tcp://stub:8786"
+    def __init__(self, **kwargs):
+        (MARK / "options").write_text(repr(sorted(kwargs.items())))
+    def scale(self, jobs):
+        pass
+    def close(self):
+        (MARK / "closed").write_text("yes")
+"""
+
+STUB_DISTRIBUTED = """
+import pathlib, sys, time
+class Client:
+    def __init__(self, cluster):
+        pass
+    def __enter__(self):
+        return self
+    def __exit__(self, *exc):
+        return False
+    def wait_for_workers(self, n):
+        (pathlib.Path(sys.argv[1]).parent / "waiting").write_text("yes")
+        time.sleep(600)  # no worker job starts
+"""
+
+
+def test_jobqueue_driver_cancelled_while_waiting_for_workers_closes_its_cluster(tmp_path):
+    """A TERM before holefill starts stopped nothing for 30 s, and the worker jobs started afterwards."""
+    stubs = tmp_path / "stubs"
+    (stubs / "dask_jobqueue").mkdir(parents=True)
+    (stubs / "distributed").mkdir()
+    (stubs / "dask_jobqueue" / "__init__.py").write_text(STUB_JOBQUEUE)
+    (stubs / "distributed" / "__init__.py").write_text(STUB_DISTRIBUTED)
+    script = WORKFLOWS / "slurm" / "jobqueue_run.py"
+    env = {**os.environ, "PYTHONPATH": str(stubs)}
+    env.pop("SLURM_JOB_ID", None)
+    driver = subprocess.Popen(
+        [sys.executable, str(script), str(tmp_path / "out"), "in"], env=env, stderr=subprocess.PIPE, text=True
+    )
+    started = time.monotonic()
+    while not (tmp_path / "waiting").exists():
+        assert driver.poll() is None and time.monotonic() - started < 60, driver.communicate()
+        time.sleep(0.05)
+    driver.send_signal(signal.SIGTERM)
+    _, err = driver.communicate(timeout=10)
+    assert driver.returncode == 130, err
+    assert (tmp_path / "closed").exists()  # the cluster closed: pending worker jobs cancelled
+    options = (tmp_path / "options").read_text()
+    assert "'walltime', '12:30:00'" in options and "--lifetime" in options and "--signal" not in options
+
+
+def _run_cron_line(line: str, tmp_path: Path, status: int) -> subprocess.CompletedProcess:
+    """The nightly cron command, as cron's bash runs it, with its paths in ``tmp_path`` and a stub holefill."""
+    stub = tmp_path / "holefill"
+    stub.write_text(f"#!/bin/bash\necho 'holefill output'\nexit {status}\n")
+    stub.chmod(0o755)
+    command = line.split(None, 5)[5].replace("\\%", "%").replace("/var/log/holefill", str(tmp_path / "logs"))
+    command = command.replace("/var/lock", str(tmp_path)).replace("/opt/holefill/.venv/bin/holefill", str(stub))
+    return subprocess.run(["bash", "-c", command], capture_output=True, text=True, timeout=60)
+
+
+@pytest.mark.skipif(shutil.which("flock") is None or shutil.which("timeout") is None, reason="needs flock, timeout")
+def test_cron_night_creates_its_log_folder_and_mails_one_line_when_it_fails_or_is_skipped(tmp_path):
+    run = next(line for line in _cron_entries(WORKFLOWS / "schedule" / "holefill.crontab") if " run " in line)
+    done = _run_cron_line(run, tmp_path, 0)
+    assert done.returncode == 0 and done.stdout == "" and done.stderr == ""  # cron mails nothing
+    assert "holefill output" in next((tmp_path / "logs").glob("nightly-*.log")).read_text()
+    failed = _run_cron_line(run, tmp_path, 3)
+    assert failed.stdout.startswith("holefill: exit 3 ") and "nightly-" in failed.stdout  # cron mails this line
+    holder = subprocess.Popen(["flock", str(tmp_path / "holefill-nightly.lock"), "sleep", "30"])
+    time.sleep(0.5)  # the previous night still runs
+    skipped = _run_cron_line(run, tmp_path, 0)
+    holder.kill()
+    assert skipped.stdout.startswith("holefill: night skipped")

@@ -279,9 +279,39 @@ def iter_point_chunks(
     declares, raises :class:`InputDataError`. With ``pulses``, the sensor's layers
     (``SENSOR_LAYERS``) are decoded too and each chunk carries its :class:`PulseFields`.
     """
-    path = Path(path)
     if pulses:
         selection = selection | SENSOR_LAYERS
+    for records, scales, offsets in _iter_records(path, chunk_points, selection):
+        yield point_chunk(records, scales, offsets, pulses=pulses)
+
+
+def iter_xy(path: str | os.PathLike, chunk_points: int, *, first_only: bool) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Scaled x, y of a file's points (first returns only with ``first_only``), ``chunk_points`` at a time.
+
+    Decompresses the coordinate and return layer alone where the point format
+    keeps layers apart (LAS 1.4 formats 6-10); the density pre-pass
+    (:mod:`pipeline.footprint_density`) reads nothing else. Errors as
+    :func:`iter_point_chunks`.
+    """
+    for records, scales, offsets in _iter_records(path, chunk_points, laspy.DecompressionSelection.base()):
+        x, y = records["X"], records["Y"]
+        if first_only:
+            keep = _return_numbers(records) == 1
+            x, y = x[keep], y[keep]
+        yield x * scales[0] + offsets[0], y * scales[1] + offsets[1]
+
+
+def _return_numbers(records: np.ndarray) -> np.ndarray:
+    """Return numbers from the raw bit fields (bits 0-2 in formats 0-5, 0-3 in formats 6-10; LAS 1.4 R15)."""
+    mask = np.uint8(0x0F) if "classification_flags" in (records.dtype.names or ()) else np.uint8(0x07)
+    return records["bit_fields"] & mask
+
+
+def _iter_records(
+    path: str | os.PathLike, chunk_points: int, selection: laspy.DecompressionSelection
+) -> Iterator[tuple[np.ndarray, tuple[float, float, float], tuple[float, float, float]]]:
+    """A file's raw point records, chunk by chunk, with the header's scales and offsets."""
+    path = Path(path)
     decoded = 0
     expected = None
     try:
@@ -297,7 +327,7 @@ def iter_point_chunks(
                 if n == 0:
                     break
                 decoded += n
-                yield point_chunk(chunk.array, scales, offsets, pulses=pulses)
+                yield chunk.array, scales, offsets
     except InputDataError:
         raise
     except Exception as e:
@@ -371,9 +401,10 @@ __all__ = [
     "CRSError",
     "PointChunk",
     "PulseFields",
-    "pulse_fields",
     "TileHeader",
     "decode_only",
     "iter_point_chunks",
+    "iter_xy",
+    "pulse_fields",
     "read_header",
 ]

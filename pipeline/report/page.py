@@ -290,12 +290,22 @@ def _holes_section(
     ]
 
 
+def _fill_split(fill: dict[str, Any]) -> str:
+    """' (A m² in listed holes, B m² in small voids)', where the manifest splits the filled area."""
+    if "filled_holes_area_m2" not in fill:
+        return ""
+    return (
+        f" ({fill['filled_holes_area_m2']:,.0f} m² in listed holes, "
+        f"{fill['filled_small_voids_area_m2']:,.0f} m² in small voids and sampling gaps)"
+    )
+
+
 def _fill_section(fill: dict[str, Any], inputs: ReportInputs | None) -> list[str]:
     if not fill:
         return []
     parts = [
         "<h2>Filling</h2>",
-        f"<p>{fill['filled_area_m2']:,.0f} m² filled; {fill['skipped_area_m2']:,.0f} m² left nodata "
+        f"<p>{fill['filled_area_m2']:,.0f} m² filled{_fill_split(fill)}; {fill['skipped_area_m2']:,.0f} m² left nodata "
         "(holes too large to invent: see the flight plan). fill_mask.vrt says how each pixel was filled, "
         "fill_distance.vrt how far it lies from measured data.</p>",
     ]

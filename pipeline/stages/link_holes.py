@@ -14,6 +14,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..config import Config
+from ..density import void_width
+from ..footprint_density import sampling_gap_px
 from ..holes import CauseRules, HoleCatalog, classify_causes, link_holes, ring_metrics, shape_metrics
 from ..holes.coverage import line_bands
 from ..holes.flight_lines import axial_mean, line_azimuths
@@ -54,7 +56,8 @@ def link_cells(
     sight decide the causes where it is complete.
     """
     catalog = link_holes([d.cell_holes for d in detected], min_area_px=params.min_area_px)
-    catalog, gaps = mark_sampling_gaps(catalog, params.sampling_gap_px)
+    gap_px = sampling_gap_px(plan.survey, plan.grid, catalog.stats, params.sampling_gap_px)
+    catalog, gaps = mark_sampling_gaps(catalog, gap_px)
     rules = CauseRules.from_config(
         config,
         pixel_size_m=plan.grid.resolution * plan.survey.horizontal_unit_m,
@@ -81,17 +84,21 @@ def link_cells(
     )
 
 
-def mark_sampling_gaps(catalog: HoleCatalog, gap_px: float) -> tuple[HoleCatalog, np.ndarray]:
-    """Holes no thicker than ``gap_px`` pixels are sampling gaps: not listed, filled like small voids.
+def mark_sampling_gaps(catalog: HoleCatalog, gap_px: float | np.ndarray) -> tuple[HoleCatalog, np.ndarray]:
+    """Holes no wider across than ``gap_px`` pixels (one value, or one per hole) are sampling gaps: not listed, filled like small voids.
 
-    Thickness is ``2 x area / edge length`` (:func:`pipeline.holes.shape_metrics`): the
-    width of a strip, half the width of a compact void. Merged statistics are
-    exact, so the decision does not depend on the cells. Returns the catalog with
-    those holes flagged ``is_small`` and which holes were flagged here (and were
-    not small already).
+    The width across (:func:`pipeline.density.void_width`, from the area, the edge
+    length and the moments) is a strip's width and a compact void's side, so a void
+    wider than ``gap_px`` in both directions is never a gap. Merged
+    statistics are exact, so the decision does not depend on the cells. Returns the
+    catalog with those holes flagged ``is_small`` and which holes were flagged here
+    (and were not small already).
     """
     holes = catalog.holes
-    thin = shape_metrics(catalog.stats)["thickness_px"] <= gap_px if gap_px > 0 else np.zeros(len(holes), bool)
+    stats = catalog.stats
+    width = void_width(stats["area_px"], stats["edge_len_px"], shape_metrics(stats)["width_px"])
+    limit = np.broadcast_to(np.asarray(gap_px, np.float64), width.shape)
+    thin = (limit > 0) & (width <= limit)
     gaps = thin & ~holes["is_small"]
     if not gaps.any():
         return catalog, gaps

@@ -1,0 +1,308 @@
+"""The survey's density on its data footprint: a pre-pass over the points' x, y.
+
+A header's box is an upper bound of where its points are, and can be far larger:
+``ign_laspy_appendbug`` holds 3.85 first returns/m² on two patches 1 km apart
+(8,150 m²) and 0.04 over its 0.76 km² box; ``wires_quebec``'s diagonal strip
+fills 36 % of its box. A pixel size chosen from the header density is then 10 m
+where 2 m is supported, and a sampling-gap width from it hides real voids. No
+cheaper source knows the footprint: point order (flight lines, or spatial
+sort) makes any subset of LAZ chunks a biased sample of where data is, and LAZ
+chunk tables hold no positions. So the pre-pass decodes every point's x, y and
+return number (only that layer for LAS 1.4 formats 6-10; formats 0-5 decode
+whole points) and counts first returns (all points where the headers cannot tell
+returns apart) in square blocks on an absolute lattice.
+
+The blocks are 1 m, coarsened by powers of two only where a survey's tile boxes
+would need more than :data:`MAX_BLOCKS` (16 km² at 1 m: a block map of at most
+a few tens of MB on the client). The counts are then read at the finest power
+of two whose occupied blocks hold on average :data:`pipeline.density.BLOCK_PULSES`
+pulses (8: a block inside the footprint is empty by chance with probability
+e^-8 = 0.03 % for a random pattern), and the footprint is the occupied blocks'
+area. Blocks on the data's edge count whole, so the density errs low (towards
+coarser pixels) by about half a block along the edge. The lattice is absolute and
+counts from overlapping tiles add up, so the result depends neither on the cell
+size nor on how the survey is cut into tiles (below the 16 km² of tile boxes
+where the base block doubles).
+
+The same counts give a local density around each hole (:func:`local_pulses_per_m2`),
+from which the sampling-gap width follows (:mod:`pipeline.density`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import shapely
+from pyproj import CRS, Transformer
+
+from .density import BLOCK_PULSES, Density, narrow_width, sampling_gap_width_m
+from .errors import InputDataError
+from .grid import Grid
+from .io.las import iter_xy
+from .survey import Survey, Tile, source_crs_for_task
+
+logger = logging.getLogger(__name__)
+
+#: Side of the finest block (metres).
+BASE_BLOCK_M = 1.0
+#: The base block doubles until the union of the tile boxes holds at most this many blocks.
+MAX_BLOCKS = 1 << 24
+#: A file's counts are kept in a dense array when its box holds at most this many blocks.
+DENSE_FILE_BLOCKS = 1 << 22
+#: The coarsest block is ``BASE_BLOCK_M * 2**MAX_LEVEL`` (256 m at the base).
+MAX_LEVEL = 8
+#: Points decoded at a time by the pre-pass.
+CHUNK_POINTS = 1_000_000
+#: Around a hole, the blocks within this many blocks of its bounding box give its local density.
+LOCAL_MARGIN_BLOCKS = 4
+#: ... at most this many blocks across (a larger window is centred on the hole).
+LOCAL_WINDOW_BLOCKS = 128
+
+
+@dataclass(frozen=True)
+class BlockCounts:
+    """Pulses counted in square blocks of an absolute lattice (only the occupied blocks).
+
+    Block ``(ix, iy)`` covers ``[ix * block, (ix + 1) * block)`` in x, likewise in y
+    (survey CRS units).
+    """
+
+    block: float
+    ix: np.ndarray  # int64
+    iy: np.ndarray  # int64
+    count: np.ndarray  # int64, > 0
+
+    @property
+    def occupied(self) -> int:
+        return len(self.count)
+
+    def coarsen(self, factor: int) -> BlockCounts:
+        """The same counts in blocks ``factor`` times as wide (floor division keeps the lattice absolute)."""
+        if factor == 1:
+            return self
+        return merge_blocks([(self.ix // factor, self.iy // factor, self.count)], self.block * factor)
+
+
+@dataclass(frozen=True)
+class FootprintDensity:
+    """What the pre-pass measured: the blocks at the level chosen, and the totals."""
+
+    blocks: BlockCounts
+    points: int  # the headers' point count
+    pulses: int  # the points counted (first returns when ``first_returns``)
+    first_returns: bool
+    area_m2: float  # the occupied blocks' area
+    seconds: float  # wall time of the pre-pass
+
+    def density(self) -> Density:
+        return Density(self.points, self.pulses, self.area_m2, self.first_returns, area_source="data footprint")
+
+
+def block_histogram(x: np.ndarray, y: np.ndarray, block: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Occupied blocks of side ``block`` and their point counts (pure).
+
+    >>> block_histogram(np.array([0.5, 0.7, 2.1]), np.array([0.1, 0.2, -0.5]), 1.0)
+    (array([0, 2]), array([ 0, -1]), array([2, 1]))
+    """
+    ix = np.floor(np.asarray(x, np.float64) / block).astype(np.int64)
+    iy = np.floor(np.asarray(y, np.float64) / block).astype(np.int64)
+    return _sum_by_block(ix, iy, np.ones(len(ix), np.int64))
+
+
+def merge_blocks(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], block: float) -> BlockCounts:
+    """Counts of the same lattice added up block by block (tiles that overlap, chunks of a file)."""
+    parts = [p for p in parts if len(p[0])]
+    if not parts:
+        empty = np.zeros(0, np.int64)
+        return BlockCounts(block, empty, empty, empty)
+    ix, iy, count = (np.concatenate([p[k] for p in parts]) for k in range(3))
+    return BlockCounts(block, *_sum_by_block(ix, iy, count))
+
+
+def _sum_by_block(ix: np.ndarray, iy: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if len(ix) == 0:
+        return ix, iy, count
+    x0, y0 = int(ix.min()), int(iy.min())
+    rows = int(iy.max()) - y0 + 1
+    keys = (ix - x0) * rows + (iy - y0)
+    unique, inverse = np.unique(keys, return_inverse=True)
+    sums = np.bincount(inverse, weights=count, minlength=len(unique)).astype(np.int64)
+    return unique // rows + x0, unique % rows + y0, sums
+
+
+def choose_level(base: BlockCounts, *, min_mean: float = BLOCK_PULSES, max_level: int = MAX_LEVEL) -> BlockCounts:
+    """The finest coarsening (by powers of two) whose occupied blocks hold ``min_mean`` pulses on average."""
+    blocks = base
+    for level in range(max_level + 1):
+        blocks = base.coarsen(2**level)
+        if blocks.occupied == 0 or blocks.count.sum() / blocks.occupied >= min_mean:
+            return blocks
+    return blocks
+
+
+def base_block(survey: Survey) -> float:
+    """The finest block (survey CRS units): 1 m, doubled while the tile boxes would hold more than MAX_BLOCKS."""
+    area = shapely.union_all([shapely.box(*t.bounds) for t in survey.tiles]).area
+    block = BASE_BLOCK_M / survey.horizontal_unit_m
+    while area / block**2 > MAX_BLOCKS:
+        block *= 2
+    return block
+
+
+def measure_footprint(survey: Survey, *, workers: int | None = None) -> Survey:
+    """The survey with its density measured on the data footprint (decodes x, y of every point)."""
+    started = time.perf_counter()
+    first = survey.header_density.first_returns
+    block = base_block(survey)
+    threads = max(1, min(len(survey.tiles), workers or min(8, os.cpu_count() or 1)))
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        parts = list(pool.map(lambda t: _count_tile_or_none(t, survey, block, first), survey.tiles))
+    blocks = choose_level(merge_blocks(parts, block))
+    pulses = int(blocks.count.sum())
+    area_m2 = blocks.occupied * (blocks.block * survey.horizontal_unit_m) ** 2
+    measured = FootprintDensity(blocks, survey.point_count, pulses, first, area_m2, time.perf_counter() - started)
+    logger.info(
+        "density on the data footprint: %d %s over %.6g m2 (%.4g m blocks), %.3g /m2; %.2f s",
+        pulses,
+        "first returns" if first else "points",
+        area_m2,
+        blocks.block * survey.horizontal_unit_m,
+        pulses / area_m2 if area_m2 else math.inf,
+        measured.seconds,
+    )
+    return replace(survey, footprint=measured)
+
+
+def _count_tile_or_none(
+    tile: Tile, survey: Survey, block: float, first_only: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A tile's counts; none for a tile that cannot be decoded: stage 1 fails it or skips it
+    (``survey.on_error``) with the same message, and the density comes from the others."""
+    try:
+        return _count_tile(tile, survey, block, first_only)
+    except InputDataError as e:
+        logger.debug("density pre-pass: %s", e)
+        empty = np.zeros(0, np.int64)
+        return empty, empty, empty
+
+
+def _count_tile(
+    tile: Tile, survey: Survey, block: float, first_only: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One file's occupied base blocks and counts (runs in a thread; decoding is the cost)."""
+    source = source_crs_for_task(tile, survey)
+    transformer = Transformer.from_crs(CRS.from_wkt(source), survey.crs, always_xy=True) if source else None
+    minx, miny, maxx, maxy = tile.bounds
+    x0, y0 = math.floor(minx / block), math.floor(miny / block)
+    cols, rows = math.floor(maxx / block) - x0 + 1, math.floor(maxy / block) - y0 + 1
+    dense = np.zeros(cols * rows, np.int64) if cols * rows <= DENSE_FILE_BLOCKS else None
+    sparse: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    for x, y in iter_xy(tile.path, CHUNK_POINTS, first_only=first_only):
+        if transformer is not None:
+            x, y = transformer.transform(x, y)
+        if dense is None:
+            sparse.append(block_histogram(x, y, block))
+            continue
+        ix = np.clip(np.floor(x / block).astype(np.int64) - x0, 0, cols - 1)
+        iy = np.clip(np.floor(y / block).astype(np.int64) - y0, 0, rows - 1)
+        dense += np.bincount(ix * rows + iy, minlength=cols * rows)
+    if dense is None:
+        merged = merge_blocks(sparse, block)
+        return merged.ix, merged.iy, merged.count
+    keys = np.flatnonzero(dense)
+    return keys // rows + x0, keys % rows + y0, dense[keys]
+
+
+def local_pulses_per_m2(blocks: BlockCounts, boxes: np.ndarray) -> np.ndarray:
+    """Per box (``minx, miny, maxx, maxy`` rows, CRS units): the median pulses per occupied block around it, per CRS unit².
+
+    The window is the box grown by :data:`LOCAL_MARGIN_BLOCKS` blocks, at most
+    :data:`LOCAL_WINDOW_BLOCKS` blocks across (centred on the box). The median
+    leaves out the partly filled blocks along a void's edge. NaN where the window
+    holds no occupied block.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
+    out = np.full(len(boxes), np.nan)
+    if blocks.occupied == 0:
+        return out
+    x0, y0 = int(blocks.ix.min()), int(blocks.iy.min())
+    rows = int(blocks.iy.max()) - y0 + 1
+    keys = (blocks.ix - x0) * rows + (blocks.iy - y0)
+    order = np.argsort(keys)
+    keys, counts = keys[order], blocks.count[order]
+    for i, (minx, miny, maxx, maxy) in enumerate(boxes):
+        cx = _window(minx, maxx, blocks.block)
+        cy = _window(miny, maxy, blocks.block)
+        gx, gy = np.meshgrid(cx - x0, cy - y0, indexing="ij")
+        inside = (gy >= 0) & (gy < rows)
+        wanted = (gx * rows + gy)[inside]
+        at = np.clip(np.searchsorted(keys, wanted), 0, len(keys) - 1)
+        found = counts[at][keys[at] == wanted]
+        if len(found):
+            out[i] = float(np.median(found)) / blocks.block**2
+    return out
+
+
+def _window(lo: float, hi: float, block: float) -> np.ndarray:
+    first, last = math.floor(lo / block) - LOCAL_MARGIN_BLOCKS, math.floor(hi / block) + LOCAL_MARGIN_BLOCKS
+    if last - first + 1 > LOCAL_WINDOW_BLOCKS:
+        first = (first + last) // 2 - LOCAL_WINDOW_BLOCKS // 2
+        last = first + LOCAL_WINDOW_BLOCKS - 1
+    return np.arange(first, last + 1, dtype=np.int64)
+
+
+def sampling_gap_px(survey: Survey, grid: Grid, stats: Any, survey_gap_px: float) -> np.ndarray:
+    """Per hole, the width (pixels) under which it is a sampling gap: 4 local point spacings.
+
+    ``stats``: the holes' merged statistics (``area_px``, ``edge_len_px`` and the
+    bounding box in grid rows and columns). The local density is read around each
+    hole that could be a gap at all (no wider than four spacings of a block holding
+    one pulse); the survey-wide width ``survey_gap_px`` stands where the density was
+    not measured or no block lies near. 0 (no sampling gaps) stays 0.
+    """
+    n = len(stats["area_px"])
+    out = np.full(n, float(survey_gap_px))
+    blocks = survey.footprint.blocks if survey.footprint is not None else None
+    if survey_gap_px <= 0 or blocks is None or n == 0:
+        return out
+    pixel_m = grid.resolution * survey.horizontal_unit_m
+    widest_px = sampling_gap_width_m(blocks.block * survey.horizontal_unit_m) / pixel_m
+    candidates = np.flatnonzero(narrow_width(stats["area_px"], stats["edge_len_px"]) <= widest_px)  # void_width >= it
+    if len(candidates) == 0:
+        return out
+    col_min, col_max, row_min, row_max = (
+        np.asarray(stats[k])[candidates] for k in ("col_min", "col_max", "row_min", "row_max")
+    )
+    r = grid.resolution
+    boxes = np.column_stack(
+        [
+            grid.x_left + col_min * r,
+            grid.y_top - (row_max + 1) * r,
+            grid.x_left + (col_max + 1) * r,
+            grid.y_top - row_min * r,
+        ]
+    )
+    per_m2 = local_pulses_per_m2(blocks, boxes) / survey.horizontal_unit_m**2
+    known = np.isfinite(per_m2) & (per_m2 > 0)
+    spacing_m = 1.0 / np.sqrt(per_m2[known])
+    out[candidates[known]] = sampling_gap_width_m(spacing_m) / pixel_m  # type: ignore[arg-type]
+    return out
+
+
+__all__ = [
+    "BlockCounts",
+    "FootprintDensity",
+    "block_histogram",
+    "choose_level",
+    "local_pulses_per_m2",
+    "measure_footprint",
+    "merge_blocks",
+    "sampling_gap_px",
+]

@@ -1,0 +1,95 @@
+"""How a run stops on SIGTERM: exactly one outcome, whatever the timing.
+
+A scheduler stops a job with SIGTERM (``timeout``, ``scancel``, ``sbatch --signal``,
+systemd, Kubernetes), often twice (``scancel`` signals every process of the job,
+and the batch script passes its own TERM on). The rule:
+
+- a TERM before the result is committed (the products moved into OUT, the manifest
+  last) stops the run: ``KeyboardInterrupt`` in the main thread, finished tasks kept,
+  the lock released, exit 130;
+- a TERM once the commit has begun is ignored: the run completes, exit 0;
+- a second TERM while the first is being handled is ignored, so it cannot cut the
+  clean-up short (a stale ``OUT/.holefill.lock`` was left by one ``scancel`` in three);
+- a TERM whose ``KeyboardInterrupt`` was swallowed (raised inside a garbage-collection
+  callback, where Python only prints it) is raised again, every
+  :data:`RERAISE_AFTER_S` seconds, until the run answers it (:func:`acknowledge`).
+
+The state is per process (a signal handler's is), kept in :data:`STATE`.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+#: Seconds after which a TERM the run has not answered is raised again.
+RERAISE_AFTER_S = 2.0
+
+
+@dataclass
+class _State:
+    requested: bool = False  # a TERM arrived
+    acknowledged: bool = False  # the run is stopping (its handler caught the KeyboardInterrupt)
+    committed: bool = False  # the commit began: later TERMs are ignored
+    watchdog: threading.Thread | None = None
+    epoch: int = 0  # counts installs: a watchdog of an earlier run stops
+
+    def reset(self) -> None:
+        self.requested = self.acknowledged = self.committed = False
+        self.watchdog = None
+        self.epoch += 1
+
+
+STATE = _State()
+
+
+def on_terminate(signum: int, frame: Any) -> None:
+    """The SIGTERM handler: raise ``KeyboardInterrupt`` while a stop is pending and not yet answered."""
+    if STATE.committed or STATE.acknowledged:
+        return
+    if not STATE.requested:
+        STATE.requested = True
+        STATE.watchdog = threading.Thread(
+            target=_reraise_until_answered, args=(STATE.epoch,), name="holefill-term", daemon=True
+        )
+        STATE.watchdog.start()
+    raise KeyboardInterrupt
+
+
+def _reraise_until_answered(epoch: int) -> None:
+    stopped = threading.Event()
+    while not stopped.wait(RERAISE_AFTER_S):
+        if STATE.acknowledged or STATE.committed or STATE.epoch != epoch:
+            return
+        if signal.getsignal(signal.SIGTERM) is not on_terminate:
+            return  # the handler is gone (the command ended): never kill the process
+        os.kill(os.getpid(), signal.SIGTERM)  # the handler runs again in the main thread
+
+
+def install() -> Any:
+    """Make SIGTERM stop the run (main thread only); returns the handler it replaces."""
+    STATE.reset()
+    return signal.signal(signal.SIGTERM, on_terminate)
+
+
+def acknowledge() -> None:
+    """The run caught the interrupt and is stopping: later TERMs must not cut its clean-up short."""
+    STATE.acknowledged = True
+
+
+def begin_commit() -> None:
+    """Called before the products move into OUT: a pending TERM stops the run now, later ones are ignored."""
+    if STATE.requested and not STATE.acknowledged:
+        raise KeyboardInterrupt
+    STATE.committed = True
+
+
+def settled() -> bool:
+    """Whether this process's run has an outcome (committed or stopping): a TERM now changes nothing."""
+    return STATE.committed or STATE.acknowledged
+
+
+__all__ = ["RERAISE_AFTER_S", "STATE", "acknowledge", "begin_commit", "install", "on_terminate", "settled"]
