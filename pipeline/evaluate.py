@@ -79,7 +79,8 @@ def score_holes(holes_gpkg: str | os.PathLike, truth_causes: str | os.PathLike, 
     confusion: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
     correct = 0
     scored = 0
-    for geometry, cause in zip(holes.geometry, holes["cause"]):
+    causes = holes["cause"] if "cause" in holes.columns else []  # a layer with no hole may have no fields
+    for geometry, cause in zip(holes.geometry, causes):
         mask = geometry_mask(geometry, transform, truth.shape)
         if not mask.any():
             continue

@@ -128,7 +128,7 @@ def sight_classes(
     max_scan_angles : list of float, optional
         Each line's largest scan angle (degrees; NaN where unknown). Where known, the swath is
         exact: a pixel lies in it when the ray from the sensor to its ground is no farther from the
-        vertical than that angle (half a pixel of tolerance), whatever ``swaths`` says; ``swaths``
+        vertical than that angle (at the pixel's centre), whatever ``swaths`` says; ``swaths``
         (the returns' extent) only bounds the pixels tried.
     tops : ndarray of float, shape (H, W), optional
         The first surface at each candidate (:func:`surface_tops`), for the swath's angle; the
@@ -204,7 +204,7 @@ def _cast(rows, cols, targets, tops, zmax, track, x_left, y_top, pixel, top, see
         if sz <= z0:
             continue  # the sensor below the ground: no line of sight
         surface = tops[r, c]
-        if distance > (sz - surface) * tan_max + 0.5 * pixel:
+        if distance > (sz - surface) * tan_max:
             continue  # beyond the scanner's largest angle at the first surface: outside this line's swath
         swept[slots[n]] = True
         if seen[slots[n]]:
