@@ -66,8 +66,12 @@ _SCALARS = (
     "sa_max",  # largest |scan angle| in degrees (merged by maximum)
 )  # fmt: skip
 #: Column names of a sums row: the scalars, then ``h0..h15``, the support function (maximum of
+#: ``x cos(phi) + y sin(phi)``, merged by maximum), then ``x0..x15``, ``y0..y15`` and ``e0..e15``,
+#: the point that reaches each maximum (merged with it): the swath's edge and the surface it lies on.
 #: ``x cos(phi) + y sin(phi)``, ``phi = k * 22.5`` degrees), merged by maximum.
-COLUMNS = _SCALARS + tuple(f"h{k}" for k in range(SUPPORT_DIRECTIONS))
+COLUMNS = _SCALARS + tuple(f"{c}{k}" for c in ("h", "x", "y", "e") for k in range(SUPPORT_DIRECTIONS))
+#: The columns carried with each direction's maximum.
+_CARRIED = ("x", "y", "e")
 _MAX_COLUMNS = ("sa_max",) + tuple(f"h{k}" for k in range(SUPPORT_DIRECTIONS))
 _INDEX = {name: i for i, name in enumerate(COLUMNS)}
 _N_COLUMNS = len(COLUMNS)
@@ -193,8 +197,14 @@ def _accumulate(values, slots, x, y, z, t, return_number, number_of_returns, ang
             h = xi * cos_k[d] + yi * sin_k[d]
             if h > row[32 + d]:
                 row[32 + d] = h
+                row[48 + d] = xi
+                row[64 + d] = yi
+                row[80 + d] = zi
             if -h > row[40 + d]:
                 row[40 + d] = -h
+                row[56 + d] = xi
+                row[72 + d] = yi
+                row[88 + d] = zi
         # the first return of a pulse with several: its last return is the one stored last
         m = number_of_returns[i]
         if return_number[i] == 1 and m > 1:
@@ -237,6 +247,13 @@ def merge_sums(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[
     maxima = np.full((len(unique_keys), int(_MAX_MASK.sum())), -np.inf)
     np.maximum.at(maxima, index, values[:, _MAX_MASK])
     out[:, _MAX_MASK] = maxima
+    # each direction's extreme point: from the row that reaches the merged maximum (the last such, on ties)
+    h0 = _INDEX["h0"]
+    for k in range(SUPPORT_DIRECTIONS):
+        reaches = np.flatnonzero(values[:, h0 + k] == out[index, h0 + k])
+        for name in _CARRIED:
+            column = _INDEX[f"{name}{k}"]
+            out[index[reaches], column] = values[reaches, column]
     order = np.lexsort((unique_keys // 65536, unique_keys % 65536))
     return (unique_keys % 65536)[order], (unique_keys // 65536)[order], out[order]
 

@@ -173,16 +173,14 @@ def _passes(bins: np.ndarray, values: np.ndarray, bin_seconds: float, origin) ->
 
 
 def _hull_vertices(values: np.ndarray, origin) -> np.ndarray:
-    """Each row's support polygon: the 16 intersections of consecutive support lines (world x, y)."""
-    phi = np.arange(SUPPORT_DIRECTIONS) * (2 * math.pi / SUPPORT_DIRECTIONS)
-    h = values[:, _INDEX["h0"] : _INDEX["h0"] + SUPPORT_DIRECTIONS]
-    c0, s0 = np.cos(phi), np.sin(phi)
-    c1, s1 = np.roll(c0, -1), np.roll(s0, -1)
-    h1 = np.roll(h, -1, axis=1)
-    det = c0 * s1 - s0 * c1  # sin(22.5 deg), never 0
-    vx = (h * s1 - h1 * s0) / det
-    vy = (c0 * h1 - c1 * h) / det
-    return np.stack([vx + origin[0], vy + origin[1]], axis=2)
+    """Each row's hull: the points that reach the support function's maxima, in angular order (world x, y).
+
+    They are returns, so the polygon lies inside the returns' convex hull (never beyond it), and
+    around a scan line's end, straight across the track, it reaches the end exactly.
+    """
+    x = values[:, _INDEX["x0"] : _INDEX["x0"] + SUPPORT_DIRECTIONS] + origin[0]
+    y = values[:, _INDEX["y0"] : _INDEX["y0"] + SUPPORT_DIRECTIONS] + origin[1]
+    return np.stack([x, y], axis=2)
 
 
 def _hull_widths(values: np.ndarray, origin) -> np.ndarray:
@@ -239,7 +237,8 @@ def _fit_pass(
         fov = math.radians(nominal_fov_deg)
         height = middle[:, 2] + (max(half_left, 0.0) + max(half_right, 0.0)) / (2.0 * math.tan(fov / 2.0))
     sensor = _running_median(np.column_stack([track, np.where(evidence, sensor[:, 2], height)]), SMOOTHING_BINS)
-    angles = values[:, _INDEX["sa_max"]]
+    recorded = _recorded_max_angle(values)
+    measured = _edge_angle(values, across, sensor) if evidence.sum() >= 2 else math.nan
     return FlightLine(
         line=line,
         part=part,
@@ -251,8 +250,48 @@ def _fit_pass(
         hulls=hulls,
         method=("nominal", "scan_angle", "multiple_returns")[int(np.bincount(methods, minlength=3).argmax())],
         points=int(values[:, _INDEX["n"]].sum()),
-        max_scan_angle_deg=float(angles.max()) if np.isfinite(angles).any() else math.nan,
+        max_scan_angle_deg=_largest_angle(recorded, measured),
     )
+
+
+def _recorded_max_angle(values: np.ndarray) -> float:
+    """The largest scan angle the returns record (NaN where none, or where every angle is 0)."""
+    angles = values[:, _INDEX["sa_max"]]
+    if not np.isfinite(angles).any() or float(angles.max()) <= 0.0:
+        return math.nan
+    return float(angles.max())
+
+
+def _edge_angle(values: np.ndarray, across: np.ndarray, sensor: np.ndarray) -> float:
+    """The scanner's largest angle measured on the swath's edges: the median over bins of the wider side.
+
+    For each bin, the hull's point farthest across track on each side (a return), its distance
+    from the track and its height; the angle from the vertical at the sensor. A survey edge crops one side of some bins; the other side, and
+    the median, still give the scanner's angle.
+    """
+    heights = values[:, _INDEX["e0"] : _INDEX["e0"] + SUPPORT_DIRECTIONS]
+    rows = np.arange(len(values))
+    angles = []
+    for side in (across.argmax(axis=1), across.argmin(axis=1)):
+        distance = np.abs(across[rows, side])
+        rise = sensor[:, 2] - heights[rows, side]
+        angles.append(np.degrees(np.arctan2(distance, np.where(rise > 0, rise, np.nan))))
+    widest = np.fmax(*angles)
+    return float(np.nanmedian(widest)) if np.isfinite(widest).any() else math.nan
+
+
+def _largest_angle(recorded: float, measured: float) -> float:
+    """The line's largest scan angle: as recorded, to the precision it is recorded with.
+
+    LAS 1.0-1.3 record whole degrees (a rank): the true largest angle lies within half a degree
+    of the largest rank, where the edge's geometry places it. Without recorded angles, the edge's
+    geometry alone; NaN where neither is known.
+    """
+    if math.isnan(recorded):
+        return measured
+    if float(recorded).is_integer() and not math.isnan(measured):
+        return float(np.clip(measured, recorded - 0.5, recorded + 0.5))
+    return recorded
 
 
 def _consistent(sensor: np.ndarray) -> np.ndarray:
