@@ -65,28 +65,32 @@ def ground_targets(
 
 
 def surface_tops(zmax: np.ndarray, measured: np.ndarray, where: np.ndarray, *, pixel_size: float) -> np.ndarray:
-    """The first surface at the pixels ``where``: the highest return within the nearest radius holding one.
+    """The first surface at the pixels ``where``: the mean highest return within the nearest radius holding one.
 
     What bounds a swath is the first surface the scanner's outermost pulses meet: a void
     among trees at a swath's edge lay under the canopy the edge pulses could not reach,
-    and the ground beneath is wider in the swath than the canopy. NaN where no radius of
-    ``TARGET_RADII_M`` holds a measured pixel.
+    and the ground beneath is wider in the swath than the canopy; a lake's edge lies at its
+    shore's height. NaN where no radius of ``TARGET_RADII_M`` holds a measured pixel.
     """
     out = np.full(zmax.shape, np.nan)
     rows, cols = np.nonzero(where)
     if len(rows) == 0:
         return out
-    values = np.where(measured, zmax, -np.inf).astype(np.float64)
-    found = np.full(len(rows), -np.inf)
+    values = np.where(measured, zmax, 0.0).astype(np.float64)
+    weight = measured.astype(np.float64)
+    found = np.full(len(rows), np.nan)
     for radius in sorted({max(1, round(r / pixel_size)) for r in TARGET_RADII_M}):
-        todo = ~np.isfinite(found)
+        todo = np.isnan(found)
         if not todo.any():
             break
         r0, r1 = max(rows.min() - radius, 0), min(rows.max() + radius + 1, zmax.shape[0])
         c0, c1 = max(cols.min() - radius, 0), min(cols.max() + radius + 1, zmax.shape[1])
-        high = ndi.maximum_filter(values[r0:r1, c0:c1], size=2 * radius + 1, mode="constant", cval=-np.inf)
-        found = np.where(todo, high[rows - r0, cols - c0], found)
-    out[rows, cols] = np.where(np.isfinite(found), found, np.nan)
+        size = 2 * radius + 1
+        total = ndi.uniform_filter(values[r0:r1, c0:c1], size=size, mode="constant")[rows - r0, cols - c0]
+        count = ndi.uniform_filter(weight[r0:r1, c0:c1], size=size, mode="constant")[rows - r0, cols - c0]
+        mean = np.where(count > 0.5 / size**2, total / np.maximum(count, 1e-12), np.nan)
+        found = np.where(todo, mean, found)
+    out[rows, cols] = found
     return out
 
 
