@@ -166,3 +166,31 @@ def test_a_tile_that_yields_no_point_is_listed_like_a_skipped_tile(runner, tmp_p
     assert "Look at first" in report and "b.laz" in report
     tiles = read_layer(tmp_path / "o" / "holes.gpkg", "tiles")
     assert sorted(tiles["status"]) == ["no points", "ok"]
+
+
+def test_a_grid_too_fine_for_memory_is_refused_at_planning(runner, tmp_path, rng):
+    """0.01 m pixels on a 1 km tile: 1e10 pixels a task; refused with one line before any task runs."""
+    path = write_points(tmp_path / "km.laz", *random_points(rng, 5000, (1000.0, 1000.0, 2000.0, 2000.0)))
+    result = run(runner, path, "--out", tmp_path / "o", "--set", "grid.resolution_m=0.01")
+    line = one_error_line(result)
+    assert result.exit_code == 2 and "grid.resolution_m = 0.01" in line and "km.laz: a task over it needs" in line
+    assert "--resume" not in result.output and "MemoryError" not in result.output
+    assert not (tmp_path / "o").exists()
+    # a cell too large for the worker's memory limit names the cell size
+    result = run(runner, path, "--out", tmp_path / "o", "--set", "grid.resolution_m=0.5",
+                 "--set", "grid.cell_size_m=1000", "--set", 'dask.memory_limit="200MB"')  # fmt: skip
+    line = one_error_line(result)
+    assert result.exit_code == 2 and "grid.cell_size_m = 1000" in line and "dask.memory_limit = 200MB" in line
+    assert not (tmp_path / "o").exists()
+
+
+def test_tiles_on_two_continents_are_refused_at_planning(runner, tmp_path, rng):
+    """France (Lambert-93) and New York (UTM 18N) in one Web Mercator grid: the footprint map would be absurd."""
+    france = write_points(tmp_path / "fr.laz", *random_points(rng, 2000, (650_000, 6_860_000, 650_100, 6_860_080)))
+    ny = write_points(
+        tmp_path / "ny.laz", *random_points(rng, 2000, (585_000, 4_510_000, 585_100, 4_510_080)), crs="EPSG:32618"
+    )
+    result = run(runner, france, ny, "--out", tmp_path / "o", "--target-crs", "EPSG:3857")
+    line = one_error_line(result)
+    assert result.exit_code == 3 and "the tiles span 8,4" in line and "footprint map" in line
+    assert not (tmp_path / "o").exists()
