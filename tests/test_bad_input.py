@@ -245,3 +245,18 @@ def test_evaluate_a_run_without_holes_and_bad_truths(runner, tmp_path):
     (tmp_path / "truth.csv").write_text("x,y,cause\n1,2,3\n")
     result = evaluate(tmp_path / "truth.csv")
     assert result.exit_code == 3 and "truth.csv: truth is not a readable raster" in one_error_line(result)
+
+
+def test_a_245_character_file_stem_runs(runner, tmp_path, rng):
+    """Internal names built from the stem (work folders, kept results, partial copies) are shortened."""
+    from pipeline.io.intermediate import INTERNAL_NAME_MAX, internal_name
+
+    stem = "survey_" + "x" * 238
+    path = write_points(tmp_path / f"{stem}.laz", *random_points(rng, 3000))
+    result = run(runner, path, "--out", tmp_path / "o", "--set", "output.points=true", "--incremental")
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "o" / "points" / f"{stem}.laz").exists()  # the user's name is kept where it fits
+    assert all(len(p.name) <= INTERNAL_NAME_MAX + 12 for p in (tmp_path / "o" / "work").rglob("*"))
+    assert internal_name("short") == "short"
+    long_a, long_b = internal_name("a" * 300), internal_name("a" * 299 + "b")
+    assert len(long_a.encode()) <= INTERNAL_NAME_MAX and long_a != long_b and long_a.startswith("aaaa")
