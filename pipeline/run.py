@@ -527,9 +527,10 @@ def _write_products(
         if heights.normalised:  # safe heights need the terrain, which these heights have taken out
             flight_summary = {"not_planned": NO_TERRAIN} if hole_summary.get("listed") else {}
         else:
-            centroid = plan.survey_area.centroid
+            centroid = plan.survey_area.centroid  # the default home of a run; flightplan.home when set
+            home = None if config.flightplan.home else (centroid.x, centroid.y)
             try:
-                flight_summary = plan_flights(gpkg, vrt, config, staging.root, home=(centroid.x, centroid.y))
+                flight_summary = plan_flights(gpkg, vrt, config, staging.root, home=home)
             except InputDataError as e:  # the survey's products stand; only the re-flight cannot be planned
                 flight_summary = {"not_planned": e.reason}
         timer.lap("flightplan")
