@@ -116,3 +116,18 @@ def test_flightplan_docs_and_config_show_agree_on_defaults():
             assert meaning in shown and meaning.replace("'", "`").replace(" `holefill plan`", "") in " ".join(
                 line.lstrip("# ") for line in DEFAULT_TOML.read_text().splitlines()
             )
+
+
+def test_papers_cited_in_the_docs_exist():
+    """Every seeds file the docs cite is named by its path from the repository root, and exists there."""
+    cited = {
+        (doc.name, path)
+        for doc in (REPO / "docs").glob("*.md")
+        for path in re.findall(r"`([^`\s]*seeds/[^`\s]+)`", doc.read_text())
+    }
+    assert cited, "no paper is cited from ../shared/seeds"
+    assert all(path.startswith("../shared/seeds/") for _, path in cited), cited
+    if not (REPO.parent / "shared" / "seeds").is_dir():
+        pytest.skip("../shared/seeds is not beside this checkout")
+    missing = sorted((doc, path) for doc, path in cited if not (REPO / path).is_file())
+    assert not missing, missing
