@@ -408,23 +408,33 @@ def evaluate(
     if not Path(paths[0]).is_dir():
         raise click.BadParameter(f"{paths[0]!r} is not a folder", param_hint="OUT")
 
-    import rasterio
-
-    from .evaluate import score_holes
+    from .evaluate import check_truth_lattice, score_holes
 
     out = Path(paths[0])
     if not (out / "holes.gpkg").exists():
         raise InputDataError(out, "holds no finished holefill run (no holes.gpkg)")
+    manifest = json.loads((out / "manifest.json").read_text()) if (out / "manifest.json").exists() else None
     min_area_m2 = config.holes.min_area_m2
     if min_area_m2 == "auto":  # as the run resolved it
-        if not (out / "manifest.json").exists():
+        if manifest is None:
             raise InputDataError(out, "has no manifest.json to tell holes.min_area_m2: give --set holes.min_area_m2=")
-        manifest = json.loads((out / "manifest.json").read_text())
         min_area_m2 = manifest["holes"]["min_area_m2"]
-    with rasterio.open(truth_path) as truth:
-        resolution = abs(truth.transform.a)
+    resolution = check_truth_lattice(truth_path, _run_lattice(out, manifest))
     score = score_holes(out / "holes.gpkg", truth_path, min_area_px=_min_area_px(min_area_m2, resolution))
     click.echo(json.dumps(score.as_dict(), indent=2))
+
+
+def _run_lattice(out: Path, manifest: dict | None) -> tuple[float, float, float, str]:
+    """The run's pixel lattice ``(resolution, left, top, crs_wkt)``: from its manifest, else its DSM."""
+    if manifest is not None and "grid" in manifest:
+        grid = manifest["grid"]
+        return float(grid["resolution"]), grid["bounds"][0], grid["bounds"][3], manifest.get("crs", {}).get("wkt", "")
+    from .io.raster import raster_lattice
+
+    if not (out / "dsm.vrt").exists():
+        raise InputDataError(out, "has neither manifest.json nor dsm.vrt to tell the run's pixel grid")
+    resolution, left, top, crs_wkt = raster_lattice(out / "dsm.vrt")
+    return float(resolution or 0.0), left, top, crs_wkt
 
 
 def _fill_benchmark(

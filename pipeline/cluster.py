@@ -57,7 +57,14 @@ class ClusterStart:
 
     @classmethod
     def begin(cls, config: Config) -> ClusterStart:
-        """Start the workers now; returns at once."""
+        """Start the workers now; returns once distributed is imported (a fraction of a second).
+
+        Every module the start needs is imported here, in the calling thread, before the
+        background thread exists: two threads importing at once can deadlock on
+        Python's per-module import locks (``_DeadlockError``, about once in 200 starts
+        while the main thread imported the stages and the thread imported distributed).
+        """
+        import_cluster_modules()
         start = cls(config)
         if threading.current_thread() is threading.main_thread():
             start._previous_handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -119,6 +126,47 @@ class ClusterStart:
             if self._previous_handler is not None:
                 signal.signal(signal.SIGINT, self._previous_handler)
                 self._previous_handler = None
+
+
+#: Modules distributed imports lazily while a local cluster starts (in its start thread or
+#: its event loop's): imported beforehand by :func:`import_cluster_modules`.
+CLUSTER_MODULES = (
+    "distributed",
+    "distributed.deploy.local",
+    "distributed.nanny",
+    "distributed.dashboard",
+    "distributed.dashboard.components",
+    "distributed.dashboard.scheduler",
+    "distributed.diagnostics.websocket",
+    "distributed.http.health",
+    "distributed.http.prometheus",
+    "distributed.http.proxy",
+    "distributed.http.scheduler",
+    "distributed.http.scheduler.info",
+    "distributed.http.scheduler.json",
+    "distributed.http.scheduler.missing_bokeh",
+    "distributed.http.scheduler.prometheus",
+    "distributed.http.statics",
+    "email.policy",
+    "email.headerregistry",
+    "email.contentmanager",
+    "importlib_metadata",
+    "importlib_metadata._adapters",
+    "importlib_metadata._text",
+    "multiprocessing.resource_tracker",
+    "multiprocessing.synchronize",
+    "multiprocessing.popen_spawn_posix",
+    "tornado.platform.asyncio",
+)
+
+
+def import_cluster_modules() -> None:
+    """Import, in the calling thread, what starting a local cluster imports (see :meth:`ClusterStart.begin`)."""
+    import importlib
+
+    for name in CLUSTER_MODULES:
+        with contextlib.suppress(ImportError):  # an optional module distributed may do without
+            importlib.import_module(name)
 
 
 def _quiet_event_loop() -> None:

@@ -338,7 +338,11 @@ class FlightPlanConfig:
     terrain_step_m: float = _opt(
         5.0, "A lane gets extra waypoints where the surface under it changes by more than this (m).", gt=0
     )
-    home: list[float] = _opt([], "Take-off and landing point [x, y] in the survey CRS; empty: centre of the holes.")
+    home: list[float] = _opt(
+        [],
+        "Take-off and landing point [x, y] in the survey CRS; empty: the centre of the survey area in "
+        "'holefill run', of the planned holes in 'holefill plan'.",
+    )
     altitude_reference: str = _opt(
         "takeoff",
         "Heights in drone files: relative to take-off, AMSL (the DSM's datum) or ellipsoidal.",

@@ -12,12 +12,14 @@ pixels.
 from __future__ import annotations
 
 import collections
+import math
 import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .io.raster import geometry_mask, read_raster
+from .errors import InputDataError
+from .io.raster import geometry_mask, raster_lattice, read_raster
 from .io.vector import read_layer
 
 #: Truth codes -> cause names of the ``holes`` layer.
@@ -67,7 +69,10 @@ def score_holes(holes_gpkg: str | os.PathLike, truth_causes: str | os.PathLike, 
     """
     import scipy.ndimage as ndi
 
-    truth, transform, _ = read_raster(truth_causes)
+    try:
+        truth, transform, _ = read_raster(truth_causes)
+    except Exception as e:  # not a raster GDAL reads, or a truncated one
+        raise InputDataError(truth_causes, f"truth is not a readable raster ({_first_line(e)})") from None
     truth = np.nan_to_num(truth, nan=0).astype(np.uint8)
     labels, n = ndi.label(truth > 0)
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
@@ -79,7 +84,7 @@ def score_holes(holes_gpkg: str | os.PathLike, truth_causes: str | os.PathLike, 
     confusion: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
     correct = 0
     scored = 0
-    causes = holes["cause"] if "cause" in holes.columns else []  # a layer with no hole may have no fields
+    causes = holes["cause"] if "cause" in holes.columns else [None] * len(holes)  # an empty layer of an older run
     for geometry, cause in zip(holes.geometry, causes):
         mask = geometry_mask(geometry, transform, truth.shape)
         if not mask.any():
@@ -103,3 +108,50 @@ def score_holes(holes_gpkg: str | os.PathLike, truth_causes: str | os.PathLike, 
         confusion={k: dict(v) for k, v in confusion.items()},
         missed_true_holes=missed,
     )
+
+
+def check_truth_lattice(truth_path: str | os.PathLike, run_lattice: tuple[float, float, float, str]) -> float:
+    """Refuse a truth raster that is not on the run's pixel lattice; returns its pixel size.
+
+    Holes are scored pixel by pixel: a truth raster of another pixel size, origin off
+    the run's lattice, or another CRS would give a score that means nothing.
+
+    Parameters
+    ----------
+    truth_path : path-like
+        The truth raster.
+    run_lattice : tuple
+        The run's ``(resolution, min x, max y, crs_wkt)`` (:func:`pipeline.io.raster.raster_lattice`).
+    """
+    try:
+        resolution, x0, y0, crs_wkt = raster_lattice(truth_path)
+    except Exception as e:
+        raise InputDataError(truth_path, f"truth is not a readable raster ({_first_line(e)})") from None
+    run_resolution, run_x0, run_y0, run_crs = run_lattice
+    advice = (
+        f"resample it onto the run's grid (e.g. gdalwarp -r mode -tr {run_resolution:g} {run_resolution:g} "
+        f"-tap -t_srs <the run's CRS>)"
+    )
+    if resolution is None:
+        raise InputDataError(truth_path, f"truth raster is rotated or sheared; {advice}")
+    if not math.isclose(resolution, run_resolution, rel_tol=1e-6):
+        raise InputDataError(
+            truth_path, f"truth pixel size {resolution:g} differs from the run's {run_resolution:g}; {advice}"
+        )
+    off = [(a - b) / run_resolution for a, b in ((x0, run_x0), (y0, run_y0))]
+    if any(abs(v - round(v)) > 1e-3 for v in off):
+        raise InputDataError(
+            truth_path,
+            f"truth pixels are shifted off the run's lattice by ({off[0] % 1:.3g}, {off[1] % 1:.3g}) pixels; {advice}",
+        )
+    if crs_wkt and run_crs:
+        from pyproj import CRS
+
+        if not CRS.from_wkt(crs_wkt).equals(CRS.from_wkt(run_crs), ignore_axis_order=True):
+            raise InputDataError(truth_path, f"truth CRS '{CRS.from_wkt(crs_wkt).name}' is not the run's; {advice}")
+    return resolution
+
+
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__

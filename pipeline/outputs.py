@@ -212,6 +212,83 @@ def write_survey_area_layer(gpkg: Path, plan: SurveyPlan, failed: list[int]) -> 
     write_layer(gpkg, "survey_area", records, geometries, crs_wkt=plan.grid.crs_wkt)
 
 
+_INT, _FLOAT, _TEXT, _BOOL = "int64", "float64", "object", "bool"
+
+#: The fields of each hole layer, written also when a layer has no feature (docs/outputs.md).
+LAYER_FIELDS: dict[str, dict[str, str]] = {
+    "holes": {
+        "hole_id": _INT,
+        "area_m2": _FLOAT,
+        "perimeter_m": _FLOAT,
+        "cause": _TEXT,
+        "cause_rule": _TEXT,
+        "n_parts": _INT,
+        "n_cells": _INT,
+        "max_layer": _INT,
+        "touches_aoi_boundary": _BOOL,
+        "boundary_z_min": _FLOAT,
+        "boundary_z_mean": _FLOAT,
+        "boundary_z_std": _FLOAT,
+        "boundary_z_max": _FLOAT,
+        "boundary_jump_px": _INT,
+        "boundary_px": _INT,
+        "azimuth_deg": _FLOAT,
+        "fill_status": _TEXT,
+        "fill_method": _TEXT,
+        "fill_error_m": _FLOAT,
+        "fill_max_distance_m": _FLOAT,
+        "fill_note": _TEXT,
+    },
+    "hole_parts": {
+        "hole_id": _INT,
+        "cell_id": _TEXT,
+        "part_label": _INT,
+        "layer": _INT,
+        "category": _TEXT,
+        "open": _BOOL,
+        "type": _TEXT,
+        "shape": _TEXT,
+        "area_m2": _FLOAT,
+        "neighbours": _TEXT,
+    },
+    "vertical_holes": {
+        "pixels": _INT,
+        "max_height_range": _FLOAT,
+        "missing_voxels": _INT,
+        "top": _FLOAT,
+        "cell_id": _TEXT,
+        "area_m2": _FLOAT,
+    },
+    "walls": {
+        "cell_id": _TEXT,
+        "bottom": _FLOAT,
+        "top": _FLOAT,
+        "height": _FLOAT,
+        "length_m": _FLOAT,
+        "fit_rms": _FLOAT,
+        "edge_width_px": _FLOAT,
+        "support_px": _INT,
+        "jump_px": _INT,
+    },
+    "flight_lines": {
+        "point_source_id": _INT,
+        "pass": _INT,
+        "method": _TEXT,
+        "height_assumed": _BOOL,
+        "start_time": _FLOAT,
+        "end_time": _FLOAT,
+        "azimuth_deg": _FLOAT,
+        "flying_height": _FLOAT,
+        "swath_left": _FLOAT,
+        "swath_right": _FLOAT,
+        "max_scan_angle_deg": _FLOAT,
+        "points": _INT,
+        "judged": _BOOL,
+    },
+}
+LAYER_FIELDS["swaths"] = LAYER_FIELDS["flight_lines"]
+
+
 def write_hole_layers(
     gpkg: Path,
     plan: SurveyPlan,
@@ -233,19 +310,22 @@ def write_hole_layers(
         for label, wkb in d.part_outlines.items()
     }
     hole_records, hole_geometries = _hole_records(plan, config, holes, part_outlines, fills)
-    write_layer(gpkg, "holes", hole_records, hole_geometries, crs_wkt=crs, geometry_type="MultiPolygon")
     listed = {r["hole_id"] for r in hole_records}
     part_records, part_geometries, counts_by_type = _part_records(plan, holes, part_outlines, listed)
-    write_layer(gpkg, "hole_parts", part_records, part_geometries, crs_wkt=crs, geometry_type="MultiPolygon")
     vertical_records, vertical_geometries = _vertical_records(plan, detected)
-    write_layer(
-        gpkg, "vertical_holes", vertical_records, vertical_geometries, crs_wkt=crs, geometry_type="MultiPolygon"
-    )
     wall_records, wall_geometries = _wall_records(plan, detected)
-    write_layer(gpkg, "walls", wall_records, wall_geometries, crs_wkt=crs, geometry_type="LineString")
     line_records, line_geometries, swath_geometries = _flight_line_records(holes)
-    write_layer(gpkg, "flight_lines", line_records, line_geometries, crs_wkt=crs, geometry_type="LineString Z")
-    write_layer(gpkg, "swaths", line_records, swath_geometries, crs_wkt=crs, geometry_type="MultiPolygon")
+    for layer, records, geometries, geometry_type in (
+        ("holes", hole_records, hole_geometries, "MultiPolygon"),
+        ("hole_parts", part_records, part_geometries, "MultiPolygon"),
+        ("vertical_holes", vertical_records, vertical_geometries, "MultiPolygon"),
+        ("walls", wall_records, wall_geometries, "LineString"),
+        ("flight_lines", line_records, line_geometries, "LineString Z"),
+        ("swaths", line_records, swath_geometries, "MultiPolygon"),
+    ):
+        write_layer(
+            gpkg, layer, records, geometries, crs_wkt=crs, geometry_type=geometry_type, fields=LAYER_FIELDS[layer]
+        )
     catalog = holes.catalog
     counts_by_cause = collections.Counter(r["cause"] for r in hole_records)
     return {

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__, interrupt
+from .budget import MemoryBudget, check_plan_memory, memory_budget
 from .cluster import ClusterStart, WorkerWatch, dask_client
 from .config import Config, config_key, to_dict
 from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, TaskError
@@ -111,7 +112,8 @@ def run_survey(
     timer = _StageTimer(started)
     with contextlib.ExitStack() as cluster_scope:
         connect = cluster_scope.enter_context(dask_client(client, scheduler, config, start=cluster))
-        plan = _plan(inputs, config, aoi, out)  # the headers are scanned while the workers start
+        budget = memory_budget(config, scheduler=scheduler if client is None else "client")
+        plan = _plan(inputs, config, aoi, out, budget)  # the headers are scanned while the workers start
         check_same_survey(out, [t.path for t in plan.survey.tiles], overwrite=overwrite or resume)
         water, water_area = _water(water, config, plan)
         timer.lap("scan")
@@ -214,8 +216,15 @@ def _water(water: str | os.PathLike | None, config: Config, plan: SurveyPlan) ->
     return water, read_survey_area(water, plan.survey.crs, what="water") if water else None
 
 
-def _plan(inputs: list[str] | tuple[str, ...], config: Config, aoi: str | os.PathLike | None, out: Path) -> SurveyPlan:
-    """Scan the headers and plan the survey; an AOI off every tile's data stops here.
+def _plan(
+    inputs: list[str] | tuple[str, ...],
+    config: Config,
+    aoi: str | os.PathLike | None,
+    out: Path,
+    budget: MemoryBudget | None = None,
+) -> SurveyPlan:
+    """Scan the headers and plan the survey; an AOI off every tile's data, or a plan too large
+    for memory (:mod:`pipeline.budget`), stops here.
 
     What the run writes into ``out`` (repaired point clouds, kept results, partial
     folders) is never read as input, also when ``out`` lies inside an input folder.
@@ -233,6 +242,8 @@ def _plan(inputs: list[str] | tuple[str, ...], config: Config, aoi: str | os.Pat
     plan = plan_survey(survey, config, aoi=aoi)
     if not any(plan.tiles_of_cell.get(cell.id) for cell in plan.cells):  # the planned area's own cells hold none
         raise InputDataError(aoi or "INPUT", "the survey area does not overlap the data of any tile")
+    if budget is not None:
+        check_plan_memory(plan, config, budget)
     return plan
 
 
@@ -523,9 +534,10 @@ def _write_products(
         if heights.normalised:  # safe heights need the terrain, which these heights have taken out
             flight_summary = {"not_planned": NO_TERRAIN} if hole_summary.get("listed") else {}
         else:
-            centroid = plan.survey_area.centroid
+            centroid = plan.survey_area.centroid  # the default home of a run; flightplan.home when set
+            home = None if config.flightplan.home else (centroid.x, centroid.y)
             try:
-                flight_summary = plan_flights(gpkg, vrt, config, staging.root, home=(centroid.x, centroid.y))
+                flight_summary = plan_flights(gpkg, vrt, config, staging.root, home=home)
             except InputDataError as e:  # the survey's products stand; only the re-flight cannot be planned
                 flight_summary = {"not_planned": e.reason}
         timer.lap("flightplan")

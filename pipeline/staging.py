@@ -62,7 +62,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import OutputError
-from .io.intermediate import load_object, save_object
+from .io.intermediate import internal_name, load_object, save_object
 
 logger = logging.getLogger(__name__)
 
@@ -132,8 +132,8 @@ class Staging:
         return self.root / "work"
 
     def tile_folder(self, path: str, fingerprint: str) -> Path:
-        """Stage-1 results of one input file."""
-        return self.work / "tiles" / f"{Path(path).stem}-{fingerprint}"
+        """Stage-1 results of one input file (named after it, shortened: :func:`internal_name`)."""
+        return self.work / "tiles" / internal_name(f"{Path(path).stem}-{fingerprint}")
 
     def cell_statistics(self, cell_id: str) -> Path:
         return self.work / "cells" / f"cell_{cell_id}.npz"
@@ -151,7 +151,7 @@ class Staging:
 
     def task_result(self, key: str) -> Path:
         """Where a finished task keeps its (small) result, for a resumed run."""
-        return self.work / "done" / f"{key}.npz"
+        return self.work / "done" / f"{internal_name(key)}.npz"
 
     def kept(self, key: str) -> tuple[Any, str] | None:
         """The kept result of task ``key`` and where it came from (``resumed`` or ``reused``), if any.
@@ -366,6 +366,7 @@ def kept_result(path: Path) -> Any | None:
 
 
 PARTIAL_PREFIX = ".holefill-partial-"
+
 RUN_FILE = "run.json"
 COMMIT_FILE = "commit.json"
 LOCK_FILE = ".holefill.lock"

@@ -166,3 +166,97 @@ def test_a_tile_that_yields_no_point_is_listed_like_a_skipped_tile(runner, tmp_p
     assert "Look at first" in report and "b.laz" in report
     tiles = read_layer(tmp_path / "o" / "holes.gpkg", "tiles")
     assert sorted(tiles["status"]) == ["no points", "ok"]
+
+
+def test_a_grid_too_fine_for_memory_is_refused_at_planning(runner, tmp_path, rng):
+    """0.01 m pixels on a 1 km tile: 1e10 pixels a task; refused with one line before any task runs."""
+    path = write_points(tmp_path / "km.laz", *random_points(rng, 5000, (1000.0, 1000.0, 2000.0, 2000.0)))
+    result = run(runner, path, "--out", tmp_path / "o", "--set", "grid.resolution_m=0.01")
+    line = one_error_line(result)
+    assert result.exit_code == 2 and "grid.resolution_m = 0.01" in line and "km.laz: a task over it needs" in line
+    assert "--resume" not in result.output and "MemoryError" not in result.output
+    assert not (tmp_path / "o").exists()
+    # a cell too large for the worker's memory limit names the cell size
+    result = run(runner, path, "--out", tmp_path / "o", "--set", "grid.resolution_m=0.5",
+                 "--set", "grid.cell_size_m=1000", "--set", 'dask.memory_limit="200MB"')  # fmt: skip
+    line = one_error_line(result)
+    assert result.exit_code == 2 and "grid.cell_size_m = 1000" in line and "dask.memory_limit = 200MB" in line
+    assert not (tmp_path / "o").exists()
+
+
+def test_tiles_on_two_continents_are_refused_at_planning(runner, tmp_path, rng):
+    """France (Lambert-93) and New York (UTM 18N) in one Web Mercator grid: the footprint map would be absurd."""
+    france = write_points(tmp_path / "fr.laz", *random_points(rng, 2000, (650_000, 6_860_000, 650_100, 6_860_080)))
+    ny = write_points(
+        tmp_path / "ny.laz", *random_points(rng, 2000, (585_000, 4_510_000, 585_100, 4_510_080)), crs="EPSG:32618"
+    )
+    result = run(runner, france, ny, "--out", tmp_path / "o", "--target-crs", "EPSG:3857")
+    line = one_error_line(result)
+    assert result.exit_code == 3 and "the tiles span 8,4" in line and "footprint map" in line
+    assert not (tmp_path / "o").exists()
+
+
+def _dense_points(bounds=(1000.0, 2000.0, 1100.0, 2080.0), step=0.5):
+    """A regular 0.5 m lattice of points: a survey without a hole."""
+    minx, miny, maxx, maxy = bounds
+    x, y = np.meshgrid(np.arange(minx + step / 2, maxx, step), np.arange(miny + step / 2, maxy, step))
+    x, y = np.round(x.ravel(), 2), np.round(y.ravel(), 2)
+    return x, y, np.round(50 + 0.01 * x, 2)
+
+
+def _write_truth(path: Path, manifest: dict, *, shift: float = 0.0, scale: float = 1.0) -> Path:
+    import rasterio
+    from affine import Affine
+
+    grid = manifest["grid"]
+    resolution = grid["resolution"] * scale
+    left, top = grid["bounds"][0] + shift * grid["resolution"], grid["bounds"][3]
+    width, height = round(grid["width"] / scale), round(grid["height"] / scale)
+    profile = dict(driver="GTiff", width=width, height=height, count=1, dtype="uint8", crs=manifest["crs"]["wkt"])
+    with rasterio.open(path, "w", transform=Affine(resolution, 0, left, 0, -resolution, top), **profile) as dst:
+        dst.write(np.zeros((1, height, width), np.uint8))
+    return path
+
+
+def test_evaluate_a_run_without_holes_and_bad_truths(runner, tmp_path):
+    path = write_points(tmp_path / "dense.laz", *_dense_points())
+    result = run(runner, path, "--out", tmp_path / "o")
+    assert result.exit_code == 0, result.output
+    out = tmp_path / "o"
+    holes = read_layer(out / "holes.gpkg", "holes")
+    assert len(holes) == 0 and {"hole_id", "cause", "area_m2", "fill_status"} <= set(holes.columns)  # schema kept
+    for layer in ("hole_parts", "vertical_holes", "walls"):
+        assert len(read_layer(out / "holes.gpkg", layer).columns) > 1, layer
+    manifest = json.loads((out / "manifest.json").read_text())
+
+    def evaluate(truth):
+        return runner.invoke(main, ["evaluate", str(out), "--truth", str(truth)])
+
+    result = evaluate(_write_truth(tmp_path / "truth.tif", manifest))
+    assert result.exit_code == 0, result.output
+    score = json.loads(result.output)
+    assert score["holes"] == 0 and score["iou"] == 1.0
+    result = evaluate(_write_truth(tmp_path / "shifted.tif", manifest, shift=0.5))
+    assert result.exit_code == 3 and "shifted.tif: truth pixels are shifted off the run's lattice" in one_error_line(
+        result
+    )
+    result = evaluate(_write_truth(tmp_path / "coarse.tif", manifest, scale=2.0))
+    assert result.exit_code == 3 and "coarse.tif: truth pixel size" in one_error_line(result)
+    (tmp_path / "truth.csv").write_text("x,y,cause\n1,2,3\n")
+    result = evaluate(tmp_path / "truth.csv")
+    assert result.exit_code == 3 and "truth.csv: truth is not a readable raster" in one_error_line(result)
+
+
+def test_a_245_character_file_stem_runs(runner, tmp_path, rng):
+    """Internal names built from the stem (work folders, kept results, partial copies) are shortened."""
+    from pipeline.io.intermediate import INTERNAL_NAME_MAX, internal_name
+
+    stem = "survey_" + "x" * 238
+    path = write_points(tmp_path / f"{stem}.laz", *random_points(rng, 3000))
+    result = run(runner, path, "--out", tmp_path / "o", "--set", "output.points=true", "--incremental")
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "o" / "points" / f"{stem}.laz").exists()  # the user's name is kept where it fits
+    assert all(len(p.name) <= INTERNAL_NAME_MAX + 12 for p in (tmp_path / "o" / "work").rglob("*"))
+    assert internal_name("short") == "short"
+    long_a, long_b = internal_name("a" * 300), internal_name("a" * 299 + "b")
+    assert len(long_a.encode()) <= INTERNAL_NAME_MAX and long_a != long_b and long_a.startswith("aaaa")

@@ -94,3 +94,40 @@ def test_to_toml_round_trips(tmp_path):
     path = tmp_path / "shown.toml"
     path.write_text(config.to_toml())
     assert load_config(path) == config
+
+
+def test_flightplan_docs_and_config_show_agree_on_defaults():
+    """docs/flightplans.md's table, `holefill config --show` and configs/default.toml say the same defaults."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+    from pipeline.config import FlightPlanConfig
+
+    docs = (DEFAULT_TOML.parents[1] / "docs" / "flightplans.md").read_text()
+    shown = CliRunner().invoke(main, ["config", "--show"]).output
+    for f in dataclasses.fields(FlightPlanConfig):
+        row = re.search(rf"^\| `{f.name}` \| `([^`]*)` \| (.*) \|$", docs, re.MULTILINE)
+        assert row, f"docs/flightplans.md: no table row for flightplan.{f.name}"
+        default = getattr(Config().flightplan, f.name)
+        assert tomllib.loads(f"v = {row.group(1)}")["v"] == default, f.name
+        if f.name == "home":  # what an empty home means, in every place
+            meaning = f.metadata["doc"].split("; ", 1)[1].rstrip(".")
+            assert meaning.replace("'", "`") in row.group(2)
+            assert meaning in shown and meaning.replace("'", "`").replace(" `holefill plan`", "") in " ".join(
+                line.lstrip("# ") for line in DEFAULT_TOML.read_text().splitlines()
+            )
+
+
+def test_papers_cited_in_the_docs_exist():
+    """Every seeds file the docs cite is named by its path from the repository root, and exists there."""
+    cited = {
+        (doc.name, path)
+        for doc in (REPO / "docs").glob("*.md")
+        for path in re.findall(r"`([^`\s]*seeds/[^`\s]+)`", doc.read_text())
+    }
+    assert cited, "no paper is cited from ../shared/seeds"
+    assert all(path.startswith("../shared/seeds/") for _, path in cited), cited
+    if not (REPO.parent / "shared" / "seeds").is_dir():
+        pytest.skip("../shared/seeds is not beside this checkout")
+    missing = sorted((doc, path) for doc, path in cited if not (REPO / path).is_file())
+    assert not missing, missing

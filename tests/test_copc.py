@@ -229,3 +229,23 @@ def test_copc_split_setting_is_validated():
     assert load_config(overrides=["rasterize.copc_split=true"]).rasterize.copc_split is True
     with pytest.raises(ConfigError, match=r"rasterize.copc_split = 'yes' is invalid; expected true, false or 'auto'"):
         load_config(overrides=["rasterize.copc_split=yes"])
+
+
+@pytest.mark.slow
+def test_a_corrupt_top_node_loses_only_its_points_with_on_error_skip(synthetic, tmp_path, dask_client):
+    """--on-error skip: the file is listed as skipped, the points its cell tasks read stay in the DSM."""
+    copc = synthetic["copc"]
+    plan = plan_for(copc, "grid.cell_size_m=50", "rasterize.copc_split=true")
+    (top,) = [read for read in plan.reads if read.role == "top"]
+    offset, _, top_points = top.nodes[0]
+    broken = tmp_path / "broken.copc.laz"
+    data = bytearray(Path(copc).read_bytes())
+    data[offset : offset + 64] = bytes(64)  # the root node's LAZ chunk
+    broken.write_bytes(bytes(data))
+    summary = run([str(broken)], tmp_path / "out", dask_client, "rasterize.copc_split=true", "survey.on_error=skip")
+    assert [Path(s["path"]).name for s in summary.skipped] == ["broken.copc.laz"]
+    assert "COPC chunks cannot be decoded" in summary.skipped[0]["reason"]
+    top_total = sum(n[2] for n in top.nodes)
+    assert summary.points_read == synthetic["points"] - top_total > synthetic["points"] // 2
+    dsm, _, _ = read_raster(tmp_path / "out" / "dsm.vrt")
+    assert np.isfinite(dsm).mean() > 0.5  # the DSM holds the rest of the file

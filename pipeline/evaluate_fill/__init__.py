@@ -38,6 +38,8 @@ from .alternatives import (
     fill_laplace,
     fill_nni,
     fill_tin_linear,
+    grass_tmp_option,
+    parse_grass_version,
 )
 from .benchmark import MODELS, PIPELINE_RUNS, evaluate_fill, survey_name
 from .cutting import align, cut_points, pixel_indices
@@ -69,8 +71,10 @@ __all__ = [
     "fill_nni",
     "fill_tin_linear",
     "format_table",
+    "grass_tmp_option",
     "hole_shape",
     "pixel_indices",
+    "parse_grass_version",
     "place_holes",
     "summarize",
     "survey_name",

@@ -8,6 +8,7 @@ files; the others work on arrays.
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import tempfile
@@ -121,6 +122,31 @@ def fill_laplace(heights: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return _startinpy("Laplace")(heights, labels)
 
 
+#: The first GRASS release whose start-up script knows ``--tmp-project`` (before: ``--tmp-location``).
+GRASS_TMP_PROJECT_SINCE = (8, 4)
+
+
+def parse_grass_version(text: str) -> tuple[int, int]:
+    """``(major, minor)`` from ``grass --version`` output (``GRASS GIS 8.2.1``)."""
+    found = re.search(r"GRASS(?: GIS)?\s+(\d+)\.(\d+)", text)
+    if found is None:
+        raise AlternativeUnavailable(f"GRASS version not understood: {text.strip()[:80]!r}")
+    return int(found.group(1)), int(found.group(2))
+
+
+def grass_tmp_option(version: tuple[int, int]) -> str:
+    """The start-up option that runs a command in a temporary XY project of this GRASS version."""
+    return "--tmp-project" if version >= GRASS_TMP_PROJECT_SINCE else "--tmp-location"
+
+
+def _grass_version(grass: str) -> tuple[int, int]:
+    try:
+        done = subprocess.run([grass, "--version"], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.SubprocessError) as e:
+        raise AlternativeUnavailable(f"GRASS GIS does not start ({e})") from None
+    return parse_grass_version(done.stdout + done.stderr)
+
+
 def fill_grass(heights: np.ndarray, labels: np.ndarray, *, timeout_s: float = 600.0) -> np.ndarray:
     """GRASS GIS ``r.fillnulls method=bicubic`` in a temporary XY project.
 
@@ -130,6 +156,7 @@ def fill_grass(heights: np.ndarray, labels: np.ndarray, *, timeout_s: float = 60
     grass = shutil.which("grass")
     if grass is None:
         raise AlternativeUnavailable("GRASS GIS is not installed ('grass' is not on PATH)")
+    tmp_option = grass_tmp_option(_grass_version(grass))  # GRASS < 8.4 (Debian 12's 8.2) knows only --tmp-location
     import rasterio
     from affine import Affine
 
@@ -154,7 +181,7 @@ def fill_grass(heights: np.ndarray, labels: np.ndarray, *, timeout_s: float = 60
         )
         try:
             subprocess.run(
-                [grass, "--tmp-project", "XY", "--exec", "bash", "-c", script],
+                [grass, tmp_option, "XY", "--exec", "bash", "-c", script],
                 check=True,
                 capture_output=True,
                 text=True,

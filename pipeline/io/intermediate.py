@@ -19,6 +19,7 @@ knows how each kind of result is stored:
 
 from __future__ import annotations
 
+import hashlib
 import os
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,24 @@ from . import plain_data
 
 #: Bumped whenever the layout of a kept result changes, so stale files are never read.
 FORMAT_VERSION = 2
+
+
+#: The longest name holefill gives an internal file or folder (a file system allows 255 bytes,
+#: and suffixes such as ``.tmp.npz`` are added to it).
+INTERNAL_NAME_MAX = 96
+
+
+def internal_name(name: str, limit: int = INTERNAL_NAME_MAX) -> str:
+    """``name`` itself when short, else its head and a hash of the whole: internal paths never grow too long.
+
+    An input's file stem goes into internal names; a stem of 245 characters would
+    otherwise make ``File name too long`` once holefill adds its own parts.
+    """
+    if len(name.encode()) <= limit:
+        return name
+    digest = hashlib.sha1(name.encode()).hexdigest()[:16]
+    head = name.encode()[: limit - len(digest) - 1].decode(errors="ignore")
+    return f"{head}~{digest}"
 
 
 def save_tile_statistics(folder: str | os.PathLike, statistics: PixelStatistics, shared_keys: np.ndarray) -> None:

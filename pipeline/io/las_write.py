@@ -20,6 +20,7 @@ import numpy as np
 from laspy.vlrs.vlrlist import VLRList
 
 from ..errors import InputDataError, OutputError
+from .intermediate import internal_name
 
 #: User id of the COPC records, which describe the layout of a COPC file only.
 COPC_USER_ID = "copc"
@@ -63,7 +64,7 @@ def write_repaired_tile(
         ``target`` cannot be written.
     """
     source, target = Path(source), Path(target)
-    partial = target.with_name(f".{target.name}.partial")
+    partial = target.with_name(f".{internal_name(target.name)}.partial")
     copied, latest = 0, 0.0
     try:
         with laspy.open(source, decompression_selection=laspy.DecompressionSelection.all()) as reader:

@@ -172,6 +172,15 @@ def read_raster(path: str | os.PathLike) -> tuple[np.ndarray, Affine, str]:
         return array, dataset.transform, dataset.crs.to_wkt() if dataset.crs else ""
 
 
+def raster_lattice(path: str | os.PathLike) -> tuple[float | None, float, float, str]:
+    """A raster's ``(pixel size, left, top, crs_wkt)``; the pixel size is ``None`` unless pixels are square and north-up."""
+    with rasterio.open(path) as dataset:
+        t = dataset.transform
+        crs = dataset.crs.to_wkt() if dataset.crs else ""
+    square = t.b == 0 and t.d == 0 and t.a > 0 and math.isclose(-t.e, t.a, rel_tol=1e-9)
+    return (t.a if square else None), t.c, t.f, crs
+
+
 __all__ = ["NODATA", "RasterOptions", "Resampling", "read_raster", "write_cog", "write_vrt"]
 
 

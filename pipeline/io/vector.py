@@ -13,6 +13,7 @@ from typing import Any
 
 import geopandas as gpd
 import numpy as np
+import pandas as pd
 import pyogrio
 import shapely
 from pyproj import CRS, Transformer
@@ -28,6 +29,7 @@ def write_layer(
     *,
     crs_wkt: str,
     geometry_type: str | None = None,
+    fields: dict[str, str] | None = None,
 ) -> Path:
     """Write (or replace) one layer of a GeoPackage.
 
@@ -39,9 +41,17 @@ def write_layer(
         One per record, in the layer's CRS.
     geometry_type : str, optional
         Forced OGR geometry type (e.g. "Polygon") so that empty layers are typed.
+    fields : dict, optional
+        The layer's fields (name -> numpy dtype: ``"int64"``, ``"float64"``, ``"bool"``,
+        ``"object"`` for text), written even when there is no record: a GIS user meets
+        the same columns in an empty layer.
     """
     path = Path(path)
-    frame = gpd.GeoDataFrame(records, geometry=list(geometries), crs=crs_wkt or None)
+    if not records and fields:
+        columns = {name: pd.Series([], dtype=dtype) for name, dtype in fields.items()}
+        frame = gpd.GeoDataFrame(columns, geometry=gpd.GeoSeries([]), crs=crs_wkt or None)
+    else:
+        frame = gpd.GeoDataFrame(records, geometry=list(geometries), crs=crs_wkt or None)
     try:
         pyogrio.write_dataframe(
             frame,

@@ -400,10 +400,13 @@ def _check_header_bounds(task: TileTask, same_crs: bool, read: int, outside: int
 
 
 def rasterize_tile_or_skip(task: TileTask, *after: object) -> TileResult | TileFailure:
-    """:func:`rasterize_tile`, reporting a bad tile instead of raising (``on_error = "skip"``)."""
-    failed = [a for a in after if isinstance(a, TileFailure)]
-    if failed:  # a COPC cell task whose file's top task failed
-        return TileFailure(task.tile_index, task.path, failed[0].reason)
+    """:func:`rasterize_tile`, reporting a bad tile instead of raising (``on_error = "skip"``).
+
+    A split COPC file's cell task whose file's top task failed still bins its own
+    nodes (without the top's points): the file is listed as skipped through the top
+    task's failure, and what its other tasks read stays in the DSM, as for any of
+    its tasks that fails.
+    """
     try:
         return rasterize_tile(task)
     except InputDataError as e:
