@@ -169,7 +169,12 @@ def _thresholds(causes: CausesConfig) -> dict[str, float]:
 
 
 def classify_causes(
-    stats: HoleStats, rules: CauseRules, *, bands_known: bool = False, sight_known: bool = False
+    stats: HoleStats,
+    rules: CauseRules,
+    *,
+    bands_known: bool = False,
+    sight_known: bool = False,
+    heights_assumed: bool = False,
 ) -> np.ndarray:
     """Why each hole is there: occlusion, water, missed coverage or unknown.
 
@@ -236,6 +241,10 @@ def classify_causes(
         sensor's geometry (``line_of_sight``, ``seen``) and the rim-only rules (``RIM_ONLY_RULES``)
         are off; ``river_rim`` and ``level_rim`` then ask for an elongated hole (a river's or a
         canal's course: a level rim alone is no evidence of water).
+    heights_assumed : bool
+        Whether the sensor's heights are assumed (``nominal``: single returns and no scan angles):
+        the swaths stand, but the lines of sight lean as the assumed field of view makes them, and the
+        rim's occlusion rules (``jumps``, ``shadow``) speak too.
 
     Returns
     -------
@@ -251,7 +260,8 @@ def classify_causes(
         holds["strip"] = np.zeros(len(stats), bool)
     if sight_known:
         for rule in RIM_ONLY_RULES:
-            holds[rule] = np.zeros(len(stats), bool)
+            if not (heights_assumed and rule in ("jumps", "shadow")):
+                holds[rule] = np.zeros(len(stats), bool)
         elongated = shape_metrics(stats)["elongation"] >= rules.river_min_elongation
         holds["river_rim"] &= elongated
         holds["level_rim"] &= elongated

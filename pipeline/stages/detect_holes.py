@@ -104,6 +104,12 @@ class SensorGeometry:
         return tuple(shapely.from_wkb(w) for w in self.swaths_wkb)
 
     @property
+    def heights_assumed(self) -> bool:
+        """Whether most points lie in lines whose sensor heights are assumed (single returns, no scan angles)."""
+        assumed = sum(line.points for line in self.lines if line.method == "nominal")
+        return assumed > 0.5 * max(self.points_in_lines, 1)
+
+    @property
     def complete(self) -> bool:
         return (
             bool(self.lines)

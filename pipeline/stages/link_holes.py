@@ -65,7 +65,11 @@ def link_cells(
     )
     sight_known = geometry is not None and geometry.complete
     causes = classify_causes(
-        catalog.stats, rules, bands_known=len(line_bands(line_moments)) >= 2, sight_known=sight_known
+        catalog.stats,
+        rules,
+        bands_known=len(line_bands(line_moments)) >= 2,
+        sight_known=sight_known,
+        heights_assumed=sight_known and geometry is not None and geometry.heights_assumed,
     )
     if sight_known:
         assert geometry is not None
