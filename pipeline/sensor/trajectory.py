@@ -396,13 +396,17 @@ def _running_median(samples: np.ndarray, width: int) -> np.ndarray:
 def swath_polygon(line: FlightLine) -> shapely.Geometry:
     """The ground the line's scanner swept (world x, y): the track's strip out to the swath's half-widths, and every bin's hull.
 
-    The strip's ends reach half a sample's spacing beyond the first and last sample.
+    The strip's ends reach one and a half samples' spacing beyond the first and last sample:
+    a sample is the middle of its bin (half a spacing to the bin's last scan line), and a line
+    cut by the survey's edge flew on past its last return there (lakes and dark roofs at the
+    edge return nothing: a simulated lake on a scene's edge fell between the last bin and the
+    edge, 8-9 m, and read as missed coverage).
     """
     track = line.sensor[:, :2]
     heading = line.heading
     left = np.array([-heading[1], heading[0]])
     if len(track) > 1:
-        step = float(np.median(np.hypot(*np.diff(track, axis=0).T))) / 2.0
+        step = 1.5 * float(np.median(np.hypot(*np.diff(track, axis=0).T)))
     else:
         step = 0.0
     start, end = track[0] - heading * step, track[-1] + heading * step

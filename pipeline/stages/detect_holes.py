@@ -356,7 +356,7 @@ def _sight(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray) -> np
     if not empty[core].any():
         return out
     window = cell.window.expand(sight.reach_px).intersection(grid.window)
-    zmax, zmin, measured = _read_window(sight.neighbours, window)
+    zmax, zmin, measured, water = _read_window(sight.neighbours, window)
     candidates = np.zeros(window.shape, bool)
     candidates[cell.window.slices_within(window)] = empty[core]
     targets = ground_targets(
@@ -377,7 +377,7 @@ def _sight(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray) -> np
         pixel_size=grid.resolution,
         reach=sight.reach_px * grid.resolution,
         max_scan_angles=list(sight.max_scan_angles),
-        tops=surface_tops(zmax, measured, candidates, pixel_size=sight.pixel_m),
+        tops=_tops(zmax, measured, water, candidates, sight.pixel_m),
     )
     out[core] = classes[cell.window.slices_within(window)]
     return out
@@ -385,19 +385,34 @@ def _sight(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray) -> np
 
 def _read_window(
     neighbours: tuple[tuple[PixelWindow, str], ...], window: PixelWindow
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Highest and lowest return and whether measured, over a window, from the cores of the cells it meets."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Highest and lowest return, whether measured and whether water was, over a window, from the cells it meets."""
     zmax = np.full(window.shape, np.nan)
     zmin = np.full(window.shape, np.nan)
     measured = np.zeros(window.shape, bool)
+    water = np.zeros(window.shape, bool)
     for core, path in neighbours:
         overlap = core.intersection(window)
         if overlap.is_empty:
             continue
-        stats = load_cell_statistics(path, ("zmax", "zmin", "count")).crop(overlap)
+        stats = load_cell_statistics(path, ("zmax", "zmin", "count", "water")).crop(overlap)
         inside = overlap.slices_within(window)
         zmax[inside], zmin[inside], measured[inside] = stats.zmax, stats.zmin, stats.count > 0
-    return zmax, zmin, measured
+        water[inside] = stats.water > 0
+    return zmax, zmin, measured, water
+
+
+def _tops(
+    zmax: np.ndarray, measured: np.ndarray, water: np.ndarray, candidates: np.ndarray, pixel_m: float
+) -> np.ndarray:
+    """The first surface at each candidate: the water's level beside water returns, else the nearest surface.
+
+    A void beside class-9 returns is the water's surface: its edge lies at the water level, not
+    at the trees on its shore.
+    """
+    near_water = surface_tops(zmax, measured & water, candidates, pixel_size=pixel_m)
+    anywhere = surface_tops(zmax, measured, candidates, pixel_size=pixel_m)
+    return np.where(np.isnan(near_water), anywhere, near_water)
 
 
 def _cell_holes(
