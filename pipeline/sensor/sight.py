@@ -64,20 +64,27 @@ def ground_targets(
     return out
 
 
-def surface_tops(zmax: np.ndarray, measured: np.ndarray, where: np.ndarray, *, pixel_size: float) -> np.ndarray:
+def surface_tops(
+    zmax: np.ndarray,
+    measured: np.ndarray,
+    where: np.ndarray,
+    *,
+    pixel_size: float,
+    water: np.ndarray | None = None,
+) -> np.ndarray:
     """The first surface at the pixels ``where``: the mean highest return within the nearest radius holding one.
 
     What bounds a swath is the first surface the scanner's outermost pulses meet: a void
     among trees at a swath's edge lay under the canopy the edge pulses could not reach,
-    and the ground beneath is wider in the swath than the canopy; a lake's edge lies at its
-    shore's height. NaN where no radius of ``TARGET_RADII_M`` holds a measured pixel.
+    and the ground beneath is wider in the swath than the canopy. Where that nearest radius
+    holds water returns (``water``), their level: a lake's edge lies at the water, not at the
+    trees on its shore. NaN where no radius of ``TARGET_RADII_M`` holds a measured pixel.
     """
     out = np.full(zmax.shape, np.nan)
     rows, cols = np.nonzero(where)
     if len(rows) == 0:
         return out
-    values = np.where(measured, zmax, 0.0).astype(np.float64)
-    weight = measured.astype(np.float64)
+    on_water = measured & (water if water is not None else False)
     found = np.full(len(rows), np.nan)
     for radius in sorted({max(1, round(r / pixel_size)) for r in TARGET_RADII_M}):
         todo = np.isnan(found)
@@ -85,13 +92,21 @@ def surface_tops(zmax: np.ndarray, measured: np.ndarray, where: np.ndarray, *, p
             break
         r0, r1 = max(rows.min() - radius, 0), min(rows.max() + radius + 1, zmax.shape[0])
         c0, c1 = max(cols.min() - radius, 0), min(cols.max() + radius + 1, zmax.shape[1])
-        size = 2 * radius + 1
-        total = ndi.uniform_filter(values[r0:r1, c0:c1], size=size, mode="constant")[rows - r0, cols - c0]
-        count = ndi.uniform_filter(weight[r0:r1, c0:c1], size=size, mode="constant")[rows - r0, cols - c0]
-        mean = np.where(count > 0.5 / size**2, total / np.maximum(count, 1e-12), np.nan)
-        found = np.where(todo, mean, found)
+        window = (slice(r0, r1), slice(c0, c1))
+        level_all = _window_mean(zmax[window], measured[window], radius)[rows - r0, cols - c0]
+        level_water = _window_mean(zmax[window], on_water[window], radius)[rows - r0, cols - c0]
+        level = np.where(np.isnan(level_water), level_all, level_water)
+        found = np.where(todo, level, found)
     out[rows, cols] = found
     return out
+
+
+def _window_mean(values: np.ndarray, where: np.ndarray, radius: int) -> np.ndarray:
+    """Mean of ``values`` over the pixels ``where`` in the square of ``radius`` around each pixel (NaN: none)."""
+    size = 2 * radius + 1
+    total = ndi.uniform_filter(np.where(where, values, 0.0).astype(np.float64), size=size, mode="constant")
+    count = ndi.uniform_filter(where.astype(np.float64), size=size, mode="constant")
+    return np.where(count > 0.5 / size**2, total / np.maximum(count, 1e-12), np.nan)
 
 
 def sight_classes(

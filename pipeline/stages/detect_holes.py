@@ -377,7 +377,7 @@ def _sight(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray) -> np
         pixel_size=grid.resolution,
         reach=sight.reach_px * grid.resolution,
         max_scan_angles=list(sight.max_scan_angles),
-        tops=_tops(zmax, measured, water, candidates, sight.pixel_m),
+        tops=surface_tops(zmax, measured, candidates, pixel_size=sight.pixel_m, water=water),
     )
     out[core] = classes[cell.window.slices_within(window)]
     return out
@@ -400,19 +400,6 @@ def _read_window(
         zmax[inside], zmin[inside], measured[inside] = stats.zmax, stats.zmin, stats.count > 0
         water[inside] = stats.water > 0
     return zmax, zmin, measured, water
-
-
-def _tops(
-    zmax: np.ndarray, measured: np.ndarray, water: np.ndarray, candidates: np.ndarray, pixel_m: float
-) -> np.ndarray:
-    """The first surface at each candidate: the water's level beside water returns, else the nearest surface.
-
-    A void beside class-9 returns is the water's surface: its edge lies at the water level, not
-    at the trees on its shore.
-    """
-    near_water = surface_tops(zmax, measured & water, candidates, pixel_size=pixel_m)
-    anywhere = surface_tops(zmax, measured, candidates, pixel_size=pixel_m)
-    return np.where(np.isnan(near_water), anywhere, near_water)
 
 
 def _cell_holes(
