@@ -22,6 +22,7 @@ memory.
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 
 from .config import AUTO, Config
@@ -142,17 +143,34 @@ def _total_memory() -> int:
 
 
 def _parse_memory(limit: str, total: int) -> int:
-    """``"4GB"``, ``"500MiB"``, a byte count, or a fraction of the machine's memory (``"0.5"``), as distributed reads it."""
-    from dask.utils import parse_bytes
+    """``"4GB"``, ``"500MiB"``, a byte count, or a fraction of the machine's memory (``"0.5"``), as distributed reads it.
 
+    Parsed here (units as ``dask.utils.parse_bytes`` reads them): only run.py and cluster.py import Dask.
+    """
     text = str(limit).strip()
     try:
         value = float(text)
     except ValueError:
-        return int(parse_bytes(text))
+        return _parse_bytes(text)
     if 0 < value <= 1:
         return int(total * value)
     return int(value)
+
+
+#: Byte units as Dask reads them: decimal (kB, MB, ...) and binary (KiB, MiB, ...), case-insensitive.
+_UNITS = {
+    "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12, "pb": 10**15,
+    "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40, "pib": 2**50,
+    "k": 10**3, "m": 10**6, "g": 10**9, "t": 10**12, "p": 10**15,
+}  # fmt: skip
+
+
+def _parse_bytes(text: str) -> int:
+    """``"4GB"``, ``"4 GiB"``, ``"500MB"`` -> bytes; ValueError for anything else."""
+    match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[+-]?[0-9]+)?)\s*([a-zA-Z]*)\s*", text)
+    if not match or match.group(2).lower() not in _UNITS | {"": 1}:
+        raise ValueError(f"not a size: {text!r}")
+    return int(float(match.group(1)) * _UNITS.get(match.group(2).lower(), 1))
 
 
 def _size(n: float) -> str:

@@ -106,6 +106,11 @@ def test_every_hole_the_evidence_calls_water_is_reported_water(shared_data, tmp_
     # listed since sampling gaps follow the width across (lidr_megaplot: 36 m2), is left unknown
     small = load_config().causes.water_min_rim_area_m2
     missed = [(h.hole_id, h.cause, h.rule) for h in water if h.cause != "water" and h.area_m2 >= small]
+    if lakes:
+        # the lakes known from outside polygons only (no class-9 return in the file): the lines saw
+        # them and nothing came back; with no water evidence in the data they are no_return, never
+        # occlusion or missed coverage (docs/holes.md, "The sensor's geometry", known limits)
+        missed = [m for m in missed if m[1] != "no_return"]
     assert missed == []
 
 
