@@ -131,6 +131,11 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=2)
     parser.add_argument("--bench-dir", type=Path, default=Path("bench-out"))
     parser.add_argument("--json", type=Path, help="also write the figures to this file")
+    parser.add_argument(
+        "--sensor-off",
+        action="store_true",
+        help="also time the default run without the sensor's geometry (sensor.enabled=false): what the causes cost",
+    )
     args = parser.parse_args()
 
     base = base_survey(args.bench_dir)
@@ -147,6 +152,9 @@ def main() -> None:
         "default": [holefill, "run", str(survey), "--out", str(out / "default"), "--workers", str(args.workers),
                     "--no-progress", "--overwrite"],
     }  # fmt: skip
+    if args.sensor_off:
+        commands["default_sensor_off"] = [*commands["default"][:4], str(out / "sensor_off"), *commands["default"][5:],
+                                          "--set", "sensor.enabled=false"]  # fmt: skip
     print(
         f"survey: {info['points']:,} points, {len(files)} LAZ tiles, "
         f"{sum(os.path.getsize(f) for f in files) / 1e6:.0f} MB; {args.workers} workers; "

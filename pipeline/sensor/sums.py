@@ -78,6 +78,13 @@ _N_COLUMNS = len(COLUMNS)
 _MAX_MASK = np.array([name in _MAX_COLUMNS for name in COLUMNS])
 
 
+#: tan(scan angle) looked up in the LAS 1.4 angle steps (0.006 degrees; a whole-degree rank falls within
+#: 0.003 degrees of a step): a table lookup instead of a tangent per point.
+_STEPS_PER_DEGREE = 1.0 / 0.006
+_TAN_OFFSET = 15_000  # 90 degrees
+_TANGENTS = np.tan(np.radians((np.arange(2 * _TAN_OFFSET + 1) - _TAN_OFFSET) / _STEPS_PER_DEGREE))
+
+
 def empty_sums() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(lines, bins, values)`` with no row: line ids (int64), bin indices (int64), sums (float64, N x columns)."""
     return np.empty(0, np.int64), np.empty(0, np.int64), np.empty((0, _N_COLUMNS), np.float64)
@@ -96,13 +103,16 @@ def trajectory_sums(
     *,
     origin: tuple[float, float, float],
     bin_seconds: float = BIN_SECONDS,
+    scales: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    offsets: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The sums of one chunk of points, one row per (line, time bin) present.
 
     Parameters
     ----------
-    x, y, z : ndarray of float64
-        World coordinates (the grid's CRS and units).
+    x, y, z : ndarray
+        Coordinates: float64 world coordinates, or a LAS record's integers with their
+        ``scales`` and ``offsets`` (the kernel scales them itself, as the rasterizer does).
     line : ndarray of int
         ``point_source_id``.
     gps_time, return_number, number_of_returns, scan_angle_deg : ndarray
@@ -116,47 +126,71 @@ def trajectory_sums(
     Returns
     -------
     lines, bins, values : ndarray
-        Line id and bin index per row and the sums (columns ``COLUMNS``).
+        Line id and bin index per row, sorted by (bin, line), and the sums (columns ``COLUMNS``).
     """
-    use = keep & (gps_time != 0)
-    if not use.any():
+    slots, keys = _slots(line, gps_time, keep, bin_seconds)
+    if len(keys) == 0:
         return empty_sums()
-    bins = np.floor(gps_time / bin_seconds).astype(np.int64)
-    keys = bins * 65536 + line.astype(np.int64)
-    slots, unique_keys = _slots(keys, use)
-    values = np.zeros((len(unique_keys), _N_COLUMNS), np.float64)
+    values = np.zeros((len(keys), _N_COLUMNS), np.float64)
     values[:, _MAX_MASK] = -np.inf
     _accumulate(
-        values, slots, x - origin[0], y - origin[1], z - origin[2], gps_time - bins * bin_seconds,
-        return_number, number_of_returns, scan_angle_deg.astype(np.float64), line.astype(np.int64), gps_time,
+        values, slots, x, y, z, gps_time, bin_seconds, return_number, number_of_returns, scan_angle_deg, line,
+        np.array(scales, np.float64), np.array(offsets, np.float64) - np.array(origin, np.float64), _TANGENTS,
     )  # fmt: skip
-    return unique_keys % 65536, unique_keys // 65536, values
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    return keys % 65536, keys // 65536, values[order]
 
 
-def _slots(keys: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A row index per point (-1 where not used) and the sorted keys of the rows.
-
-    Points of a line come in time order in most files, so the keys change rarely: the
-    keys of the runs of equal keys are made unique, not the keys of every point.
-    """
-    starts = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
-    run_keys = keys[starts]
-    unique_keys, run_slot = np.unique(run_keys, return_inverse=True)
-    lengths = np.diff(np.append(starts, len(keys)))
-    slots = np.repeat(run_slot.astype(np.int64), lengths)
-    slots[~use] = -1
-    used = np.unique(slots[slots >= 0])
-    if len(used) < len(unique_keys):  # a key whose every point is left out gets no row
-        remap = np.full(len(unique_keys), -1, np.int64)
-        remap[used] = np.arange(len(used))
-        slots = np.where(slots >= 0, remap[np.maximum(slots, 0)], -1)
-        unique_keys = unique_keys[used]
-    return slots, unique_keys
+@numba.njit(cache=True, nogil=True, inline="always")
+def _floor(value):
+    """floor() as an int64 (an adjusted GPS time before 2011 is negative), without libm's call."""
+    whole = np.int64(value)
+    return whole - 1 if value < whole else whole
 
 
 @numba.njit(cache=True, nogil=True)
-def _accumulate(values, slots, x, y, z, t, return_number, number_of_returns, angle, line, gps_time):
+def _slots(line, gps_time, keep, bin_seconds):
+    """A row per (bin, line) present and each point's row (-1: not used), in one pass.
+
+    Points of a line come in time order in most files, so the key changes rarely; on a
+    change the few keys seen so far are searched, newest first.
+    """
+    n = len(line)
+    per_bin = 1.0 / bin_seconds
+    slots = np.empty(n, np.int64)
+    keys = np.empty(n, np.int64)  # room for every point's own key: never grown (a growing array slows the loop 4x)
+    count = 0
+    last_key = np.int64(-1)
+    last_slot = -1
+    for i in range(n):
+        t = gps_time[i]
+        if not keep[i] or t == 0.0:
+            slots[i] = -1
+            continue
+        key = _floor(t * per_bin) * 65536 + np.int64(line[i])
+        if key != last_key:
+            last_slot = -1
+            for j in range(count - 1, -1, -1):
+                if keys[j] == key:
+                    last_slot = j
+                    break
+            if last_slot < 0:
+                keys[count] = key
+                last_slot = count
+                count += 1
+            last_key = key
+        slots[i] = last_slot
+    return slots, keys[:count].copy()
+
+
+@numba.njit(cache=True, nogil=True)
+def _accumulate(
+    values, slots, xs, ys, zs, gps_time, bin_seconds, return_number, number_of_returns, angles, line, scales, shifts,
+    tangents,
+):  # fmt: skip
     n = len(slots)
+    per_bin = 1.0 / bin_seconds
     cos_k = np.empty(16)
     sin_k = np.empty(16)
     for k in range(16):
@@ -167,16 +201,21 @@ def _accumulate(values, slots, x, y, z, t, return_number, number_of_returns, ang
         s = slots[i]
         if s < 0:
             continue
+        t = gps_time[i]
         row = values[s]
-        xi, yi, zi = x[i], y[i], z[i]
+        xi = xs[i] * scales[0] + shifts[0]
+        yi = ys[i] * scales[1] + shifts[1]
+        zi = zs[i] * scales[2] + shifts[2]
+        tb = t * per_bin
+        ti = (tb - _floor(tb)) * bin_seconds
         row[0] += 1.0
         row[1] += xi
         row[2] += yi
         row[3] += zi
-        row[4] += t[i]
-        a = angle[i]
+        row[4] += ti
+        a = np.float64(angles[i])
         if a == a and abs(a) < 89.0:  # not NaN
-            k = math.tan(math.radians(a))
+            k = tangents[int(round(a * _STEPS_PER_DEGREE)) + _TAN_OFFSET]
             row[17] += 1.0
             row[18] += k
             row[19] += k * k
@@ -190,7 +229,7 @@ def _accumulate(values, slots, x, y, z, t, return_number, number_of_returns, ang
             row[27] += yi
             row[28] += yi * k
             row[29] += yi * zi * k
-            row[30] += t[i]
+            row[30] += ti
             if abs(a) > row[31]:
                 row[31] = abs(a)
         for d in range(8):  # directions d and d + 8 are opposite: one product serves both
@@ -209,8 +248,10 @@ def _accumulate(values, slots, x, y, z, t, return_number, number_of_returns, ang
         m = number_of_returns[i]
         if return_number[i] == 1 and m > 1:
             j = i + m - 1
-            if j < n and slots[j] == s and gps_time[j] == gps_time[i] and return_number[j] == m and line[j] == line[i]:
-                dx, dy, dz = xi - x[j], yi - y[j], zi - z[j]
+            if j < n and slots[j] == s and gps_time[j] == t and return_number[j] == m and line[j] == line[i]:
+                dx = xi - (xs[j] * scales[0] + shifts[0])
+                dy = yi - (ys[j] * scales[1] + shifts[1])
+                dz = zi - (zs[j] * scales[2] + shifts[2])
                 sep = math.sqrt(dx * dx + dy * dy + dz * dz)
                 if sep >= 1.0 and dz > min_up * sep:
                     ux, uy, uz = dx / sep, dy / sep, dz / sep
@@ -219,7 +260,7 @@ def _accumulate(values, slots, x, y, z, t, return_number, number_of_returns, ang
                     ayy, ayz, azz = w * (1 - uy * uy), -w * uy * uz, w * (1 - uz * uz)
                     row[5] += 1.0
                     row[6] += w
-                    row[7] += w * t[i]
+                    row[7] += w * ti
                     row[8] += axx
                     row[9] += axy
                     row[10] += axz

@@ -321,7 +321,8 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
             )
             ground += count_ground_at_zero(chunk.Z, is_ground, scale=chunk.scales[2], offset=chunk.offsets[2])
             if chunk.pulses is not None:
-                sums.append(_trajectory_sums(chunk, chunk.coordinates(), sensed, origin))
+                raw = (chunk.X, chunk.Y, chunk.Z)
+                sums.append(_trajectory_sums(chunk, raw, sensed, origin, chunk.scales, chunk.offsets))
             if removed is not None:
                 _count_left_out(accumulator, removed, evidence["water"], chunk.X, chunk.Y, chunk.scales, chunk.offsets)
         else:
@@ -372,15 +373,20 @@ def _trajectory_sums(
     xyz: tuple[np.ndarray, np.ndarray, np.ndarray],
     keep: np.ndarray,
     origin: tuple[float, float, float],
+    scales: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    offsets: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> TrajectorySums:
-    """The chunk's sums per flight line and time bin (:mod:`pipeline.sensor.sums`)."""
+    """The chunk's sums per flight line and time bin (:mod:`pipeline.sensor.sums`).
+
+    ``xyz``: world coordinates, or the record's integers with their ``scales`` and ``offsets``.
+    """
     p = chunk.pulses
     assert p is not None
     x, y, z = xyz
     return TrajectorySums(
         *trajectory_sums(
             x, y, z, chunk.point_source_id, p.gps_time, p.return_number, p.number_of_returns, p.scan_angle_deg, keep,
-            origin=origin,
+            origin=origin, scales=scales, offsets=offsets,
         )
     )  # fmt: skip
 
