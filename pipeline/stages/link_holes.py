@@ -73,7 +73,8 @@ def link_cells(
     )
     if sight_known:
         assert geometry is not None
-        directions = {line.line: line.azimuth_deg % 180.0 for line in geometry.lines}
+        # to 0.01 degree: the fit's last digits follow the order the reads summed in (a split COPC file)
+        directions = {line.line: round(line.azimuth_deg % 180.0, 2) for line in geometry.lines}
     else:
         directions = line_azimuths(line_moments)
     azimuths = strip_azimuths(catalog.stats.line_hist, causes["cause"] == "missed_coverage", directions)
