@@ -71,8 +71,10 @@ def log_of(slurm, job_id: str) -> str:
 
 def test_single_node_job_stopped_at_its_time_limit_is_requeued_and_resumes(slurm, survey, tmp_path):
     out = tmp_path / "out"
+    # stopped 54 s before the one-minute limit: 6 s an attempt, less than the survey needs however
+    # quiet the machine (7.5 s of stages alone on an idle 2-core VM), so the first attempt is stopped
     job = submit(
-        slurm, *JOB_OPTIONS, f"--output={tmp_path}/job-%j.log", f"--chdir={tmp_path}",
+        slurm, *JOB_OPTIONS, "--export=ALL,HOLEFILL_STOP_LEAD_S=54", f"--output={tmp_path}/job-%j.log", f"--chdir={tmp_path}",
         str(SLURM_DIR / "single-node.sbatch"), str(out), str(survey / "tiles"),
     )  # fmt: skip
     info = slurm.wait_state(job, {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT"}, timeout=900)
@@ -95,7 +97,7 @@ def test_array_task_cancelled_keeps_its_work_and_a_resubmission_resumes(slurm, s
     options = ("--time=10", "--cpus-per-task=1", "--mem=300M", f"--output={tmp_path}/array-%j.log")
     array = submit(slurm, *options, "--array=0", str(SLURM_DIR / "survey-array.sbatch"), str(surveys))
     started = time.monotonic()
-    while not list(out.glob(".holefill-partial-*/work/done/rasterize-*.pkl")):
+    while not list(out.glob(".holefill-partial-*/work/done/rasterize-*")):
         assert time.monotonic() - started < 300, "the array task kept no tile result"
         time.sleep(0.2)
     slurm.run("scancel", f"{array}_0")
