@@ -57,6 +57,9 @@ class Tally:
     confusion: dict[str, collections.Counter] = field(
         default_factory=lambda: collections.defaultdict(collections.Counter)
     )
+    confusion_px: dict[str, collections.Counter] = field(
+        default_factory=lambda: collections.defaultdict(collections.Counter)
+    )
 
     def add(self, score) -> None:
         self.runs += 1
@@ -67,6 +70,16 @@ class Tally:
         self.union_px += score.true_hole_px + score.detected_px - inter
         for true, reported in score.confusion.items():
             self.confusion[true].update(reported)
+        for true, reported in getattr(score, "confusion_px", {}).items():
+            self.confusion_px[true].update(reported)
+
+    def per_cause_px(self) -> dict[str, float]:
+        """True cause -> the share of its detected hole pixels in holes given that cause (area-weighted)."""
+        return {
+            true: counts.get(true, 0) / total
+            for true, counts in sorted(self.confusion_px.items())
+            if (total := sum(counts.values()))
+        }
 
     def per_cause(self) -> dict[str, tuple[int, int]]:
         """True cause -> (right, total) over the detected holes."""
@@ -82,6 +95,7 @@ class Tally:
                 for true, (right, total) in self.per_cause().items()
             },
             "confusion": {true: dict(counts) for true, counts in sorted(self.confusion.items())},
+            "per_cause_area": {true: round(share, 4) for true, share in self.per_cause_px().items()},
         }
 
 
@@ -142,7 +156,12 @@ def wrong_holes(holes_gpkg: pathlib.Path, truth_path: pathlib.Path) -> list[dict
 
 def format_tally(label: str, tally: Tally) -> str:
     causes = tally.per_cause()
-    cells = [f"{true} {right}/{total} ({right / total:.0%})" for true, (right, total) in causes.items()]
+    by_area = tally.per_cause_px()
+    cells = [
+        f"{true} {right}/{total} ({right / total:.0%}"
+        + (f"; {by_area[true]:.1%} of its area)" if true in by_area else ")")
+        for true, (right, total) in causes.items()
+    ]
     iou = tally.intersection_px / tally.union_px if tally.union_px else float("nan")
     return f"{label:24s} {tally.runs:4d} {tally.holes:6d} {iou:6.3f}   " + ", ".join(cells)
 
@@ -188,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     for result in results:
         by_scene[result["scene"]].add(result["score"])
         pooled.add(result["score"])
-    print(f"\n{'scene':24s} {'runs':>4s} {'holes':>6s} {'IoU':>6s}   right/total per true cause")
+    print(f"\n{'scene':24s} {'runs':>4s} {'holes':>6s} {'IoU':>6s}   right/total per true cause (and by area)")
     for name in scenes:
         print(format_tally(name, by_scene[name]))
     print(format_tally("pooled", pooled))

@@ -73,7 +73,7 @@ def print_summary(results: list[dict], terrains: list[str]) -> tuple[dict[str, T
     for result in results:
         by_terrain[result["terrain"]].add(result["score"])
         pooled.add(result["score"])
-    print(f"\n{'terrain':24s} {'runs':>4s} {'holes':>6s} {'IoU':>6s}   right/total per true cause")
+    print(f"\n{'terrain':24s} {'runs':>4s} {'holes':>6s} {'IoU':>6s}   right/total per true cause (and by area)")
     for name in terrains:
         print(format_tally(name, by_terrain[name]))
     print(format_tally("pooled", pooled))

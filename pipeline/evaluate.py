@@ -37,6 +37,7 @@ class HoleScore:
     cause_correct: int
     confusion: dict[str, dict[str, int]] = field(default_factory=dict)  # true -> detected -> count
     missed_true_holes: int = 0  # true hole components (>= min area) with no detected pixel
+    confusion_px: dict[str, dict[str, int]] = field(default_factory=dict)  # the same, weighed by hole pixels
 
     @property
     def cause_accuracy(self) -> float:
@@ -51,6 +52,7 @@ class HoleScore:
             "cause_accuracy": round(self.cause_accuracy, 4) if self.holes else None,  # JSON has no NaN
             "confusion": self.confusion,
             "missed_true_holes": self.missed_true_holes,
+            "confusion_px": self.confusion_px,
         }
 
 
@@ -82,6 +84,7 @@ def score_holes(holes_gpkg: str | os.PathLike, truth_causes: str | os.PathLike, 
     holes = read_layer(holes_gpkg, "holes")
     detected = np.zeros(truth.shape, bool)
     confusion: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
+    confusion_px: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
     correct = 0
     scored = 0
     causes = holes["cause"] if "cause" in holes.columns else [None] * len(holes)  # an empty layer of an older run
@@ -94,6 +97,7 @@ def score_holes(holes_gpkg: str | os.PathLike, truth_causes: str | os.PathLike, 
         codes = codes[codes > 0]
         true_cause = CAUSE_NAMES[int(np.bincount(codes).argmax())] if len(codes) else "none"
         confusion[true_cause][cause] += 1
+        confusion_px[true_cause][cause] += int(mask.sum())
         scored += 1
         correct += true_cause == cause
     union = (detected | true_mask).sum()
@@ -107,6 +111,7 @@ def score_holes(holes_gpkg: str | os.PathLike, truth_causes: str | os.PathLike, 
         cause_correct=int(correct),
         confusion={k: dict(v) for k, v in confusion.items()},
         missed_true_holes=missed,
+        confusion_px={k: dict(v) for k, v in confusion_px.items()},
     )
 
 
