@@ -48,6 +48,8 @@ from .outputs import (
     write_survey_layers,
 )
 from .plan import SurveyPlan, needs_density, plan_survey
+from .progress import ProgressBars as _Progress
+from .progress import StageTimer as _StageTimer
 from .report import ReportInputs, read_report_inputs, write_report
 from .stages import bin_tiles, detect_holes, fill_holes, link_holes, merge_cells, write_points, write_rasters
 from .stages.bin_tiles import TileFailure, TileResult
@@ -124,24 +126,10 @@ def run_survey(
             cluster_scope.close()
             return _finish_commit(staging)
         try:
-            with _Progress(progress) as bar:
-                runner = _Runner(
-                    connect(),
-                    bar,
-                    staging,
-                    retries=config.dask.retries,
-                    no_worker_timeout_s=config.dask.no_worker_timeout_s,
-                )
-                rasters, detected, holes, fills = _run_stages(runner, plan, config, staging, timer, water_area)
-            cluster_scope.close()  # the workers stop (and free their memory) before the products are written
-            summary = _publish(
-                staging,
-                (plan, config, rasters, detected, holes, fills),
-                started,
-                timer,
-                runner,
+            summary = _run_and_publish(
+                connect, cluster_scope, staging, plan, config, (started, timer), water_area, progress=progress,
                 keep_work=config.output.keep_intermediate or incremental,
-            )
+            )  # fmt: skip
         except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError, ClusterError):
             # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
             interrupt.acknowledge()  # a second TERM must not cut the unlock short
@@ -151,6 +139,31 @@ def run_survey(
             _discard(staging, created_out)
             raise
     return summary
+
+
+def _run_and_publish(
+    connect: Any,
+    cluster_scope: contextlib.ExitStack,
+    staging: Staging,
+    plan: SurveyPlan,
+    config: Config,
+    clock: tuple[float, _StageTimer],
+    water_area: Any,
+    *,
+    progress: bool,
+    keep_work: bool,
+) -> RunSummary:
+    """Every stage on the workers, then, the workers stopped (their memory freed), the products."""
+    started, timer = clock
+    with _Progress(progress) as bar:
+        runner = _Runner(
+            connect(), bar, staging, retries=config.dask.retries, no_worker_timeout_s=config.dask.no_worker_timeout_s
+        )
+        rasters, detected, holes, fills = _run_stages(runner, plan, config, staging, timer, water_area)
+    cluster_scope.close()
+    return _publish(
+        staging, (plan, config, rasters, detected, holes, fills), started, timer, runner, keep_work=keep_work
+    )
 
 
 def _finish_commit(staging: Staging) -> RunSummary:
@@ -407,14 +420,10 @@ def _run_holes(runner: _Runner, plan: SurveyPlan, config: Config, rasters: _Rast
     cells = rasters.cells
     blocks = merge_cells.footprint_blocks(cells, plan, config)
     line_moments = merge_cells.survey_line_moments(cells)
-    geometry = detect_holes.sensor_geometry(rasters.tiles, plan, config) if config.sensor.enabled else None
-    sight = None
-    if geometry is not None and geometry.complete:
-        logger.debug("flight lines: %s", [(g.line, g.part, g.method, round(g.flying_height)) for g in geometry.lines])
-        sight = detect_holes.sight_inputs(plan, cells, geometry, config.sensor.sight_reach_m)
-        gaps = detect_holes.with_tile_grid(plan, merge_cells.survey_coverage_gaps(line_moments[:0]))
-    else:
-        gaps = detect_holes.with_tile_grid(plan, merge_cells.survey_coverage_gaps(line_moments))
+    geometry, sight = detect_holes.sensor_inputs(rasters.tiles, cells, plan, config)
+    # with the swaths known, no coverage gap is sought between the bands of the lines' pixels
+    bands = line_moments[:0] if sight is not None else line_moments
+    gaps = detect_holes.with_tile_grid(plan, merge_cells.survey_coverage_gaps(bands))
     gaps = _void_gaps(runner, plan, cells, gaps)
     tasks = detect_holes.detect_tasks(plan, params, cells, blocks, water, staging, gaps, sight)
     futures = [
@@ -742,62 +751,3 @@ def run_key(plan: SurveyPlan, config: Config, aoi: Any, water: Any) -> str:
     parts += [input_fingerprint(t.path) for t in plan.survey.tiles]
     parts += [input_fingerprint(str(p)) if p else "" for p in (aoi, water)]
     return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-class _StageTimer:
-    """Seconds per stage for the manifest, each measured from the end of the previous one."""
-
-    def __init__(self, started: float) -> None:
-        self.seconds: dict[str, float] = {}
-        self._last = started
-
-    def lap(self, name: str) -> None:
-        now = time.perf_counter()
-        self.seconds[name] = now - self._last
-        self._last = now
-
-
-class _Progress:
-    """rich progress bars on stderr: tasks done, points per second, time left."""
-
-    def __init__(self, enabled: bool) -> None:
-        self.enabled = enabled
-        self._progress: Any = None
-        self._points: dict[int, int] = {}
-        self._started = time.perf_counter()
-
-    def __enter__(self) -> _Progress:
-        if self.enabled:
-            from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-            self._progress = Progress(
-                TextColumn("{task.description:<24}"),
-                BarColumn(),
-                MofNCompleteColumn(),
-                TextColumn("{task.fields[rate]}"),
-                TimeRemainingColumn(),
-                console=Console(stderr=True),
-            )
-            self._progress.__enter__()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self._progress is not None:
-            self._progress.__exit__(*exc)
-
-    def add(self, description: str, *, total: int) -> int:
-        """A new bar; returns its handle."""
-        handle = len(self._points)
-        self._points[handle] = 0
-        if self._progress is not None:
-            handle = self._progress.add_task(description, total=total, rate="")
-            self._points[handle] = 0
-        return handle
-
-    def advance(self, handle: int, *, points: int = 0) -> None:
-        self._points[handle] = self._points.get(handle, 0) + points
-        if self._progress is not None:
-            elapsed = max(time.perf_counter() - self._started, 1e-9)
-            rate = f"{self._points[handle] / elapsed / 1e6:6.2f} M pts/s" if self._points[handle] else ""
-            self._progress.update(handle, advance=1, rate=rate)

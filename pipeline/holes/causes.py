@@ -176,56 +176,15 @@ def classify_causes(
     sight_known: bool = False,
     heights_assumed: bool = False,
 ) -> np.ndarray:
-    """Why each hole is there: occlusion, water, missed coverage or unknown.
+    """Why each hole is there: the first rule of ``RULES`` that holds wins.
 
-    The rules of ``RULES`` are tried in order and the first that holds wins (the
-    reasoning is in ``docs/holes.md``). From the ring-height histogram: low level =
-    the ``low_quantile`` of ring heights; step = the larger of (``high_quantile`` -
-    ``low_quantile``) and the mean span ``zmax - zmin`` of the ring's jump pixels
-    (a wall seen from above). From the ring's co-moments (:func:`ring_metrics`): the
-    slope of the plane through the ring and the scatter about it.
-
-    1. ``water`` / ``water_mask``: at least ``water_min_mask_fraction`` of the hole
-       lies inside the given water mask.
-    2. ``missed_coverage`` / ``missing_tile``: at least ``gap_min_fraction`` of the
-       hole lies in the square of a missing tile (a square of the tile grid without a
-       tile, enclosed by squares with one: :mod:`pipeline.tile_grid`); then
-       ``missed_coverage`` / ``coverage_gap``: at least ``gap_min_fraction`` of the
-       hole lies in a coverage gap (no flight line's swath, :mod:`pipeline.holes.coverage`).
-    3. ``water`` / ``water_points``: at least ``water_min_point_fraction`` of the
-       ring (or of the hole) holds water-class points.
-    4. ``occlusion`` ([UAS] 3.2), if the step exceeds ``jump_threshold`` and the hole
-       is thin enough to lie in its shadow (``thickness_px * pixel_size <=
-       max_shadow_ratio * step``), and either ``jumps``: at least
-       ``occlusion_min_jump_fraction`` of the ring pixels are height jumps; or
-       ``shadow``: at least ``shadow_min_high_fraction`` of the ring is more than
-       ``jump_threshold`` above the low level, and that is no terrain slope (the
-       ring's plane is steeper than ``max_terrain_slope``, or the ring scatters
-       about it by at least ``shadow_min_residual_ratio * jump_threshold``).
-    5. ``missed_coverage`` / ``strip``: a long straight strip (``fill >=
-       strip_min_fill``, ``length_px >= strip_min_length_px``, ``elongation >=
-       strip_min_elongation``); where flight-line ids were given, its ring must also
-       come from two or more lines each holding at least ``strip_min_line_share`` of
-       it, the two most common holding at least ``strip_two_line_share``, and the
-       elongation needed is ``strip_min_elongation_with_lines``. Not where the flight
-       lines' bands are known (``bands_known``): a missed strip between them is then a
-       coverage gap, checked against the pixels (:func:`pipeline.holes.coverage.keep_void_gaps`),
-       and a straight void that is no such gap (a canal along the seam of two lines) is not one.
-    6. ``water`` / ``level_rim``: the hole lies in a known swath (a line flew over it
-       and got nothing back), at least ``water_min_flat_fraction`` of its ring lies in
-       one height window ``water_flat_tolerance`` wide and at most
-       ``water_max_below_fraction`` below it (a shore is a contour line).
-    7. ``water`` / ``flat_low_rim``: at least ``water_min_flat_fraction`` of the ring
-       lies within ``water_flat_tolerance`` above the low level and at least
-       ``water_min_low_fraction`` of it is at the local minimum (``ring_low_px``).
-       Like ``level_rim`` and ``river_rim``, only for holes of at least ``water_min_rim_area_m2``.
-    8. ``water`` / ``river_rim``: the hole is in no coverage gap and its ring is a
-       plane (scatter at most ``water_flat_tolerance``) that matches across the hole
-       (cross-axis fall over its width at most ``water_flat_tolerance``) and falls
-       along it no steeper than ``water_max_slope``; a fall over its length above
-       ``water_flat_tolerance`` needs a hole at least ``river_min_elongation`` long
-       for its width (water is level across; only a river's course falls).
-    9. ``unknown`` / ``none`` (``no_ring`` when no measured pixel borders the hole).
+    Each rule, its condition and the physical evidence behind it are in ``docs/holes.md``
+    ("Causes", and "The sensor's geometry" for ``line_of_sight``, ``water_edge`` and ``seen``).
+    From the ring-height histogram: low level = the ``low_quantile`` of ring heights; step =
+    the larger of (``high_quantile`` - ``low_quantile``) and the mean span ``zmax - zmin`` of
+    the ring's jump pixels (a wall seen from above). From the ring's co-moments
+    (:func:`ring_metrics`): the slope of the plane through the ring and the scatter about it.
+    A hole no rule claims is ``unknown`` / ``none`` (``no_ring`` without a measured neighbour).
 
     Parameters
     ----------

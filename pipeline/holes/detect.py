@@ -163,32 +163,21 @@ def detect_cell_holes(
         A ring pixel is "low" when its ``zmin`` is within ``low_tolerance`` (z units) of the
         lowest ``zmin`` within ``local_radius_px`` pixels (square window; 0 disables). The
         halo must reach this far (and at least 1 pixel) on every side that is not the grid's edge.
-    water_points, water_mask : ndarray, same shape, optional
-        Water-class points per pixel (e.g. ASPRS class 9); True inside known water polygons.
-    flight_line : ndarray of int, same shape, optional
-        An id of a flight line covering each pixel (e.g. a point_source_id), < 0: unknown.
-    coverage : ndarray of int, same shape, optional
-        Per pixel: 2 in a coverage gap (no swath reaches), 3 in a missing tile's square (counted in
-        ``missing_tile_px``), 1 inside a swath, 0 unknown (:meth:`~pipeline.holes.coverage.CoverageGaps.classes`).
-        Hole pixels inside and outside a gap are labelled apart (a river crossing a missed strip: two holes).
-    sight : ndarray of uint8, same shape, optional
-        Per hole pixel, whether the sensor could see it (:func:`pipeline.sensor.sight.sight_classes`):
-        counted in ``blocked_px`` (hidden from every line that swept it) and ``seen_px``.
-    covered : ndarray of bool, same shape, optional
-        Pixels holding points the class filter left out (a ground-only model): counted in ``covered_px``.
+    water_points, water_mask, flight_line, coverage, sight, covered : ndarray, same shape, optional
+        Evidence, each counted per part: water-class points per pixel (``hole_water_px``, the ring's
+        ``ring_water_px``); True inside known water (``water_mask_px``); a flight-line id per pixel
+        (< 0 unknown; the ring's line histogram); coverage classes, 2 in a coverage gap, 3 in a missing
+        tile's square, 1 in a swath, 0 unknown (``gap_px``, ``missing_tile_px``, ``swath_px``: hole pixels
+        in and out of a gap are labelled apart, a river crossing a missed strip is two holes); the
+        sensor's view, :func:`pipeline.sensor.sight.sight_classes` (``blocked_px``, ``seen_px``); points
+        the class filter left out (``covered_px``).
     min_area_px : int
         Closed parts (touching neither the core edge nor the AOI boundary) smaller than this are settled
         here as small voids: counted in ``small_void_count``/``small_void_px``, labelled -1, not listed.
         Open parts are always kept (their hole's area is only known after linking). 0 (default) keeps all.
 
-    Returns
-    -------
-    CellHoles
-
-    Raises
-    ------
-    ValueError
-        On arrays of the wrong shape, a bad parameter, or a halo narrower than needed.
+    Returns a :class:`CellHoles`; raises ``ValueError`` on arrays of the wrong shape, a bad
+    parameter, or a halo narrower than needed.
     """
     inputs = (count, zmax, zmin, aoi, water_points, water_mask, flight_line, coverage, sight, covered)
     arrays = dict(zip(_INPUTS, inputs))

@@ -6,6 +6,7 @@ stage reads it) and returns only small tables and outlines to the client.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, replace
 
@@ -37,6 +38,8 @@ from ..sensor.trajectory import FlightLine, fit_flight_lines, swath_polygon
 from ..staging import Staging
 from .bin_tiles import TileResult
 from .merge_cells import CellResult
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -142,6 +145,20 @@ def sensor_geometry(tiles: list[TileResult], plan: SurveyPlan, config: Config) -
         points_timed=sums.points,
         points_used=sum(t.points_used for t in tiles),
     )
+
+
+def sensor_inputs(
+    tiles: list[TileResult], merged: list[CellResult], plan: SurveyPlan, config: Config
+) -> tuple[SensorGeometry | None, dict[str, SightInputs] | None]:
+    """Gather: the flight lines (None with ``sensor.enabled`` off) and, where they account for the
+    survey's points, what each detection task needs to judge swaths and lines of sight."""
+    if not config.sensor.enabled:
+        return None, None
+    geometry = sensor_geometry(tiles, plan, config)
+    if not geometry.complete:
+        return geometry, None
+    logger.debug("flight lines: %s", [(g.line, g.part, g.method, round(g.flying_height)) for g in geometry.lines])
+    return geometry, sight_inputs(plan, merged, geometry, config.sensor.sight_reach_m)
 
 
 def sight_inputs(
