@@ -284,14 +284,15 @@ def _largest_angle(recorded: float, measured: float) -> float:
     """The line's largest scan angle: as recorded, to the precision it is recorded with.
 
     LAS 1.0-1.3 record whole degrees (a rank): the true largest angle lies within half a degree
-    of the largest rank, where the edge's geometry places it. Without recorded angles, the edge's
+    of the largest rank, where the edge's geometry places it when it falls there (a swath cropped
+    by the survey's edge measures low: the rank then stands). Without recorded angles, the edge's
     geometry alone; NaN where neither is known.
     """
     if math.isnan(recorded):
         return measured
-    if float(recorded).is_integer() and not math.isnan(measured):
-        return float(np.clip(measured, recorded - 0.5, recorded + 0.5))
-    return recorded
+    if float(recorded).is_integer() and not math.isnan(measured) and abs(measured - recorded) <= 0.5:
+        return measured
+    return recorded  # a measurement the rank contradicts (a swath cropped by the survey's edge) is no refinement
 
 
 def _consistent(sensor: np.ndarray) -> np.ndarray:
