@@ -63,11 +63,11 @@ def plain(values) -> list:
 ESTIMATED_LAYERS = {"flight_lines": 1.0, "swaths": 1.0}
 
 
-def same_outputs(a: Path, b: Path, *, skip_layers: tuple[str, ...] = (), estimated_tolerance: float = 0.0) -> None:
+def same_outputs(a: Path, b: Path, *, skip_layers: tuple[str, ...] = (), estimated: bool = False) -> None:
     """The rasters and the GeoPackage layers (but ``skip_layers``) equal value by value, paths aside.
 
-    ``estimated_tolerance``: compare ``ESTIMATED_LAYERS`` by their ids and geometries within their
-    tolerance only (reads of the same points in another order).
+    ``estimated``: compare ``ESTIMATED_LAYERS`` by their ids and geometries within their tolerance
+    only (reads of the same points in another order).
     """
     for name in ("dsm.vrt", "fill_mask.vrt", "fill_distance.vrt"):
         va, ta, _ = read_raster(a / name)
@@ -78,7 +78,7 @@ def same_outputs(a: Path, b: Path, *, skip_layers: tuple[str, ...] = (), estimat
         fa, fb = read_layer(a / "holes.gpkg", layer), read_layer(b / "holes.gpkg", layer)
         assert list(fa.columns) == list(fb.columns), layer
         assert len(fa) == len(fb), layer
-        if estimated_tolerance and layer in ESTIMATED_LAYERS:
+        if estimated and layer in ESTIMATED_LAYERS:
             assert plain(fa["point_source_id"]) == plain(fb["point_source_id"]), layer
             distance = fa.geometry.hausdorff_distance(fb.geometry)
             assert (distance <= ESTIMATED_LAYERS[layer]).all(), (layer, distance.tolist())
