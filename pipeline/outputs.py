@@ -24,6 +24,8 @@ from pyproj import CRS
 from . import __version__
 from .config import Config, config_key, to_dict
 from .fill import NOT_FILLED
+from .fill.by_cause import FILLED, HoleFill
+from .fill.by_cause import UNFILLED as UNFILLED_STATUS
 from .holes import CAUSES
 from .holes.outlines import hole_outline, merge_outlines, to_world
 from .io.raster import NODATA, write_vrt
@@ -31,8 +33,6 @@ from .io.vector import write_layer
 from .plan import SurveyPlan
 from .stages.bin_tiles import TileResult
 from .stages.detect_holes import DetectResult
-from .stages.fill_holes import FILLED, HoleFill
-from .stages.fill_holes import NOT_FILLED as UNFILLED_STATUS
 from .stages.link_holes import HoleSet
 from .stages.merge_cells import CellResult
 from .stages.write_rasters import DESCRIPTIONS, WriteResult

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.fill import METHOD_CODES, FillSettings, fill_region, river_surfaces
-from pipeline.stages.fill_holes import WATER, FillParams, fill_hole
+from pipeline.fill.by_cause import WATER, FillParams, fill_hole
 
 PIXEL = 0.5  # metres
 
@@ -124,10 +124,10 @@ def test_elongation_and_drop_rules():
 
 def test_the_holes_layer_names_a_river():
     """The hole's record (its ``fill_method`` and ``fill_note`` in the holes layer) says river."""
-    from pipeline.stages.fill_holes import FILLED, _record
+    from pipeline.fill.by_cause import FILLED, hole_record
 
     dsm, water, _, _, _ = river_scene(1.0)
     labels = water.astype(np.int32)
     out = fill(dsm, water)
-    record = _record(7, 1, labels, out, np.ones(water.shape), "fill.npz")
+    record = hole_record(7, 1, labels, out, np.ones(water.shape), "fill.npz")
     assert record.status == FILLED and record.method == "river" and record.detail.startswith("river: falls 3.")

@@ -7,9 +7,23 @@ References (files under ``shared/seeds``):
 * [OPEN] "A parallel method for open hole filling in large-scale 3D automatic
   modeling" (``parallel-open-hole-filling.txt``), sections 3.3-3.4.
 
-See docs/filling.md for the methods, the ``auto`` rule and measured figures.
+See docs/filling.md for the methods, the ``auto`` rule and measured figures. How a hole
+is filled by its cause (water, occlusion, the rest) is :mod:`.by_cause`.
 """
 
+from .by_cause import (
+    FILLED,
+    NO_SUPPORT,
+    TOO_LARGE,
+    UNFILLED,
+    FillParams,
+    HoleFill,
+    fill_hole,
+    fill_kind,
+    fill_water,
+    hole_ids_of_labels,
+    hole_record,
+)
 from .causes import clamp_to_rim, lower_side_support, rim_level
 from .hydro import RiverFit, river_surfaces
 from .provenance import fill_distance, leave_boundary_out_error
@@ -26,19 +40,30 @@ from .settings import (
 )
 
 __all__ = [
+    "FILLED",
     "FILL_METHODS",
     "METHOD_CODES",
     "METHOD_NAMES",
     "NOT_FILLED",
+    "NO_SUPPORT",
     "RiverFit",
+    "TOO_LARGE",
+    "UNFILLED",
     "UNTOUCHED",
     "ComponentFill",
     "FillOutcome",
+    "FillParams",
     "FillSettings",
+    "HoleFill",
     "choose_methods",
     "clamp_to_rim",
     "fill_distance",
+    "fill_hole",
+    "fill_kind",
     "fill_region",
+    "fill_water",
+    "hole_ids_of_labels",
+    "hole_record",
     "leave_boundary_out_error",
     "lower_side_support",
     "rim_level",

@@ -3,7 +3,7 @@
 A hole belongs to the cell holding its first pixel (raster order). Its task reads
 the hole's window (bounding box grown by ``fill.margin_px``) from the kept cell
 statistics and part labels of every cell under it, fills the hole in one piece
-with the method its cause calls for, and keeps the results of all its holes in
+the way its cause calls for (:mod:`pipeline.fill.by_cause`), and keeps the results of all its holes in
 ``work/fill/fill_<cell id>.npz``; the writer stage paints them into every cell
 they cover. Filling a hole whole, never cell by cell, makes the fill independent of
 the cell size: the same hole gives the same heights with 64-pixel or 1000-pixel
@@ -16,59 +16,32 @@ it stays nodata, marked ``skipped: too large``.
 
 from __future__ import annotations
 
-import math
 from collections import defaultdict
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.ndimage as ndi
 
 from ..config import Config
-from ..fill import (
-    METHOD_CODES,
-    METHOD_NAMES,
-    FillOutcome,
-    FillSettings,
-    clamp_to_rim,
-    fill_distance,
-    fill_region,
-    lower_side_support,
-    river_surfaces,
+from ..fill import fill_distance
+from ..fill.by_cause import (
+    SMALL_VOID,
+    TOO_LARGE,
+    FillParams,
+    HoleFill,
+    fill_hole,
+    fill_kind,
+    hole_ids_of_labels,
+    hole_record,
 )
 from ..grid import Grid, PixelWindow
 from ..io.intermediate import load_cell_statistics, load_labels, save_task_fill
-from ..plan import HoleParams, SurveyPlan
+from ..plan import SurveyPlan
 from ..staging import Staging
 from .link_holes import HoleSet
 
-#: The cause a small void is filled as (it is not classified when a cell settles it).
-SMALL_VOID = "small void"
-OCCLUSION = "occlusion"
-
 #: Largest window (pixels) a hole is filled over; a hole spread wider is a strip for the flight plan.
 MAX_WINDOW_PX = 4096 * 4096
-
-#: How a hole is filled (:func:`fill_kind`).
-WATER, LOW_SIDE, RIM = "water", "low", "rim"
-
-#: ``fill_status`` values of the ``holes`` layer.
-FILLED, TOO_LARGE, NO_SUPPORT, NOT_FILLED = "filled", "skipped: too large", "skipped: no support", "unfilled"
-
-
-@dataclass(frozen=True)
-class FillParams:
-    """The ``[fill]`` settings in survey units, shared by every fill and writer task."""
-
-    method: str
-    by_cause: bool
-    pixel_size: float  # survey units
-    max_distance: float  # survey units
-    water_percentile: float
-    jump_threshold: float  # z units
-    settings: FillSettings
-    clamp_to_rim: bool = True
-    river_min_drop: float = math.inf  # z units; inf: every water hole one level
-    river_min_elongation: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -98,37 +71,6 @@ class FillTask:
     sources: tuple[CellSource, ...]  # every cell whose core meets one of the holes' windows
     params: FillParams
     result_path: str  # the filled holes of the task, kept for the writer stage
-
-
-@dataclass(frozen=True)
-class HoleFill:
-    """How one hole was filled (or why not): a row of the ``holes`` layer's fill fields."""
-
-    hole_id: int
-    status: str
-    method: str | None = None
-    pixels: int = 0
-    max_distance: float = math.nan  # survey units, farthest filled pixel from measured data
-    error_estimate: float = math.nan  # z units, leave-rim-out RMSE
-    degraded: bool = False
-    detail: str = ""
-    result_path: str | None = None
-
-
-def fill_params(plan: SurveyPlan, config: Config, params: HoleParams) -> FillParams:
-    fill = config.fill
-    return FillParams(
-        method=fill.method,
-        by_cause=fill.by_cause,
-        pixel_size=plan.grid.resolution,
-        max_distance=fill.max_distance_m / plan.survey.horizontal_unit_m,
-        water_percentile=fill.water_percentile,
-        jump_threshold=params.jump_threshold,
-        settings=FillSettings(estimate_error=fill.estimate_error, tin_order=fill.tin_order),
-        clamp_to_rim=fill.clamp_to_rim,
-        river_min_drop=fill.river_min_drop_m / plan.survey.vertical_unit_m,
-        river_min_elongation=fill.river_min_elongation,
-    )
 
 
 def cell_sources(
@@ -233,22 +175,13 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
         labels = _group_labels(hole_ids, [hole.hole_id for hole in group])
         outcome = fill_hole(zmax, zmin, measured, labels, kind, params)
         for k, hole in enumerate(group, start=1):
-            results[hole.hole_id] = _record(hole.hole_id, k, labels, outcome, distance, task.result_path)
+            results[hole.hole_id] = hole_record(hole.hole_id, k, labels, outcome, distance, task.result_path)
         done = (labels > 0) & np.isfinite(outcome.heights)
         heights[done], codes[done] = outcome.heights[done], outcome.method_code[done]
         filled_ids[done] = hole_ids[done]
     if filled_ids.any():
         save_task_fill(task.result_path, window, filled_ids, heights, codes, distance)
     return [results[hole.hole_id] for hole in task.holes]
-
-
-def fill_kind(cause: str, params: FillParams) -> str:
-    """How a hole of this cause is filled: ``water`` flat, ``low`` from the low side, ``rim`` from all of it."""
-    if not params.by_cause:
-        return RIM
-    if cause == "water":
-        return WATER
-    return LOW_SIDE if cause in (OCCLUSION, SMALL_VOID) else RIM
 
 
 def _group_labels(hole_ids: np.ndarray, group: list[int]) -> np.ndarray:
@@ -258,130 +191,12 @@ def _group_labels(hole_ids: np.ndarray, group: list[int]) -> np.ndarray:
     return np.where(hole_ids > 0, lookup[np.maximum(hole_ids, 0)], 0)
 
 
-def _record(
-    hole_id: int, label: int, labels: np.ndarray, outcome: FillOutcome, distance: np.ndarray, path: str
-) -> HoleFill:
-    filled = (labels == label) & np.isfinite(outcome.heights)
-    if not filled.any():
-        return HoleFill(hole_id, NO_SUPPORT, detail="no measured rim to fill from")
-    components = [c for c in outcome.components if c.label == label]
-    return HoleFill(hole_id, FILLED, result_path=path, **_summary(outcome, components, filled, distance))
-
-
 def _union(windows: list[PixelWindow]) -> PixelWindow:
     r0 = min(w.row_off for w in windows)
     c0 = min(w.col_off for w in windows)
     r1 = max(w.row_end for w in windows)
     c1 = max(w.col_end for w in windows)
     return PixelWindow(r0, c0, r1 - r0, c1 - c0)
-
-
-def fill_hole(
-    zmax: np.ndarray,
-    zmin: np.ndarray,
-    measured: np.ndarray,
-    labels: np.ndarray,
-    kind: str,
-    params: FillParams,
-) -> FillOutcome:
-    """Fill labelled holes (each label one hole, 0 elsewhere) one way (pure; docs/filling.md).
-
-    ``kind`` (:func:`fill_kind`): ``water`` is flat at a low percentile of its rim's
-    lowest returns (hydro-flattening); ``low`` (an occlusion, a small void at a step)
-    is ground hidden by a building or a tree, filled from the low side of its rim
-    only, so no ramp runs from the roof to the street; ``rim`` with the configured
-    method from the whole rim.
-    """
-    heights = np.where(measured, zmax, np.nan)
-    region = labels > 0
-    if kind == WATER:
-        return fill_water(np.where(measured, zmin, np.nan), heights, labels, params)
-    support = None
-    if kind == LOW_SIDE:
-        # a small void at a step (a building's edge) is hidden ground like an occlusion; with
-        # no step on its rim every rim pixel is on the low side and nothing changes
-        support = lower_side_support(heights, region, jump_threshold=params.jump_threshold, labels=labels)
-    outcome = fill_region(
-        heights,
-        region,
-        method=params.method,
-        settings=params.settings,
-        support=support,
-        pixel_size=params.pixel_size,
-        labels=labels,
-    )
-    if not params.clamp_to_rim:
-        return outcome
-    clamped = clamp_to_rim(outcome.heights, heights, region, support=support, labels=labels)
-    return replace(outcome, heights=np.where(np.isfinite(outcome.heights), clamped, np.nan))
-
-
-def fill_water(water_rim: np.ndarray, bank_rim: np.ndarray, labels: np.ndarray, params: FillParams) -> FillOutcome:
-    """Water holes: a lake flat at its rim level, a river stepping down along its course (hydro-flattening).
-
-    ``water_rim``: the lowest return of measured pixels, ``bank_rim`` the highest, NaN
-    elsewhere. Every hole is filled flat first, from the lowest returns of its whole rim;
-    those :func:`~pipeline.fill.river_surfaces` judges rivers (elongated, falling at least
-    ``river_min_drop``) get their river surface instead, method ``river``. A river's bank
-    levels come from the highest returns: a rim pixel on the shore may hold a return
-    from under the water's edge, which a whole rim outvotes but a short station does not.
-    """
-    settings = replace(params.settings, flat_percentile=params.water_percentile)
-    outcome = fill_region(
-        water_rim, labels > 0, method="flat", settings=settings, pixel_size=params.pixel_size, labels=labels
-    )
-    if not math.isfinite(params.river_min_drop):
-        return outcome
-    surface, fits = river_surfaces(
-        bank_rim,
-        outcome.labels,
-        min_drop=params.river_min_drop,
-        min_elongation=params.river_min_elongation,
-        percentile=params.water_percentile,
-    )
-    rivers = {fit.label: fit for fit in fits if fit.is_river}
-    if not rivers:
-        return outcome
-    river = np.isin(outcome.labels, list(rivers)) & np.isfinite(surface)
-    components = tuple(
-        replace(
-            c,
-            method="river",
-            level=math.nan,
-            error_estimate=math.nan,
-            detail=f"river: falls {rivers[c.label].drop:.2f} along {rivers[c.label].length_px * params.pixel_size:.0f}",
-        )
-        if c.label in rivers
-        else c
-        for c in outcome.components
-    )
-    return replace(
-        outcome,
-        heights=np.where(river, surface, outcome.heights),
-        method_code=np.where(river, np.uint8(METHOD_CODES["river"]), outcome.method_code),
-        components=components,
-    )
-
-
-def _summary(outcome: FillOutcome, components: list, filled: np.ndarray, distance: np.ndarray) -> dict:
-    """The method that filled most of a hole's pixels, the worst error estimate, degradation notes."""
-    counts = np.bincount(outcome.method_code[filled], minlength=256)
-    errors = [c.error_estimate for c in components if np.isfinite(c.error_estimate)]
-    return {
-        "method": METHOD_NAMES.get(int(counts.argmax()), "unknown"),
-        "pixels": int(filled.sum()),
-        "max_distance": float(distance[filled].max()),
-        "error_estimate": max(errors) if errors else math.nan,
-        "degraded": any(c.degraded for c in components),
-        "detail": "; ".join(c.detail for c in components if c.detail),
-    }
-
-
-def hole_ids_of_labels(labels: np.ndarray, hole_of_label: np.ndarray) -> np.ndarray:
-    """A cell's hole-id raster from its part labels: 0 no hole, -1 a void the cell settled."""
-    known = (labels > 0) & (labels < len(hole_of_label) - 1)
-    ids = np.where(known, hole_of_label[np.where(known, labels, 0)], 0)
-    return np.where(labels == -1, -1, ids)
 
 
 def _cell_of_pixel(grid: Grid, row: int, col: int) -> str:

@@ -24,22 +24,15 @@ import scipy.ndimage as ndi
 
 from ..config import Config
 from ..fill import NOT_FILLED, fill_distance
+from ..fill.by_cause import FILLED, SMALL_VOID, FillParams, HoleFill, fill_hole, fill_kind, hole_ids_of_labels
 from ..grid import Cell, Grid
 from ..io.intermediate import load_cell_statistics, load_labels, load_task_fill
 from ..io.raster import RasterOptions, write_cog
+from ..parameters import raster_options
 from ..plan import SurveyPlan
 from ..rasterize import PixelStatistics
 from ..staging import Staging
-from .fill_holes import (
-    FILLED,
-    SMALL_VOID,
-    CellSource,
-    FillParams,
-    HoleFill,
-    fill_hole,
-    fill_kind,
-    hole_ids_of_labels,
-)
+from .fill_holes import CellSource
 from .link_holes import HoleSet
 
 #: Descriptions of the raster products, also used for their mosaics.
@@ -80,16 +73,6 @@ class WriteResult:
     cell_id: str
     paths: dict[str, str]  # product -> the tile written; empty when the cell holds no point
     filled_px: int = 0
-
-
-def raster_options(config: Config) -> RasterOptions:
-    out = config.output
-    return RasterOptions(
-        compress=out.compress,
-        compress_level=out.compress_level,
-        blocksize=out.blocksize,
-        overview_resampling=out.overview_resampling,
-    )
 
 
 def cell_fills(

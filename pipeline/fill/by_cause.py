@@ -1,0 +1,218 @@
+"""How a hole is filled by its cause: the one answer, on arrays (pure; docs/filling.md, "Fill by cause").
+
+:func:`fill_kind` says how a hole of a given cause is filled (``water`` flat or as a
+river, ``low`` from the low side of its rim, ``rim`` from all of it); :func:`fill_hole`
+fills labelled holes that way; :func:`hole_record` turns the outcome into the hole's
+row of the ``holes`` layer (:class:`HoleFill`). The fill stage
+(``pipeline/stages/fill_holes.py``) and the writer stage (small voids a cell settled,
+``pipeline/stages/write_rasters.py``) both call these, so a hole of a cause is filled
+alike wherever it is filled. The parameters (:class:`FillParams`) come from ``[fill]``
+through :func:`pipeline.parameters.fill_params`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .causes import clamp_to_rim, lower_side_support
+from .hydro import river_surfaces
+from .region import fill_region
+from .settings import METHOD_CODES, METHOD_NAMES, ComponentFill, FillOutcome, FillSettings
+
+__all__ = [
+    "FILLED",
+    "LOW_SIDE",
+    "NO_SUPPORT",
+    "OCCLUSION",
+    "RIM",
+    "SMALL_VOID",
+    "TOO_LARGE",
+    "UNFILLED",
+    "WATER",
+    "FillParams",
+    "HoleFill",
+    "fill_hole",
+    "fill_kind",
+    "fill_water",
+    "hole_ids_of_labels",
+    "hole_record",
+]
+
+#: The cause a small void is filled as (it is not classified when a cell settles it).
+SMALL_VOID = "small void"
+OCCLUSION = "occlusion"
+
+#: How a hole is filled (:func:`fill_kind`).
+WATER, LOW_SIDE, RIM = "water", "low", "rim"
+
+#: ``fill_status`` values of the ``holes`` layer.
+FILLED, TOO_LARGE, NO_SUPPORT, UNFILLED = "filled", "skipped: too large", "skipped: no support", "unfilled"
+
+
+@dataclass(frozen=True)
+class FillParams:
+    """The ``[fill]`` settings in survey units, shared by every fill and writer task."""
+
+    method: str
+    by_cause: bool
+    pixel_size: float  # survey units
+    max_distance: float  # survey units
+    water_percentile: float
+    jump_threshold: float  # z units
+    settings: FillSettings
+    clamp_to_rim: bool = True
+    river_min_drop: float = math.inf  # z units; inf: every water hole one level
+    river_min_elongation: float = 4.0
+
+
+@dataclass(frozen=True)
+class HoleFill:
+    """How one hole was filled (or why not): a row of the ``holes`` layer's fill fields."""
+
+    hole_id: int
+    status: str
+    method: str | None = None
+    pixels: int = 0
+    max_distance: float = math.nan  # survey units, farthest filled pixel from measured data
+    error_estimate: float = math.nan  # z units, leave-rim-out RMSE
+    degraded: bool = False
+    detail: str = ""
+    result_path: str | None = None
+
+
+def fill_kind(cause: str, params: FillParams) -> str:
+    """How a hole of this cause is filled: ``water`` flat, ``low`` from the low side, ``rim`` from all of it."""
+    if not params.by_cause:
+        return RIM
+    if cause == "water":
+        return WATER
+    return LOW_SIDE if cause in (OCCLUSION, SMALL_VOID) else RIM
+
+
+def fill_hole(
+    zmax: np.ndarray,
+    zmin: np.ndarray,
+    measured: np.ndarray,
+    labels: np.ndarray,
+    kind: str,
+    params: FillParams,
+) -> FillOutcome:
+    """Fill labelled holes (each label one hole, 0 elsewhere) one way (pure; docs/filling.md).
+
+    ``kind`` (:func:`fill_kind`): ``water`` is flat at a low percentile of its rim's
+    lowest returns (hydro-flattening); ``low`` (an occlusion, a small void at a step)
+    is ground hidden by a building or a tree, filled from the low side of its rim
+    only, so no ramp runs from the roof to the street; ``rim`` with the configured
+    method from the whole rim.
+    """
+    heights = np.where(measured, zmax, np.nan)
+    region = labels > 0
+    if kind == WATER:
+        return fill_water(np.where(measured, zmin, np.nan), heights, labels, params)
+    support = None
+    if kind == LOW_SIDE:
+        # a small void at a step (a building's edge) is hidden ground like an occlusion; with
+        # no step on its rim every rim pixel is on the low side and nothing changes
+        support = lower_side_support(heights, region, jump_threshold=params.jump_threshold, labels=labels)
+    outcome = fill_region(
+        heights,
+        region,
+        method=params.method,
+        settings=params.settings,
+        support=support,
+        pixel_size=params.pixel_size,
+        labels=labels,
+    )
+    if not params.clamp_to_rim:
+        return outcome
+    clamped = clamp_to_rim(outcome.heights, heights, region, support=support, labels=labels)
+    return replace(outcome, heights=np.where(np.isfinite(outcome.heights), clamped, np.nan))
+
+
+def fill_water(water_rim: np.ndarray, bank_rim: np.ndarray, labels: np.ndarray, params: FillParams) -> FillOutcome:
+    """Water holes: a lake flat at its rim level, a river stepping down along its course (hydro-flattening).
+
+    ``water_rim``: the lowest return of measured pixels, ``bank_rim`` the highest, NaN
+    elsewhere. Every hole is filled flat first, from the lowest returns of its whole rim;
+    those :func:`~pipeline.fill.river_surfaces` judges rivers (elongated, falling at least
+    ``river_min_drop``) get their river surface instead, method ``river``. A river's bank
+    levels come from the highest returns: a rim pixel on the shore may hold a return
+    from under the water's edge, which a whole rim outvotes but a short station does not.
+    """
+    settings = replace(params.settings, flat_percentile=params.water_percentile)
+    outcome = fill_region(
+        water_rim, labels > 0, method="flat", settings=settings, pixel_size=params.pixel_size, labels=labels
+    )
+    if not math.isfinite(params.river_min_drop):
+        return outcome
+    surface, fits = river_surfaces(
+        bank_rim,
+        outcome.labels,
+        min_drop=params.river_min_drop,
+        min_elongation=params.river_min_elongation,
+        percentile=params.water_percentile,
+    )
+    rivers = {fit.label: fit for fit in fits if fit.is_river}
+    if not rivers:
+        return outcome
+    river = np.isin(outcome.labels, list(rivers)) & np.isfinite(surface)
+    components = tuple(
+        replace(
+            c,
+            method="river",
+            level=math.nan,
+            error_estimate=math.nan,
+            detail=f"river: falls {rivers[c.label].drop:.2f} along {rivers[c.label].length_px * params.pixel_size:.0f}",
+        )
+        if c.label in rivers
+        else c
+        for c in outcome.components
+    )
+    return replace(
+        outcome,
+        heights=np.where(river, surface, outcome.heights),
+        method_code=np.where(river, np.uint8(METHOD_CODES["river"]), outcome.method_code),
+        components=components,
+    )
+
+
+def hole_record(
+    hole_id: int, label: int, labels: np.ndarray, outcome: FillOutcome, distance: np.ndarray, result_path: str
+) -> HoleFill:
+    """The ``holes`` layer's fill fields of the hole labelled ``label`` in a :func:`fill_hole` outcome.
+
+    ``distance``: from each pixel to measured data (survey units); ``result_path``: where
+    the filled heights are kept. A hole none of whose pixels got a height has no support.
+    """
+    filled = (labels == label) & np.isfinite(outcome.heights)
+    if not filled.any():
+        return HoleFill(hole_id, NO_SUPPORT, detail="no measured rim to fill from")
+    components = [c for c in outcome.components if c.label == label]
+    return HoleFill(hole_id, FILLED, result_path=result_path, **_summary(outcome, components, filled, distance))
+
+
+def _summary(outcome: FillOutcome, components: list[ComponentFill], filled: np.ndarray, distance: np.ndarray) -> dict:
+    """The method that filled most of a hole's pixels, the worst error estimate, degradation notes."""
+    counts = np.bincount(outcome.method_code[filled], minlength=256)
+    errors = [c.error_estimate for c in components if np.isfinite(c.error_estimate)]
+    return {
+        "method": METHOD_NAMES.get(int(counts.argmax()), "unknown"),
+        "pixels": int(filled.sum()),
+        "max_distance": float(distance[filled].max()),
+        "error_estimate": max(errors) if errors else math.nan,
+        "degraded": any(c.degraded for c in components),
+        "detail": "; ".join(c.detail for c in components if c.detail),
+    }
+
+
+def hole_ids_of_labels(labels: np.ndarray, hole_of_label: np.ndarray) -> np.ndarray:
+    """A cell's hole-id raster from its part labels: 0 no hole, -1 a void the cell settled.
+
+    ``hole_of_label``: part label -> hole id; its last entry serves label -1 (a settled void).
+    """
+    known = (labels > 0) & (labels < len(hole_of_label) - 1)
+    ids = np.where(known, hole_of_label[np.where(known, labels, 0)], 0)
+    return np.where(labels == -1, -1, ids)
