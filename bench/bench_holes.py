@@ -16,7 +16,8 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from pipeline.grid import Cell, PixelWindow
-from pipeline.holes import CauseRules, classify_causes, detect_cell_holes
+from pipeline.holes import classify_causes, detect_cell_holes
+from pipeline.parameters import default_cause_rules
 
 
 def scene(kind: str, size: int, halo: int, seed: int = 0):
@@ -83,7 +84,7 @@ def main() -> None:
                 jump_threshold=2.0,
                 min_area_px=min_area,
             )
-            classify_causes(res.stats, CauseRules.with_defaults(pixel_size=1.0, jump_threshold=2.0))
+            classify_causes(res.stats, default_cause_rules(pixel_size=1.0, jump_threshold=2.0))
             best = min(best, time.perf_counter() - t0)
         label = f"{kind} (min_area_px={min_area})" if min_area else kind
         print(

@@ -23,16 +23,15 @@ import shapely
 from .config import AUTO, Config
 from .density import (
     Density,
-    auto_min_area_m2,
     auto_resolution_m,
     round_cell_size,
-    sampling_gap_width_m,
     supported_resolution_m,
 )
 from .errors import InputDataError
 from .footprint import block_size_px
 from .grid import Cell, Grid, PixelWindow
 from .io.vector import read_survey_area
+from .parameters import HoleParams, hole_params
 from .reads import ReadPart, plan_reads
 from .survey import Survey
 from .tile_grid import TileGrid, grid_survey_area, infer_tile_grid
@@ -73,20 +72,6 @@ class SurveyArea:
     tile_grid: TileGrid | None = None
     missing_tiles: tuple[Bounds, ...] = ()
     skipped_squares: tuple[Bounds, ...] = ()
-
-
-@dataclass(frozen=True)
-class HoleParams:
-    """Hole-stage parameters in survey units (from ``[holes]``), computed once for every stage."""
-
-    jump_threshold: float  # z units
-    voxel_height: float  # z units
-    connectivity: int
-    min_area_px: int
-    vertical_min_px: int
-    wall_min_length_px: float
-    min_area_m2: float = 4.0  # holes.min_area_m2, "auto" resolved
-    sampling_gap_px: float = 0.0  # holes no thicker than this (pixels) are sampling gaps; 0: none
 
 
 @dataclass(frozen=True)
@@ -267,7 +252,12 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
         aoi_given=aoi is not None,
         block_px=block_px,
         sizing=sizing,
-        hole_params=hole_params(survey, config, pixel_size_m=pixel_size_m, spacing_m=sizing.density.spacing_m),
+        hole_params=hole_params(
+            config,
+            pixel_size_m=pixel_size_m,
+            spacing_m=sizing.density.spacing_m,
+            vertical_unit_m=survey.vertical_unit_m,
+        ),
         area=area,
     )
 
@@ -390,31 +380,6 @@ def plan_sizing(density: Density, config: Config) -> Sizing:
             cell_px,
         )
     return Sizing(resolution, cell_size, cell_px, source, grid.cell_size_m, supported, grid.align, density)
-
-
-def hole_params(survey: Survey, config: Config, *, pixel_size_m: float, spacing_m: float) -> HoleParams:
-    """The ``[holes]`` settings in the survey's units, "auto" resolved: computed once, in the plan.
-
-    ``spacing_m`` is the survey's nominal point spacing. With ``holes.min_area_m2 =
-    "auto"`` it sets the smallest listed area and the width under which a void is a
-    sampling gap (:mod:`pipeline.density`); a number set there is the only rule, as
-    it always was (synthetic surveys whose truth counts every one-pixel sliver).
-    """
-    holes = config.holes
-    pixel_area_m2 = pixel_size_m**2
-    auto = holes.min_area_m2 == AUTO
-    min_area_m2 = auto_min_area_m2(spacing_m) if auto else float(holes.min_area_m2)
-    gap_m = sampling_gap_width_m(spacing_m) if auto and math.isfinite(spacing_m) else 0.0
-    return HoleParams(
-        jump_threshold=holes.jump_threshold_m / survey.vertical_unit_m,
-        voxel_height=config.rasterize.voxel_height_m / survey.vertical_unit_m,
-        connectivity=holes.connectivity,
-        min_area_px=math.ceil(min_area_m2 / pixel_area_m2),
-        vertical_min_px=math.ceil(holes.vertical_min_area_m2 / pixel_area_m2),
-        wall_min_length_px=holes.wall_min_length_m / pixel_size_m,
-        min_area_m2=min_area_m2,
-        sampling_gap_px=gap_m / pixel_size_m,
-    )
 
 
 def _north_west_first(key: tuple[int, int]) -> tuple[int, int]:

@@ -269,6 +269,20 @@ class HeightMapAccumulator:
         return np.unique(np.concatenate(parts))
 
 
+@dataclass(frozen=True)
+class PointFilter:
+    """Which points enter the rasters (from ``[filter]``, :func:`pipeline.parameters.read_params`)."""
+
+    drop_classes: tuple[int, ...] = (7, 18)
+    keep_classes: tuple[int, ...] = ()
+    drop_withheld: bool = True
+
+    @property
+    def filters_classes(self) -> bool:
+        """Whether the filter leaves out more than noise: the points it drops then cover the ground."""
+        return bool(self.keep_classes) or bool(set(self.drop_classes) - set(NOISE_CLASSES))
+
+
 def point_filter_mask(
     classification: np.ndarray,
     withheld: np.ndarray,

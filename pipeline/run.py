@@ -31,11 +31,12 @@ from .budget import MemoryBudget, check_plan_memory, memory_budget
 from .cluster import ClusterStart, WorkerWatch, dask_client
 from .config import Config, config_key, to_dict
 from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, TaskError
+from .fill import HoleFill
+from .flight_planning import plan_flights
 from .footprint_density import measure_footprint
 from .ground_level import NO_TERRAIN, GroundLevel
 from .holes.coverage import CoverageGaps
 from .io.checksums import input_record, output_records
-from .io.flightplan_files import plan_flights
 from .io.vector import read_survey_area
 from .output_guard import check_before_run, check_same_survey
 from .outputs import (
@@ -47,6 +48,7 @@ from .outputs import (
     write_mosaics,
     write_survey_layers,
 )
+from .parameters import fill_params
 from .plan import SurveyPlan, needs_density, plan_survey
 from .progress import ProgressBars as _Progress
 from .progress import StageTimer as _StageTimer
@@ -469,9 +471,16 @@ def _void_gaps(runner: _Runner, plan: SurveyPlan, cells: list[CellResult], gaps:
 
 def _run_fill(
     runner: _Runner, plan: SurveyPlan, config: Config, holes: link_holes.HoleSet, rasters: _Rasters, staging: Staging
-) -> list[fill_holes.HoleFill]:
+) -> list[HoleFill]:
     """Fill (per cell owning holes), then the writer (per cell) painting the fills into the rasters."""
-    params = fill_holes.fill_params(plan, config, plan.hole_params)
+    survey = plan.survey
+    params = fill_params(
+        config,
+        plan.hole_params,
+        pixel_size=plan.grid.resolution,
+        horizontal_unit_m=survey.horizontal_unit_m,
+        vertical_unit_m=survey.vertical_unit_m,
+    )
     merged = [r.cell_id for r in rasters.cells]
     sources = fill_holes.cell_sources(plan, holes, staging, merged)
     tasks, fills = fill_holes.fill_tasks(plan, config, holes, sources, params, staging)

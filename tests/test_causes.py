@@ -10,7 +10,8 @@ import pytest
 from pipeline.config import SECTIONS, Config, load_config
 from pipeline.errors import ConfigError
 from pipeline.holes import CauseRules, classify_causes
-from pipeline.holes.causes import CONFIG_KEYS, RULES
+from pipeline.holes.causes import RULES
+from pipeline.parameters import CONFIG_KEYS, cause_rules, default_cause_rules
 
 from .test_holes import run
 
@@ -21,7 +22,7 @@ def big_hole_cause(catalog, rules: CauseRules):
 
 
 def rules_for(config: Config) -> CauseRules:
-    return CauseRules.from_config(config, pixel_size_m=1.0, vertical_unit_m=1.0)
+    return cause_rules(config, pixel_size_m=1.0, vertical_unit_m=1.0)
 
 
 def test_every_cause_rule_field_maps_to_a_config_key():
@@ -37,7 +38,7 @@ def test_every_cause_rule_field_maps_to_a_config_key():
 
 def test_cause_rules_from_config_are_in_survey_units():
     config = load_config(overrides=["holes.jump_threshold_m=3.0", "causes.max_shadow_ratio=0.6"])
-    rules = CauseRules.from_config(config, pixel_size_m=2.0, vertical_unit_m=0.3048)
+    rules = cause_rules(config, pixel_size_m=2.0, vertical_unit_m=0.3048)
     assert rules.jump_threshold == 3.0 / 0.3048
     assert rules.pixel_size == 2.0 / 0.3048
     assert rules.max_shadow_ratio == 0.6
@@ -46,7 +47,7 @@ def test_cause_rules_from_config_are_in_survey_units():
         if key.startswith("causes."):
             assert getattr(rules, field) == getattr(config.causes, field)
     # the defaults are those of the configuration
-    defaults = CauseRules.with_defaults(
+    defaults = default_cause_rules(
         pixel_size=2.0 / 0.3048, jump_threshold=3.0 / 0.3048, max_shadow_ratio=0.6, pixel_area_m2=4.0
     )
     assert defaults == rules

@@ -10,6 +10,7 @@ import scipy.ndimage as ndi
 
 from pipeline import holes as H
 from pipeline.grid import Grid, PixelWindow
+from pipeline.parameters import default_cause_rules
 
 JUMP = 2.0
 
@@ -317,7 +318,7 @@ def test_same_holes_whatever_the_cell_size(connectivity):
             grid, count, zmax, zmin, aoi, connectivity=connectivity, water_points=water, flight_line=line
         )
         cat = H.link_holes([c.without_labels() for c in cells], min_area_px=4)
-        causes = H.classify_causes(cat.stats, H.CauseRules.with_defaults(pixel_size=1.0, jump_threshold=JUMP))
+        causes = H.classify_causes(cat.stats, default_cause_rules(pixel_size=1.0, jump_threshold=JUMP))
         results[cell_px] = (hole_raster(grid, cells, cat), cat, causes, len(cells))
     base_raster, base, base_causes, _ = results[1000]
     assert results[64][3] > 9 and results[48][3] > 9 and results[1000][3] == 1
@@ -357,7 +358,7 @@ def test_same_holes_whatever_the_cell_size(connectivity):
 def classify(count, z, zmin=None, **kw):
     rules = {k: kw.pop(k) for k in list(kw) if k in ("max_shadow_ratio",)}
     _, _, cat = run(count, z, zmin=zmin, cell_px=64, min_area_px=10, **kw)
-    causes = H.classify_causes(cat.stats, H.CauseRules.with_defaults(pixel_size=1.0, jump_threshold=JUMP, **rules))
+    causes = H.classify_causes(cat.stats, default_cause_rules(pixel_size=1.0, jump_threshold=JUMP, **rules))
     big = np.argmax(cat.holes["area_px"])
     return causes[big], cat
 
@@ -492,7 +493,7 @@ def test_cause_hole_on_a_hillside_is_not_occlusion():
 def test_cause_without_ring_is_unknown():
     count = np.zeros((64, 64), np.uint32)
     _, _, cat = run(count, cell_px=32)
-    causes = H.classify_causes(cat.stats, H.CauseRules.with_defaults(pixel_size=1.0, jump_threshold=JUMP))
+    causes = H.classify_causes(cat.stats, default_cause_rules(pixel_size=1.0, jump_threshold=JUMP))
     assert causes["cause"].tolist() == ["unknown"] and causes["rule"].tolist() == ["no_ring"]
 
 

@@ -3,22 +3,20 @@
 :func:`classify_causes` is a function of the merged per-hole statistics and a
 :class:`CauseRules` holding every threshold. The rules are data: the thresholds
 are the ``[causes]`` configuration keys (plus the pixel size and the height-jump
-threshold), put into survey units once by :meth:`CauseRules.from_config`.
+threshold), put into survey units once by :func:`pipeline.parameters.cause_rules`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
-from ..config import CausesConfig, Config
 from ._kernels import _BIG
 from .stats import HoleStats, _hist_quantiles, ring_metrics, shape_metrics
 
-__all__ = ["CAUSE_DTYPE", "CAUSES", "CONFIG_KEYS", "RULES", "CauseRules", "classify_causes"]
+__all__ = ["CAUSE_DTYPE", "CAUSES", "RULES", "CauseRules", "classify_causes"]
 
 #: Causes :func:`classify_causes` can return.
 CAUSES: tuple[str, ...] = ("occlusion", "water", "missed_coverage", "no_return", "covered", "unknown")
@@ -51,10 +49,11 @@ CAUSE_DTYPE = np.dtype([("cause", "U16"), ("rule", "U16")])
 class CauseRules:
     """Every threshold of :func:`classify_causes`, in survey units.
 
-    Build it with :meth:`from_config` (a run) or :meth:`with_defaults` (the
-    ``[causes]`` defaults, for kernels used on their own). Heights are in z
-    units, lengths in pixels, shares are fractions; ``configs/default.toml``
-    documents each key and ``CONFIG_KEYS`` names the key behind each field.
+    Build it with :func:`pipeline.parameters.cause_rules` (a run) or
+    :func:`pipeline.parameters.default_cause_rules` (the ``[causes]`` defaults, for
+    kernels used on their own). Heights are in z units, lengths in pixels, shares
+    are fractions; ``configs/default.toml`` documents each key and
+    ``pipeline.parameters.CONFIG_KEYS`` names the key behind each field.
 
     Attributes
     ----------
@@ -121,51 +120,6 @@ class CauseRules:
     low_quantile: float
     high_quantile: float
     pixel_area_m2: float = 1.0
-
-    @classmethod
-    def from_config(cls, config: Config, *, pixel_size_m: float, vertical_unit_m: float) -> CauseRules:
-        """The rules of a run, in the survey's units.
-
-        Parameters
-        ----------
-        config : Config
-            The ``[causes]`` thresholds and ``holes.jump_threshold_m``.
-        pixel_size_m : float
-            The grid's pixel side in metres (``grid.resolution`` times the CRS's horizontal unit).
-        vertical_unit_m : float
-            Metres per z unit.
-        """
-        return cls(
-            pixel_size=pixel_size_m / vertical_unit_m,
-            jump_threshold=config.holes.jump_threshold_m / vertical_unit_m,
-            pixel_area_m2=pixel_size_m**2,
-            **_thresholds(config.causes),
-        )
-
-    @classmethod
-    def with_defaults(cls, *, pixel_size: float, jump_threshold: float, **thresholds: float) -> CauseRules:
-        """The ``[causes]`` defaults, some of them replaced by ``thresholds`` (z units, pixels)."""
-        return cls(
-            pixel_size=pixel_size,
-            jump_threshold=jump_threshold,
-            **{"pixel_area_m2": pixel_size**2, **_thresholds(CausesConfig()), **thresholds},
-        )
-
-
-#: The fields :meth:`CauseRules.from_config` derives from other sections, in survey units.
-_DERIVED: dict[str, str] = {
-    "pixel_size": "grid.resolution_m",
-    "jump_threshold": "holes.jump_threshold_m",
-    "pixel_area_m2": "grid.resolution_m",
-}
-
-#: The configuration key behind each field of :class:`CauseRules`: the others are ``[causes]`` keys of the same name.
-CONFIG_KEYS: dict[str, str] = {f.name: _DERIVED.get(f.name, f"causes.{f.name}") for f in dataclasses.fields(CauseRules)}
-
-
-def _thresholds(causes: CausesConfig) -> dict[str, float]:
-    """The ``[causes]`` values by CauseRules field."""
-    return {name: getattr(causes, name) for name in CONFIG_KEYS if name not in _DERIVED}
 
 
 def classify_causes(

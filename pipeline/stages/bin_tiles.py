@@ -26,11 +26,12 @@ from ..io import pdal_reader
 from ..io.copc import iter_copc_nodes, load_point_chunk, save_point_chunk
 from ..io.intermediate import save_tile_statistics
 from ..io.las import PointChunk, PulseFields, iter_point_chunks
+from ..parameters import read_params
 from ..plan import SurveyPlan
 from ..rasterize import (
-    NOISE_CLASSES,
     WATER_CLASS,
     HeightMapAccumulator,
+    PointFilter,
     point_filter_mask,
     removed_by_class_filter,
 )
@@ -38,20 +39,6 @@ from ..reads import Node, cell_of
 from ..sensor.sums import TrajectorySums, trajectory_sums
 from ..staging import Staging, input_fingerprint
 from ..survey import source_crs_for_task
-
-
-@dataclass(frozen=True)
-class PointFilter:
-    """Which points enter the rasters (from ``[filter]``)."""
-
-    drop_classes: tuple[int, ...] = (7, 18)
-    keep_classes: tuple[int, ...] = ()
-    drop_withheld: bool = True
-
-    @property
-    def filters_classes(self) -> bool:
-        """Whether the filter leaves out more than noise: the points it drops then cover the ground."""
-        return bool(self.keep_classes) or bool(set(self.drop_classes) - set(NOISE_CLASSES))
 
 
 @dataclass(frozen=True)
@@ -111,11 +98,9 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
     their results under ``<file>-<fingerprint>-part<k>``, where the fingerprint also covers
     the task's nodes and cell: a resumed run finds them again.
     """
-    f = config.filter
-    point_filter = PointFilter(tuple(f.drop_classes), tuple(f.keep_classes), f.drop_withheld)
-    voxel_height = config.rasterize.voxel_height_m / plan.survey.vertical_unit_m
+    params = read_params(config, vertical_unit_m=plan.survey.vertical_unit_m)
+    point_filter, voxel_height = params.point_filter, params.voxel_height
     grid = plan.grid
-    user_pipeline = _user_pipeline(config)
     top_dirs: dict[int, str] = {}
     cells: dict[int, list[tuple[int, int]]] = {}
     tasks = []
@@ -123,11 +108,11 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
         tile = plan.survey.tiles[read.tile_index]
         source_crs = source_crs_for_task(tile, plan.survey)
         pdal = None
-        if config.read.reader == "pdal":  # PDAL reads whole files (the plan does not split them)
-            pdal = pdal_reader.tile_read(user_pipeline, plan.survey.crs_wkt, tile.header, tile.source_crs_wkt)
+        if params.pdal:  # PDAL reads whole files (the plan does not split them)
+            pdal = pdal_reader.tile_read(params.pdal_pipeline, plan.survey.crs_wkt, tile.header, tile.source_crs_wkt)
             source_crs = None if pdal.reprojects else source_crs  # else PDAL's points are in the survey CRS
         key: tuple[object, ...] = (grid.resolution, grid.col_min, grid.row_top, grid.offset, source_crs)
-        sensor = config.holes.enabled and config.sensor.enabled
+        sensor = params.sensor
         key += (point_filter, voxel_height, sensor) + (() if pdal is None else (pdal,))
         if read.is_whole_file:
             fingerprint = input_fingerprint(tile.path, window, *key)
@@ -149,7 +134,7 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
                 grid=grid,
                 source_crs_wkt=source_crs,
                 point_filter=point_filter,
-                chunk_points=config.rasterize.chunk_points,
+                chunk_points=params.chunk_points,
                 voxel_height=voxel_height,
                 output_dir=output_dir,
                 nodes=read.nodes,
@@ -175,16 +160,6 @@ def _outermost(windows: tuple[PixelWindow, ...]) -> tuple[PixelWindow, ...]:
         if not any(window.intersection(outer) == window for outer in kept):
             kept.append(window)
     return tuple(dict.fromkeys(w for w in windows if w in kept))
-
-
-def _user_pipeline(config: Config) -> pdal_reader.UserPipeline | None:
-    """The checked ``read.pdal_pipeline`` (python-pdal is checked with the laspy reader off)."""
-    if config.read.reader != "pdal":
-        return None
-    if not config.read.pdal_pipeline:
-        pdal_reader.import_pdal()
-        return None
-    return pdal_reader.load_user_pipeline(config.read.pdal_pipeline, streaming=config.read.pdal_streaming)
 
 
 def read_points(task: TileTask) -> Iterator[PointChunk]:
