@@ -8,7 +8,8 @@ import rasterio
 
 from pipeline.config import load_config
 from pipeline.fill import METHOD_CODES, NOT_FILLED
-from pipeline.io.raster import geometry_mask, label_polygons, read_raster
+from pipeline.holes.outlines import label_polygons
+from pipeline.io.raster import geometry_mask, read_raster
 from pipeline.io.vector import read_layer, write_layer
 from pipeline.run import run_survey
 from pipeline.synth import HoleCause, build_scene, generate_survey, preset, write_truth

@@ -12,9 +12,9 @@ import rasterio
 from pipeline.config import load_config
 from pipeline.density import auto_resolution_m, narrow_width
 from pipeline.footprint_density import block_histogram, choose_level, measure_footprint, merge_blocks
+from pipeline.holes import mark_sampling_gaps
 from pipeline.io.vector import read_layer
 from pipeline.run import run_survey
-from pipeline.stages.link_holes import mark_sampling_gaps
 from pipeline.survey import scan_survey
 
 from .lasfiles import write_points

@@ -68,7 +68,7 @@ def align(array: np.ndarray, transform: Any, to_transform: Any, to_shape: tuple[
 def _write_cut_holes(
     path: Path, labels: np.ndarray, transform: Any, crs_wkt: str, holes: list[CutHole], pixel_size_m: float
 ) -> None:
-    from ..io.raster import label_polygons
+    from ..holes.outlines import label_polygons
     from ..io.vector import write_layer
 
     polygons = label_polygons(labels, transform)

@@ -21,13 +21,19 @@ Modules, in the order of the data flow (each imports only earlier ones):
 ``detect``
     per cell: :func:`detect_cell_holes` -> :class:`CellHoles`
 ``link``
-    on the client: :func:`link_holes` -> :class:`HoleCatalog`
+    on the client: :func:`link_holes` -> :class:`HoleCatalog`; :func:`mark_sampling_gaps`
 ``causes``
     :func:`classify_causes` with :class:`CauseRules`
 ``walls``
     wall segments and S-curve fits ([WALL])
 ``outlines``
     exact, simplified and straight hole polygons ([STRAIGHT])
+``vertical``
+    :func:`vertical_hole_records`: the ``vertical_holes`` layer's rows from the eq. 2 mask
+
+Beside the flow: ``flight_lines`` (each flight line's direction from its pixels, the
+direction of a missed strip's re-flight: :func:`~.flight_lines.strip_azimuths`) and
+``coverage`` (the flight lines' swaths and the gaps between them).
 
 Sources (``DESIGN.md`` seeds)
 -----------------------------
@@ -58,7 +64,7 @@ from __future__ import annotations
 
 from .causes import CAUSE_DTYPE, CAUSES, CauseRules, classify_causes
 from .detect import PART_DTYPE, SIDE_BITS, SIDES, CellHoles, EdgeStrip, detect_cell_holes
-from .link import HoleCatalog, PartRecord, link_holes
+from .link import HoleCatalog, PartRecord, link_holes, mark_sampling_gaps
 from .masks import height_jumps, hole_mask, vertical_holes
 from .stats import STATS_COLUMNS, HoleStats, merge_hole_stats, ring_metrics, shape_metrics
 
@@ -80,6 +86,7 @@ __all__ = [
     "height_jumps",
     "hole_mask",
     "link_holes",
+    "mark_sampling_gaps",
     "merge_hole_stats",
     "ring_metrics",
     "shape_metrics",

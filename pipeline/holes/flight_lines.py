@@ -89,3 +89,19 @@ def axial_mean(azimuths: list[float], weights: list[float]) -> float:
     if math.hypot(s, c) < 1e-9 * w.sum():
         return math.nan
     return math.degrees(math.atan2(s, c)) / 2.0 % 180.0
+
+
+def strip_azimuths(line_hist: np.ndarray, is_strip: np.ndarray, directions: dict[int, float]) -> np.ndarray:
+    """Per hole, the mean direction of the flight lines on its rim (missed strips only; else NaN).
+
+    A missed strip lies between flight lines flown in one direction; its re-flight is
+    laid parallel to them. Lines weigh by the rim pixels they hold.
+    """
+    out = np.full(len(is_strip), np.nan)
+    rows = line_hist["row"]
+    for hole in np.flatnonzero(is_strip):
+        entries = line_hist[rows == hole]
+        known = [(directions[int(e["line"])], float(e["count"])) for e in entries if int(e["line"]) in directions]
+        if known:
+            out[hole] = axial_mean([a for a, _ in known], [w for _, w in known])
+    return out

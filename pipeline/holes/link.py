@@ -3,17 +3,18 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
 
+from ..density import void_width
 from ._kernels import _BIG
 from .detect import SIDES, CellHoles
-from .stats import SHARED_RING_DTYPE, HoleStats, _shared_ring_stats, merge_hole_stats
+from .stats import SHARED_RING_DTYPE, HoleStats, _shared_ring_stats, merge_hole_stats, shape_metrics
 
-__all__ = ["HoleCatalog", "PartRecord", "link_holes"]
+__all__ = ["HoleCatalog", "PartRecord", "link_holes", "mark_sampling_gaps"]
 
 _ACROSS = {"north": (-1, 0), "east": (0, 1), "south": (1, 0), "west": (0, -1)}
 
@@ -180,6 +181,29 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
         settled_small_voids=sum(c.small_void_count for c in cells),
         settled_small_void_px=sum(c.small_void_px for c in cells),
     )
+
+
+def mark_sampling_gaps(catalog: HoleCatalog, gap_px: float | np.ndarray) -> tuple[HoleCatalog, np.ndarray]:
+    """Holes no wider across than ``gap_px`` pixels (one value, or one per hole) are sampling gaps: not listed, filled like small voids.
+
+    The width across (:func:`pipeline.density.void_width`, from the area, the edge
+    length and the moments) is a strip's width and a compact void's side, so a void
+    wider than ``gap_px`` in both directions is never a gap. Merged
+    statistics are exact, so the decision does not depend on the cells. Returns the
+    catalog with those holes flagged ``is_small`` and which holes were flagged here
+    (and were not small already).
+    """
+    holes = catalog.holes
+    stats = catalog.stats
+    width = void_width(stats["area_px"], stats["edge_len_px"], shape_metrics(stats)["width_px"])
+    limit = np.broadcast_to(np.asarray(gap_px, np.float64), width.shape)
+    thin = (limit > 0) & (width <= limit)
+    gaps = thin & ~holes["is_small"]
+    if not gaps.any():
+        return catalog, gaps
+    flagged = holes.copy()
+    flagged["is_small"] |= gaps
+    return replace(catalog, holes=flagged), gaps
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,7 @@ from shapely.geometry.polygon import orient
 __all__ = [
     "hole_outline",
     "label_outlines",
+    "label_polygons",
     "mask_outline",
     "merge_outlines",
     "simplify_outline",
@@ -99,6 +100,23 @@ def label_outlines(
     ):
         pieces.setdefault(int(value), []).append(shapely.geometry.shape(geojson))
     return {label: _clean(polys) for label, polys in sorted(pieces.items())}
+
+
+def label_polygons(labels: np.ndarray, transform: Affine, *, connectivity: int = 4) -> dict[int, shapely.Geometry]:
+    """Polygons with exact pixel edges of each positive label, in ``transform``'s coordinates.
+
+    Holes in labels are kept as interiors; a label in several pieces is their union.
+    Unlike :func:`label_outlines`, the pieces are taken as GDAL's polygonize gives them
+    (vertex order kept), in the coordinates of ``transform`` (a raster's affine).
+    """
+    # GDAL's polygonize in memory, imported here like label_outlines' (no file is opened)
+    from rasterio.features import shapes
+
+    pieces: dict[int, list] = {}
+    data = np.ascontiguousarray(labels, dtype=np.int32)
+    for geometry, value in shapes(data, mask=data > 0, transform=transform, connectivity=connectivity):
+        pieces.setdefault(int(value), []).append(shapely.geometry.shape(geometry))
+    return {label: parts[0] if len(parts) == 1 else shapely.union_all(parts) for label, parts in pieces.items()}
 
 
 def mask_outline(

@@ -19,7 +19,6 @@ from xml.sax.saxutils import escape
 import numpy as np
 import rasterio
 import rasterio.shutil
-import shapely
 from affine import Affine
 from rasterio.enums import Resampling
 from rasterio.io import MemoryFile
@@ -182,17 +181,6 @@ def raster_lattice(path: str | os.PathLike) -> tuple[float | None, float, float,
 
 
 __all__ = ["NODATA", "RasterOptions", "Resampling", "read_raster", "write_cog", "write_vrt"]
-
-
-def label_polygons(labels: np.ndarray, transform: Affine, *, connectivity: int = 4) -> dict[int, shapely.Geometry]:
-    """Polygons with exact pixel edges of each positive label (holes-in-holes kept as interiors)."""
-    from rasterio.features import shapes
-
-    pieces: dict[int, list] = {}
-    data = np.ascontiguousarray(labels, dtype=np.int32)
-    for geometry, value in shapes(data, mask=data > 0, transform=transform, connectivity=connectivity):
-        pieces.setdefault(int(value), []).append(shapely.geometry.shape(geometry))
-    return {label: parts[0] if len(parts) == 1 else shapely.union_all(parts) for label, parts in pieces.items()}
 
 
 def geometry_mask(geometry, transform: Affine, shape: tuple[int, int]) -> np.ndarray:

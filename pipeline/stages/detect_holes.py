@@ -27,9 +27,10 @@ from ..holes.coverage import (
     extent_strips,
 )
 from ..holes.outlines import label_outlines
+from ..holes.vertical import vertical_hole_records
 from ..holes.walls import Wall, find_walls
 from ..io.intermediate import load_cell_statistics, save_labels
-from ..io.raster import geometry_mask, label_polygons
+from ..io.raster import geometry_mask
 from ..plan import HoleParams, SurveyPlan
 from ..rasterize import PixelStatistics
 from ..sensor.sight import OUTSIDE_SWATHS, ground_targets, sight_classes, surface_tops
@@ -301,8 +302,12 @@ def detect_cell(task: DetectTask) -> DetectResult:
         cell_holes=holes.without_labels(),
         labels_path=task.labels_path,
         part_outlines=_part_outlines(holes, cell, params),
-        vertical_holes=_vertical_hole_records(
-            vertical, stats.crop(cell.window), grid.window_transform(cell.window), params
+        vertical_holes=vertical_hole_records(
+            vertical,
+            stats.crop(cell.window),
+            grid.window_transform(cell.window),
+            voxel_height=params.voxel_height,
+            min_px=params.vertical_min_px,
         ),
         walls=walls,
         jump_px=int(jumps[core_rows, core_cols].sum()),
@@ -467,40 +472,3 @@ def _part_outlines(holes: CellHoles, cell: Cell, params: HoleParams) -> dict[int
         connectivity=params.connectivity,
     )
     return {label: shapely.to_wkb(polygon) for label, polygon in polygons.items()}
-
-
-def _vertical_hole_records(mask: np.ndarray, core: PixelStatistics, transform, params: HoleParams) -> list[dict]:
-    """One record per connected group of vertical-hole pixels (UAS eq. 2) in a cell core."""
-    import scipy.ndimage as ndi
-
-    labels, n = ndi.label(mask, structure=np.ones((3, 3), bool))
-    if n == 0:
-        return []
-    sizes = np.bincount(labels.ravel(), minlength=n + 1)
-    keep = sizes >= max(1, params.vertical_min_px)
-    keep[0] = False
-    labels = np.where(keep[labels], np.cumsum(keep)[labels], 0)
-    n = int(keep.sum())
-    if n == 0:
-        return []
-    mask = labels > 0
-    index = np.arange(1, n + 1)
-    span = core.zmax.astype(np.float64) - core.zmin
-    expected = np.floor(span / params.voxel_height)
-    missing = np.where(mask, np.maximum(expected - core.voxels, 0), 0)
-    pixels = ndi.sum_labels(mask, labels, index)
-    max_span = ndi.maximum(np.where(mask, span, 0), labels, index)
-    missing_voxels = ndi.sum_labels(missing, labels, index)
-    top = ndi.maximum(np.where(mask, core.zmax, -np.inf), labels, index)
-    polygons = label_polygons(labels, transform, connectivity=8)
-    return [
-        {
-            "pixels": int(pixels[i]),
-            "max_height_range": float(max_span[i]),
-            "missing_voxels": int(missing_voxels[i]),
-            "top": float(top[i]),
-            "wkb": shapely.to_wkb(polygons[i + 1]),
-        }
-        for i in range(n)
-        if (i + 1) in polygons
-    ]

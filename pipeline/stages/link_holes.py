@@ -9,18 +9,18 @@ its cause, and a resumed run reads it instead of linking again.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..config import Config
-from ..density import void_width
 from ..footprint_density import sampling_gap_px
-from ..holes import CauseRules, HoleCatalog, classify_causes, link_holes, ring_metrics, shape_metrics
+from ..holes import HoleCatalog, classify_causes, link_holes, mark_sampling_gaps, ring_metrics
 from ..holes.coverage import line_bands
-from ..holes.flight_lines import axial_mean, line_azimuths
+from ..holes.flight_lines import line_azimuths, strip_azimuths
 from ..io.intermediate import save_object
-from ..plan import HoleParams, SurveyPlan
+from ..parameters import HoleParams, cause_rules
+from ..plan import SurveyPlan
 from .detect_holes import DetectResult, SensorGeometry
 
 
@@ -58,7 +58,7 @@ def link_cells(
     catalog = link_holes([d.cell_holes for d in detected], min_area_px=params.min_area_px)
     gap_px = sampling_gap_px(plan.survey, plan.grid, catalog.stats, params.sampling_gap_px)
     catalog, gaps = mark_sampling_gaps(catalog, gap_px)
-    rules = CauseRules.from_config(
+    rules = cause_rules(
         config,
         pixel_size_m=plan.grid.resolution * plan.survey.horizontal_unit_m,
         vertical_unit_m=plan.survey.vertical_unit_m,
@@ -87,45 +87,6 @@ def link_cells(
         sampling_gap_px=int(catalog.holes["area_px"][gaps].sum()),
         geometry=geometry,
     )
-
-
-def mark_sampling_gaps(catalog: HoleCatalog, gap_px: float | np.ndarray) -> tuple[HoleCatalog, np.ndarray]:
-    """Holes no wider across than ``gap_px`` pixels (one value, or one per hole) are sampling gaps: not listed, filled like small voids.
-
-    The width across (:func:`pipeline.density.void_width`, from the area, the edge
-    length and the moments) is a strip's width and a compact void's side, so a void
-    wider than ``gap_px`` in both directions is never a gap. Merged
-    statistics are exact, so the decision does not depend on the cells. Returns the
-    catalog with those holes flagged ``is_small`` and which holes were flagged here
-    (and were not small already).
-    """
-    holes = catalog.holes
-    stats = catalog.stats
-    width = void_width(stats["area_px"], stats["edge_len_px"], shape_metrics(stats)["width_px"])
-    limit = np.broadcast_to(np.asarray(gap_px, np.float64), width.shape)
-    thin = (limit > 0) & (width <= limit)
-    gaps = thin & ~holes["is_small"]
-    if not gaps.any():
-        return catalog, gaps
-    flagged = holes.copy()
-    flagged["is_small"] |= gaps
-    return replace(catalog, holes=flagged), gaps
-
-
-def strip_azimuths(line_hist: np.ndarray, is_strip: np.ndarray, directions: dict[int, float]) -> np.ndarray:
-    """Per hole, the mean direction of the flight lines on its rim (missed strips only; else NaN).
-
-    A missed strip lies between flight lines flown in one direction; its re-flight is
-    laid parallel to them. Lines weigh by the rim pixels they hold.
-    """
-    out = np.full(len(is_strip), np.nan)
-    rows = line_hist["row"]
-    for hole in np.flatnonzero(is_strip):
-        entries = line_hist[rows == hole]
-        known = [(directions[int(e["line"])], float(e["count"])) for e in entries if int(e["line"]) in directions]
-        if known:
-            out[hole] = axial_mean([a for a, _ in known], [w for _, w in known])
-    return out
 
 
 def keep_hole_set(holes: HoleSet, path: str) -> None:
