@@ -32,9 +32,9 @@ HOLE_CONTEXT_PX = 8
 def _opt(default: Any, doc: str, **rules: Any) -> Any:
     """A config field: its default, a one-line description and validation rules.
 
-    Rules: ``choices`` (allowed values), ``gt``/``ge`` (lower bounds), ``le``
-    (upper bound), ``item_range`` (bounds of each list item), ``item_choices``
-    (allowed list items), ``auto`` (the string ``"auto"`` is allowed besides a
+    Rules: ``choices`` (allowed values), ``gt``/``ge`` (lower bounds), ``lt``/``le``
+    (upper bounds), ``item_range`` (bounds of each list item), ``item_choices``
+    (allowed list items), ``lengths`` (allowed list lengths), ``auto`` (the string ``"auto"`` is allowed besides a
     number: the field's type is ``float | str``, resolved once when the survey is
     planned, see :mod:`pipeline.plan`).
     """
@@ -324,8 +324,8 @@ class FlightPlanConfig:
     altitude_agl_m: float = _opt(
         60.0, "Flying height in metres above the highest DSM surface under the lidar swath.", gt=0
     )
-    fov_deg: float = _opt(70.0, "Lidar cross-track field of view in degrees.", gt=0)
-    side_overlap: float = _opt(0.3, "Side overlap of neighbouring lanes (0 to 0.9).", ge=0)
+    fov_deg: float = _opt(70.0, "Lidar cross-track field of view in degrees.", gt=0, lt=180)
+    side_overlap: float = _opt(0.3, "Side overlap of neighbouring lanes (0 to 0.9).", ge=0, le=0.9)
     speed_m_s: float = _opt(6.0, "Ground speed on scanning lanes (m/s).", gt=0)
     transit_speed_m_s: float = _opt(12.0, "Ground speed between lanes and patterns (m/s).", gt=0)
     run_in_m: float = _opt(20.0, "Lanes extend this far (m) beyond the hole so the lidar is steady.", ge=0)
@@ -342,6 +342,7 @@ class FlightPlanConfig:
         [],
         "Take-off and landing point [x, y] in the survey CRS; empty: the centre of the survey area in "
         "'holefill run', of the planned holes in 'holefill plan'.",
+        lengths=(0, 2),
     )
     altitude_reference: str = _opt(
         "takeoff",
@@ -581,6 +582,8 @@ def _validate(key: str, value: Any, kind: Any, rules: dict[str, Any], where: str
             low, high = rules["item_range"]
             if any(not low <= v <= high for v in value):
                 raise fail(f"items between {low} and {high}")
+        if "lengths" in rules and len(value) not in rules["lengths"]:
+            raise fail("a list of " + " or ".join(str(n) for n in rules["lengths"]) + " items")
         if "item_choices" in rules and any(v not in rules["item_choices"] for v in value):
             raise fail("items among " + ", ".join(repr(c) for c in rules["item_choices"]))
         return [item_kind(v) for v in value]
@@ -593,6 +596,8 @@ def _validate(key: str, value: Any, kind: Any, rules: dict[str, Any], where: str
         raise fail(f"a number > {rules['gt']}")
     if "ge" in rules and not value >= rules["ge"]:
         raise fail(f"a number >= {rules['ge']}")
+    if "lt" in rules and not value < rules["lt"]:
+        raise fail(f"a number < {rules['lt']}")
     if "le" in rules and not value <= rules["le"]:
         raise fail(f"a number <= {rules['le']}")
     if kind is float and not math.isfinite(value):

@@ -1,7 +1,8 @@
 """``holefill plan``: re-plan the re-flights of a finished run for another drone or altitude.
 
 Reads the run's ``holes.gpkg`` and DSM, plans, and writes the flight-plan files into the
-output folder together or not at all (through a staging folder, like a run).
+output folder together or not at all (through a staging folder, like a run). The planning
+itself is :func:`pipeline.flight_planning.plan_flights`, which a run calls too.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from typing import Any
 
 from .config import Config
 from .errors import InputDataError
-from .io.flightplan_files import plan_flights
+from .flight_planning import plan_flights
 from .outputs import FLIGHTPLAN_PRODUCTS
 from .staging import Staging
 

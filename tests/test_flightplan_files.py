@@ -16,7 +16,8 @@ from pyproj import CRS
 
 from pipeline.config import load_config
 from pipeline.errors import ConfigError
-from pipeline.io.flightplan_files import plan_flights, sortie_file_names
+from pipeline.flight_planning import plan_flights
+from pipeline.io.flightplan_files import sortie_file_names
 from pipeline.io.raster import write_cog
 from pipeline.io.vector import list_layers, read_layer, write_layer
 
@@ -191,16 +192,32 @@ def test_every_planned_hole_is_covered_by_the_written_lanes(planned):
         assert covered.contains(hole)
 
 
-def test_bad_flightplan_settings_name_the_key(survey, tmp_path):
-    folder, _ = survey
-    with pytest.raises(ConfigError, match="flightplan.side_overlap"):
-        plan_flights(
-            folder / "holes.gpkg", folder / "dsm.tif", load_config(overrides=["flightplan.side_overlap=0.95"]), tmp_path
-        )
-    with pytest.raises(ConfigError, match=r"flightplan\.home"):
-        plan_flights(
-            folder / "holes.gpkg", folder / "dsm.tif", load_config(overrides=["flightplan.home=[1.0]"]), tmp_path
-        )
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        ("flightplan.side_overlap=0.95", r"flightplan\.side_overlap = 0\.95 is invalid; expected a number <= 0\.9"),
+        ("flightplan.side_overlap=-0.1", r"flightplan\.side_overlap .* expected a number >= 0"),
+        ("flightplan.fov_deg=180", r"flightplan\.fov_deg = 180\.0 is invalid; expected a number < 180"),
+        ("flightplan.fov_deg=0", r"flightplan\.fov_deg .* expected a number > 0"),
+        ("flightplan.home=[1.0]", r"flightplan\.home = \[1\.0\] is invalid; expected a list of 0 or 2 items"),
+        ("flightplan.home=[1.0, 2.0, 3.0]", r"flightplan\.home .* a list of 0 or 2 items"),
+    ],
+)
+def test_bad_flightplan_settings_are_refused_when_the_configuration_is_loaded(override, expected):
+    """The ranges the planning relies on are the configuration's rules: no run starts with them wrong."""
+    with pytest.raises(ConfigError, match=expected):
+        load_config(overrides=[override])
+
+
+def test_flightplan_settings_at_their_limits_are_accepted():
+    config = load_config(
+        overrides=["flightplan.side_overlap=0.9", "flightplan.fov_deg=179.9", "flightplan.home=[1, 2]"]
+    )
+    assert config.flightplan.side_overlap == 0.9 and config.flightplan.home == [1.0, 2.0]
+    assert load_config(overrides=["flightplan.home=[]"]).flightplan.home == []
+
+
+def test_bad_flightplan_causes_name_the_key():
     with pytest.raises(ConfigError, match="items among"):
         load_config(overrides=['flightplan.causes=["shadow"]'])
 

@@ -3,8 +3,10 @@
 Pure kernels: :mod:`.coverage` (boustrophedon lanes over a hole), :mod:`.route`
 (greedy order improved by 2-opt / or-opt, sorties), :mod:`.altitude` (heights
 from the DSM, vertical reference checks) and :mod:`.mission` (the whole plan).
-File formats live in :mod:`pipeline.io.flightplan_files`; the re-planning tool
-is :func:`pipeline.io.flightplan_files.plan_flights`.
+File formats live in :mod:`pipeline.io.flightplan_files`; the planning tool (holes
+and DSM read, planned, files written) is :func:`pipeline.flight_planning.plan_flights`;
+the kernels' parameters come from ``[flightplan]`` through
+:func:`pipeline.parameters.flight_params`.
 """
 
 from __future__ import annotations

@@ -1,14 +1,12 @@
-"""Re-planning flights from a finished run: read holes and DSM, plan, write every file.
+"""The flight-plan files: a run's holes and DSM read for planning, the plans written.
 
-:func:`plan_flights` is the tool behind ``holefill plan OUT/holes.gpkg --dsm
-OUT/dsm.vrt --config drone.toml --out DIR``: it needs no point cloud, so a crew
-can change the drone settings and re-plan in seconds.
-
-Outputs in ``out_dir`` (docs/flightplans.md): ``flightplan.gpkg`` (layers
+Reading: :func:`read_holes` (a ``holes.gpkg`` layer) and :func:`read_dsm` (a DSM
+window). Writing, in ``out_dir`` (docs/flightplans.md): ``flightplan.gpkg`` (layers
 ``holes_status``, ``flight_lines``, ``waypoints``, ``route``) and, per sortie,
 ``flightplan.plan``, ``flightplan.waypoints``, ``flightplan.kmz`` and
-``flightplan.kml``; with several sorties the names carry the sortie number
-(``flightplan_s1.plan``, ``flightplan_s2.plan``, ...).
+``flightplan.kml`` (:mod:`.flightplan_formats`); with several sorties the names carry
+the sortie number (``flightplan_s1.plan``, ``flightplan_s2.plan``, ...). The planning
+tool that reads, plans and writes is :func:`pipeline.flight_planning.plan_flights`.
 """
 
 from __future__ import annotations
@@ -16,53 +14,18 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pyogrio
-import pyproj
 import rasterio
-import shapely
 from shapely.geometry import LineString, Point
 
-from ..config import Config, FlightPlanConfig
-from ..errors import ConfigError, CRSError, InputDataError, OutputError
-from ..flightplan.altitude import ellipsoid_transformer, vertical_crs_for
-from ..flightplan.coverage import CoverageParams
-from ..flightplan.mission import FlightParams, FlightPlan, HoleInput, plan_mission
+from ..errors import CRSError, InputDataError, OutputError
+from ..flightplan.mission import FlightPlan, HoleInput
 from .flightplan_formats import write_kml, write_kmz, write_plan, write_waypoints
 from .vector import write_layer
 
-__all__ = ["flight_params", "plan_flights", "read_dsm", "read_holes", "sortie_file_names", "write_flightplan"]
-
-
-def flight_params(config: FlightPlanConfig) -> FlightParams:
-    """The kernels' parameters from ``[flightplan]`` (the one adapter; checks what TOML rules cannot)."""
-    if not 0 <= config.side_overlap <= 0.9:
-        raise ConfigError(f"flightplan.side_overlap = {config.side_overlap!r} is invalid; expected 0 to 0.9")
-    if not 0 < config.fov_deg < 180:
-        raise ConfigError(f"flightplan.fov_deg = {config.fov_deg!r} is invalid; expected between 0 and 180")
-    if len(config.home) not in (0, 2):
-        raise ConfigError(f"flightplan.home = {config.home!r} is invalid; expected [] or [x, y] in the survey CRS")
-    coverage = CoverageParams(
-        altitude_agl_m=config.altitude_agl_m,
-        fov_deg=config.fov_deg,
-        side_overlap=config.side_overlap,
-        run_in_m=config.run_in_m,
-        turnaround_m=config.turnaround_m,
-        margin_m=config.margin_m,
-    )
-    return FlightParams(
-        coverage=coverage,
-        causes=tuple(config.causes),
-        min_area_m2=config.min_area_m2,
-        speed_m_s=config.speed_m_s,
-        transit_speed_m_s=config.transit_speed_m_s,
-        max_flight_time_s=config.max_flight_time_s,
-        setup_time_s=config.setup_time_s,
-        terrain_step_m=config.terrain_step_m,
-        altitude_reference=config.altitude_reference,
-    )
+__all__ = ["read_dsm", "read_holes", "sortie_file_names", "write_flightplan"]
 
 
 def read_holes(path: str | os.PathLike, *, layer: str = "holes") -> tuple[list[HoleInput], str]:
@@ -133,96 +96,6 @@ def read_dsm(path: str | os.PathLike, bounds: tuple[float, float, float, float] 
     if not crs:
         raise CRSError(path, "the DSM has no CRS")
     return data, transform, crs
-
-
-def plan_flights(
-    holes_gpkg: str | os.PathLike,
-    dsm_path: str | os.PathLike,
-    config: Config,
-    out_dir: str | os.PathLike,
-    *,
-    home: tuple[float, float] | None = None,
-) -> dict[str, Any]:
-    """Plan re-flights for the holes of ``holes_gpkg`` over ``dsm_path`` and write all files.
-
-    Parameters
-    ----------
-    config : Config
-        Its ``[flightplan]`` section is used.
-    home : (x, y), optional
-        Overrides ``flightplan.home`` (e.g. the AOI centroid from the pipeline).
-
-    Returns
-    -------
-    dict
-        The summary (counts, lengths, durations, files) that also goes into the
-        manifest of a run.
-    """
-    params = flight_params(config.flightplan)
-    holes, holes_crs = read_holes(holes_gpkg)
-    if home is None and config.flightplan.home:
-        home_x, home_y = config.flightplan.home  # flight_params checked: [] or [x, y]
-        home = (home_x, home_y)
-    reach = params.coverage.swath_m + params.coverage.margin_m + params.coverage.run_in_m + 500.0
-    extent = [h.geometry.bounds for h in holes if h.geometry is not None and not h.geometry.is_empty]
-    if home is not None:
-        extent.append((home[0], home[1], home[0], home[1]))
-    bounds = None
-    if extent:
-        b = np.array(extent)
-        bounds = (b[:, 0].min() - reach, b[:, 1].min() - reach, b[:, 2].max() + reach, b[:, 3].max() + reach)
-    dsm, transform, dsm_crs = read_dsm(dsm_path, bounds)
-    if not _same_crs(dsm_crs, holes_crs):
-        raise CRSError(dsm_path, f"the DSM's CRS differs from the holes' CRS ({pyproj.CRS(holes_crs).name})")
-    to_ellipsoid = None
-    if params.altitude_reference == "ellipsoid":
-        probe = home or _centre(holes)
-        to_ellipsoid = ellipsoid_transformer(vertical_crs_for(dsm_crs, config.flightplan.vertical_crs), probe=probe)
-    try:
-        plan = plan_mission(
-            holes, dsm, transform, crs_wkt=holes_crs, params=params, home=home, to_ellipsoid=to_ellipsoid,
-            snap_home=not config.flightplan.home,
-        )  # fmt: skip
-    except ValueError as e:
-        raise InputDataError(dsm_path, str(e)) from None
-    files = write_flightplan(
-        plan, out_dir, drone_enum=config.flightplan.dji_drone_enum, payload_enum=config.flightplan.dji_payload_enum
-    )
-    return summarize(plan, files)
-
-
-def _same_crs(a: str, b: str) -> bool:
-    """Whether two CRS definitions mean the same CRS.
-
-    GDAL writes WKT1 and pyogrio reads WKT2 of one EPSG CRS, and PROJ does not always
-    find them equal (datum ensemble names differ); the same EPSG code settles it.
-    """
-    crs_a, crs_b = pyproj.CRS.from_user_input(a), pyproj.CRS.from_user_input(b)
-    if crs_a.equals(crs_b, ignore_axis_order=True):
-        return True
-    code = crs_a.to_epsg(min_confidence=90)
-    return code is not None and code == crs_b.to_epsg(min_confidence=90)
-
-
-def summarize(plan: FlightPlan, files: list[Path]) -> dict[str, Any]:
-    """Counts, route lengths (greedy vs improved) and sortie durations."""
-    planned = [d for d in plan.decisions if d.planned]
-    return {
-        "holes": len(plan.decisions),
-        "holes_planned": len(planned),
-        "holes_not_planned": {d.hole_id: d.reason for d in plan.decisions if not d.planned},
-        "patterns": len({p.pattern_id for p in plan.patterns}),
-        "lanes": sum(len(s.lanes) for s in plan.sorties),
-        "sorties": len(plan.sorties),
-        "sortie_durations_s": [round(s.duration_s, 1) for s in plan.sorties],
-        "greedy_route_m": round(plan.greedy_length_m, 1),
-        "improved_route_m": round(plan.improved_length_m, 1),
-        "flown_route_m": round(plan.flown_length_m, 1),
-        "home": list(plan.home),
-        "home_ground_m": round(plan.home_ground_m, 2),
-        "altitude_reference": plan.altitude_reference,
-        "files": [str(f) for f in files],
-    }
 
 
 def sortie_file_names(n_sorties: int) -> list[str]:
@@ -354,8 +227,3 @@ def _write_holes_status_layer(path: Path, plan: FlightPlan) -> None:
         crs_wkt=plan.crs_wkt,
         geometry_type="MultiPolygon",
     )
-
-
-def _centre(holes: list[HoleInput]) -> tuple[float, float]:
-    c = shapely.union_all([h.geometry for h in holes]).centroid
-    return (c.x, c.y)

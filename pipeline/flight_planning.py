@@ -1,0 +1,125 @@
+"""The flight-planning tool: a run's holes and DSM in, re-flight plans out (docs/flightplans.md).
+
+:func:`plan_flights` reads the holes (``holes.gpkg``) and the DSM around them
+(:mod:`pipeline.io.flightplan_files`), plans the mission with the kernels of
+:mod:`pipeline.flightplan` and writes every flight-plan file. A run calls it over its
+repaired DSM; ``holefill plan OUT/holes.gpkg --dsm OUT/dsm.vrt --config drone.toml
+--out DIR`` calls it through :func:`pipeline.flight_replan.replan_flights` (atomically):
+it needs no point cloud, so a crew can change the drone settings and re-plan in seconds.
+The ``[flightplan]`` settings are checked when the configuration is loaded and turned
+into :class:`~pipeline.flightplan.FlightParams` by :func:`pipeline.parameters.flight_params`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyproj
+import shapely
+
+from .config import Config
+from .errors import CRSError, InputDataError
+from .flightplan.altitude import ellipsoid_transformer, vertical_crs_for
+from .flightplan.mission import FlightPlan, HoleInput, plan_mission
+from .io.flightplan_files import read_dsm, read_holes, write_flightplan
+from .parameters import flight_params
+
+__all__ = ["plan_flights", "summarize"]
+
+
+def plan_flights(
+    holes_gpkg: str | os.PathLike,
+    dsm_path: str | os.PathLike,
+    config: Config,
+    out_dir: str | os.PathLike,
+    *,
+    home: tuple[float, float] | None = None,
+) -> dict[str, Any]:
+    """Plan re-flights for the holes of ``holes_gpkg`` over ``dsm_path`` and write all files.
+
+    Parameters
+    ----------
+    config : Config
+        Its ``[flightplan]`` section is used.
+    home : (x, y), optional
+        Overrides ``flightplan.home`` (e.g. the AOI centroid from the pipeline).
+
+    Returns
+    -------
+    dict
+        The summary (counts, lengths, durations, files) that also goes into the
+        manifest of a run.
+    """
+    params = flight_params(config)
+    holes, holes_crs = read_holes(holes_gpkg)
+    if home is None and config.flightplan.home:
+        home_x, home_y = config.flightplan.home  # the configuration checked: [] or [x, y]
+        home = (home_x, home_y)
+    reach = params.coverage.swath_m + params.coverage.margin_m + params.coverage.run_in_m + 500.0
+    extent = [h.geometry.bounds for h in holes if h.geometry is not None and not h.geometry.is_empty]
+    if home is not None:
+        extent.append((home[0], home[1], home[0], home[1]))
+    bounds = None
+    if extent:
+        b = np.array(extent)
+        bounds = (b[:, 0].min() - reach, b[:, 1].min() - reach, b[:, 2].max() + reach, b[:, 3].max() + reach)
+    dsm, transform, dsm_crs = read_dsm(dsm_path, bounds)
+    if not _same_crs(dsm_crs, holes_crs):
+        raise CRSError(dsm_path, f"the DSM's CRS differs from the holes' CRS ({pyproj.CRS(holes_crs).name})")
+    to_ellipsoid = None
+    if params.altitude_reference == "ellipsoid":
+        probe = home or _centre(holes)
+        to_ellipsoid = ellipsoid_transformer(vertical_crs_for(dsm_crs, config.flightplan.vertical_crs), probe=probe)
+    try:
+        plan = plan_mission(
+            holes, dsm, transform, crs_wkt=holes_crs, params=params, home=home, to_ellipsoid=to_ellipsoid,
+            snap_home=not config.flightplan.home,
+        )  # fmt: skip
+    except ValueError as e:
+        raise InputDataError(dsm_path, str(e)) from None
+    files = write_flightplan(
+        plan, out_dir, drone_enum=config.flightplan.dji_drone_enum, payload_enum=config.flightplan.dji_payload_enum
+    )
+    return summarize(plan, files)
+
+
+def _same_crs(a: str, b: str) -> bool:
+    """Whether two CRS definitions mean the same CRS.
+
+    GDAL writes WKT1 and pyogrio reads WKT2 of one EPSG CRS, and PROJ does not always
+    find them equal (datum ensemble names differ); the same EPSG code settles it.
+    """
+    crs_a, crs_b = pyproj.CRS.from_user_input(a), pyproj.CRS.from_user_input(b)
+    if crs_a.equals(crs_b, ignore_axis_order=True):
+        return True
+    code = crs_a.to_epsg(min_confidence=90)
+    return code is not None and code == crs_b.to_epsg(min_confidence=90)
+
+
+def summarize(plan: FlightPlan, files: list[Path]) -> dict[str, Any]:
+    """Counts, route lengths (greedy vs improved) and sortie durations."""
+    planned = [d for d in plan.decisions if d.planned]
+    return {
+        "holes": len(plan.decisions),
+        "holes_planned": len(planned),
+        "holes_not_planned": {d.hole_id: d.reason for d in plan.decisions if not d.planned},
+        "patterns": len({p.pattern_id for p in plan.patterns}),
+        "lanes": sum(len(s.lanes) for s in plan.sorties),
+        "sorties": len(plan.sorties),
+        "sortie_durations_s": [round(s.duration_s, 1) for s in plan.sorties],
+        "greedy_route_m": round(plan.greedy_length_m, 1),
+        "improved_route_m": round(plan.improved_length_m, 1),
+        "flown_route_m": round(plan.flown_length_m, 1),
+        "home": list(plan.home),
+        "home_ground_m": round(plan.home_ground_m, 2),
+        "altitude_reference": plan.altitude_reference,
+        "files": [str(f) for f in files],
+    }
+
+
+def _centre(holes: list[HoleInput]) -> tuple[float, float]:
+    c = shapely.union_all([h.geometry for h in holes]).centroid
+    return (c.x, c.y)
