@@ -1,10 +1,12 @@
-"""COPC files: the octree's nodes, decoding a chosen set of nodes, and writing COPC.
+"""COPC files: decoding a chosen set of octree nodes, and writing COPC.
 
 A COPC file (https://copc.io) is a LAZ 1.4 file whose points are grouped into
 the nodes of an octree, one variable-size LAZ chunk per node, with a hierarchy
 (EVLR) listing each node's key, byte offset, byte size and point count. A
 large file can therefore be read by several tasks, each decompressing its own
-nodes' byte ranges and nothing else (:mod:`pipeline.reads` assigns the nodes).
+nodes' byte ranges and nothing else (:mod:`pipeline.reads` assigns the nodes). The
+hierarchy (:class:`CopcOctree`) is read with the header, by :mod:`.copc_octree`, which
+needs nothing of this module (so :mod:`.las` and this module do not import each other).
 
 Reading uses laspy's COPC hierarchy parser and lazrs's chunk-table decoder (what
 ``laspy.CopcReader.query`` does inside), without its bounds filter: every point
@@ -20,81 +22,17 @@ import io
 import os
 import struct
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import laspy
 import numpy as np
-from laspy.copc import CopcReader, load_octree_for_query
 from laspy.point.record import PackedPointRecord
 
 from ..errors import InputDataError
+from .copc_octree import NODE_DTYPE, CopcOctree, read_copc_octree
 from .las import NEEDED_LAYERS, SENSOR_LAYERS, PointChunk, PulseFields, point_chunk
 
-#: One hierarchy entry, as the COPC specification lays it out (32 bytes, little-endian).
-NODE_DTYPE = np.dtype(
-    [
-        ("level", "<i4"),
-        ("x", "<i4"),
-        ("y", "<i4"),
-        ("z", "<i4"),
-        ("offset", "<u8"),
-        ("byte_size", "<i4"),
-        ("point_count", "<i4"),
-    ]
-)
-
-
-@dataclass(frozen=True, eq=False)
-class CopcOctree:
-    """The nodes of a COPC file that hold points, from its hierarchy pages (no point is decoded).
-
-    Attributes
-    ----------
-    center : tuple of float
-        Centre of the root cube, in the file's (scaled) coordinates.
-    halfsize : float
-        Half the side of the root cube.
-    nodes : ndarray of NODE_DTYPE
-        Every node with points, sorted by byte offset.
-    """
-
-    center: tuple[float, float, float]
-    halfsize: float
-    nodes: np.ndarray
-
-    def node_bounds(self, nodes: np.ndarray | None = None) -> np.ndarray:
-        """``(n, 4)`` array of each node's cube in x/y: minx, miny, maxx, maxy."""
-        nodes = self.nodes if nodes is None else nodes
-        side = 2.0 * self.halfsize / np.exp2(nodes["level"].astype(np.float64))
-        minx = self.center[0] - self.halfsize + nodes["x"] * side
-        miny = self.center[1] - self.halfsize + nodes["y"] * side
-        return np.column_stack([minx, miny, minx + side, miny + side])
-
-
-def read_copc_octree(path: str | os.PathLike) -> CopcOctree:
-    """Read every hierarchy page of a COPC file: the nodes holding points and where their chunks are.
-
-    Raises
-    ------
-    InputDataError
-        The COPC info or hierarchy cannot be read (the file is then not a usable COPC).
-    """
-    try:
-        with open(path, "rb") as fh, CopcReader(fh, close_fd=False) as reader:
-            info = reader.copc_info
-            found = load_octree_for_query(reader.source, info, reader.root_page)
-    except Exception as e:
-        raise InputDataError(Path(path), f"COPC hierarchy cannot be read: {e}") from None
-    rows = [
-        (n.key.level, n.key.x, n.key.y, n.key.z, n.offset, n.byte_size, n.point_count)
-        for n in found
-        if n.point_count > 0
-    ]
-    nodes = np.array(rows, dtype=NODE_DTYPE)
-    nodes.sort(order="offset")
-    center = (float(info.center[0]), float(info.center[1]), float(info.center[2]))
-    return CopcOctree(center=center, halfsize=float(info.halfsize), nodes=nodes)
+__all__ = ["CopcOctree", "iter_copc_nodes", "load_point_chunk", "read_copc_octree", "save_point_chunk", "write_copc"]
 
 
 def iter_copc_nodes(

@@ -12,15 +12,13 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import laspy
 import numpy as np
 
 from ..errors import CRSError, InputDataError
-
-if TYPE_CHECKING:
-    from .copc import CopcOctree
+from .copc_octree import CopcOctree, read_copc_octree
 
 logger = logging.getLogger(__name__)
 
@@ -253,10 +251,8 @@ def _check_legacy_count(path: Path, header: Any, count: int) -> None:
         )
 
 
-def _copc_octree(path: Path, count: int) -> Any:
+def _copc_octree(path: Path, count: int) -> CopcOctree:
     """A COPC file's octree (nodes, offsets, counts), checked against the header's point count."""
-    from .copc import read_copc_octree  # io.copc builds on this module
-
     copc = read_copc_octree(path)
     listed = int(copc.nodes["point_count"].sum())
     if listed != count:
