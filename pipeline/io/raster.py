@@ -1,4 +1,4 @@
-"""Writing rasters: Cloud-optimized GeoTIFF tiles and the VRT that mosaics them.
+"""Rasters: writing Cloud-optimized GeoTIFF tiles and the VRT that mosaics them; reading them back.
 
 Internally rasters are float32 with NaN for "no value"; the conversion to an
 explicit nodata value happens here and only here. Every file is written under a
@@ -22,6 +22,7 @@ import rasterio.shutil
 from affine import Affine
 from rasterio.enums import Resampling
 from rasterio.io import MemoryFile
+from rasterio.windows import Window
 
 from ..errors import OutputError
 
@@ -180,7 +181,58 @@ def raster_lattice(path: str | os.PathLike) -> tuple[float | None, float, float,
     return (t.a if square else None), t.c, t.f, crs
 
 
-__all__ = ["NODATA", "RasterOptions", "Resampling", "read_raster", "write_cog", "write_vrt"]
+__all__ = ["NODATA", "RasterOptions", "Resampling", "read_codes", "read_raster", "read_view", "write_cog", "write_vrt"]
+
+
+#: ``(minx, miny, maxx, maxy)`` in a raster's CRS.
+Bounds = tuple[float, float, float, float]
+
+
+def read_view(path: str | os.PathLike, bounds: Bounds | None, max_px: int) -> tuple[np.ndarray, Bounds]:
+    """Band 1 over the whole pixels inside ``bounds`` (all of it without), averaged down to at most ``max_px`` a side.
+
+    Returns float32 heights with NaN for nodata and the bounds of the pixels read (GDAL
+    picks a COG's or a VRT's overviews where they serve). For the report's maps.
+    """
+    with rasterio.open(path) as src:
+        window = _window_inside(src.transform, bounds, src.width, src.height)
+        scale = max(window.width, window.height) / max_px
+        shape = (
+            (max(1, round(window.height / scale)), max(1, round(window.width / scale)))
+            if scale > 1
+            else (int(window.height), int(window.width))
+        )
+        data = src.read(1, window=window, out_shape=shape, masked=True, resampling=Resampling.average)
+        t = src.transform
+        view_bounds = (
+            t.c + window.col_off * t.a,
+            t.f + (window.row_off + window.height) * t.e,
+            t.c + (window.col_off + window.width) * t.a,
+            t.f + window.row_off * t.e,
+        )
+    return np.ma.filled(data.astype(np.float32), np.nan), tuple(float(v) for v in view_bounds)  # type: ignore[return-value]
+
+
+def read_codes(path: str | os.PathLike, bounds: Bounds, shape: tuple[int, int]) -> tuple[np.ndarray, float | None]:
+    """Band 1 over the whole pixels inside ``bounds``, resampled (nearest) to ``shape``, and its nodata value.
+
+    For a raster of codes (``fill_mask``) read over the same view as :func:`read_view`.
+    """
+    with rasterio.open(path) as src:
+        window = _window_inside(src.transform, bounds, src.width, src.height)
+        return src.read(1, window=window, out_shape=shape, boundless=False), src.nodata
+
+
+def _window_inside(transform: Affine, bounds: Bounds | None, width: int, height: int) -> Window:
+    """The whole pixels of a north-up raster inside ``bounds`` (all of them without bounds)."""
+    if bounds is None:
+        return Window(0, 0, width, height)
+    t = transform
+    c0 = max(0, math.floor((bounds[0] - t.c) / t.a + 1e-6))
+    c1 = min(width, math.ceil((bounds[2] - t.c) / t.a - 1e-6))
+    r0 = max(0, math.floor((bounds[3] - t.f) / t.e + 1e-6))
+    r1 = min(height, math.ceil((bounds[1] - t.f) / t.e - 1e-6))
+    return Window(c0, r0, max(1, c1 - c0), max(1, r1 - r0))
 
 
 def geometry_mask(geometry, transform: Affine, shape: tuple[int, int]) -> np.ndarray:

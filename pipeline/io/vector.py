@@ -1,4 +1,4 @@
-"""Writing GeoPackage layers (pyogrio through geopandas).
+"""GeoPackage layers (pyogrio through geopandas): writing them, reading them back.
 
 Layers are written into a GeoPackage inside the run's staging folder; the whole
 file is moved into place when the run succeeds (see ``pipeline.staging``). Polygon
@@ -69,6 +69,13 @@ def write_layer(
 def read_layer(path: str | os.PathLike, layer: str) -> gpd.GeoDataFrame:
     """Read one layer back (tests, evaluation)."""
     return pyogrio.read_dataframe(path, layer=layer)
+
+
+def read_attributes(path: str | os.PathLike, layer: str, columns: list[str]) -> pd.DataFrame | None:
+    """Some fields of a layer, without geometries; None when the layer lacks one of them (an empty layer has no field)."""
+    if any(column not in pyogrio.read_info(path, layer=layer)["fields"] for column in columns):
+        return None
+    return pyogrio.read_dataframe(path, layer=layer, columns=columns, read_geometry=False)
 
 
 def list_layers(path: str | os.PathLike) -> list[str]:

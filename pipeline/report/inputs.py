@@ -1,15 +1,14 @@
 """Reading a finished run's output folder into :class:`ReportInputs` for the maps.
 
-The only module of the report that reads files: ``dsm.vrt`` and ``fill_mask.vrt``
-through rasterio, ``holes.gpkg`` and ``flightplan.gpkg`` through pyogrio (via
-:mod:`pipeline.io.vector`). Both are imported inside the functions, so importing the
-report stays light.
+The only module of the report that reads files, through :mod:`pipeline.io`: ``dsm.vrt``
+and ``fill_mask.vrt`` with :mod:`pipeline.io.raster`, ``holes.gpkg`` and
+``flightplan.gpkg`` with :mod:`pipeline.io.vector`. Both are imported inside the
+functions, so importing the report stays light.
 """
 
 from __future__ import annotations
 
 import collections
-import math
 import os
 from collections.abc import Iterable
 from pathlib import Path
@@ -87,48 +86,14 @@ def _zoom_bounds(hole: Bounds, limit: Bounds) -> Bounds:
 
 def _read_view(folder: Path, bounds: Bounds | None, max_px: int) -> MapRaster:
     """``dsm.vrt`` (and ``fill_mask.vrt``) over ``bounds`` (default: all), at most ``max_px`` on the long side."""
-    import rasterio
-    from rasterio.enums import Resampling
+    from ..io.raster import read_codes, read_view
 
-    with rasterio.open(folder / "dsm.vrt") as src:
-        window = _pixel_window(src.transform, bounds, src.width, src.height)
-        scale = max(window.width, window.height) / max_px
-        shape = (
-            (max(1, round(window.height / scale)), max(1, round(window.width / scale)))
-            if scale > 1
-            else (int(window.height), int(window.width))
-        )
-        data = src.read(1, window=window, out_shape=shape, masked=True, resampling=Resampling.average)
-        dsm = np.ma.filled(data.astype(np.float32), np.nan)
-        t = src.transform
-        view_bounds = (
-            t.c + window.col_off * t.a,
-            t.f + (window.row_off + window.height) * t.e,
-            t.c + (window.col_off + window.width) * t.a,
-            t.f + window.row_off * t.e,
-        )
+    dsm, view_bounds = read_view(folder / "dsm.vrt", bounds, max_px)
     filled = None
     if (folder / "fill_mask.vrt").exists():
-        with rasterio.open(folder / "fill_mask.vrt") as src:
-            window = _pixel_window(src.transform, view_bounds, src.width, src.height)
-            codes = src.read(1, window=window, out_shape=shape, boundless=False)
-            nodata = 255 if src.nodata is None else int(src.nodata)
-            filled = (codes > 0) & (codes != nodata)
-    return MapRaster(dsm=dsm, bounds=tuple(float(v) for v in view_bounds), filled=filled)  # type: ignore[arg-type]
-
-
-def _pixel_window(transform, bounds: Bounds | None, width: int, height: int):
-    """The whole pixels of a north-up raster inside ``bounds`` (all of them without bounds)."""
-    from rasterio.windows import Window
-
-    if bounds is None:
-        return Window(0, 0, width, height)
-    t = transform
-    c0 = max(0, math.floor((bounds[0] - t.c) / t.a + 1e-6))
-    c1 = min(width, math.ceil((bounds[2] - t.c) / t.a - 1e-6))
-    r0 = max(0, math.floor((bounds[3] - t.f) / t.e + 1e-6))
-    r1 = min(height, math.ceil((bounds[1] - t.f) / t.e - 1e-6))
-    return Window(c0, r0, max(1, c1 - c0), max(1, r1 - r0))
+        codes, nodata = read_codes(folder / "fill_mask.vrt", view_bounds, dsm.shape)
+        filled = (codes > 0) & (codes != (255 if nodata is None else int(nodata)))
+    return MapRaster(dsm=dsm, bounds=view_bounds, filled=filled)
 
 
 def _read_holes(gpkg: Path, pixel: float) -> tuple[MapHole, ...]:
@@ -177,17 +142,13 @@ def _read_holes(gpkg: Path, pixel: float) -> tuple[MapHole, ...]:
 def _read_part_areas(gpkg: Path) -> dict[str, float]:
     if not gpkg.exists():
         return {}
-    import pyogrio
-
-    from ..io.vector import list_layers
+    from ..io.vector import list_layers, read_attributes
 
     if "hole_parts" not in list_layers(gpkg):
         return {}
-    if "area_m2" not in pyogrio.read_info(gpkg, layer="hole_parts")["fields"]:
+    frame = read_attributes(gpkg, "hole_parts", ["category", "shape", "area_m2"])
+    if frame is None:
         return {}  # no part: an empty layer
-    frame = pyogrio.read_dataframe(
-        gpkg, layer="hole_parts", columns=["category", "shape", "area_m2"], read_geometry=False
-    )
     areas: dict[str, float] = collections.defaultdict(float)
     for category, shape, area in zip(frame["category"], frame["shape"], frame["area_m2"]):
         shape = _text(shape) if category != "closed" else None
