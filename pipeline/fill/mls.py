@@ -70,9 +70,7 @@ def fill_mls(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[Comp
         pr, pc = pr + sl[0].start, pc + sl[1].start
         dist = _distance_to_support(pr, pc, sr, sc) * ps
         z, order, flags = mls_surface(
-            sc * ps,
-            -sr * ps,
-            problem.heights[sr, sc],
+            (sc * ps, -sr * ps, problem.heights[sr, sc]),
             pc * ps,
             -pr * ps,
             dist,
@@ -80,8 +78,7 @@ def fill_mls(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[Comp
             dense_band=st.mls_dense_band_px * ps,
             step=st.mls_lattice_step_px,
             pixel_size=ps,
-            rows=pr,
-            cols=pc,
+            pixels=(pr, pc),
         )
         out[pr, pc] = z
         recs.append(
@@ -147,15 +144,17 @@ def local_frame(x: np.ndarray, y: np.ndarray, z: np.ndarray, *, tilted: bool) ->
 
 
 def mls_surface(
-    sx, sy, sz, ex, ey, dist, settings, *, dense_band=0.0, step=4, pixel_size=1.0, rows=None, cols=None
+    support, ex, ey, dist, settings, *, dense_band=0.0, step=4, pixel_size=1.0, pixels=None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Evaluate the improved-MLS surface of support points (sx, sy, sz) at (ex, ey).
+    """Evaluate the improved-MLS surface of support points ``support = (sx, sy, sz)`` at (ex, ey).
 
     ``dist`` is each evaluation point's distance to the nearest support point (survey
     units). Returns heights, the order reached and the degradation flags per point.
-    With ``dense_band > 0`` and integer ``rows, cols`` of the evaluated pixels, points
-    farther than ``dense_band`` are interpolated from a lattice of spacing ``step`` px.
+    With ``dense_band > 0`` and ``pixels = (rows, cols)``, the integer rows and columns of
+    the evaluated pixels, points farther than ``dense_band`` are interpolated from a
+    lattice of spacing ``step`` px.
     """
+    sx, sy, sz = support
     st = settings
     origin, axes = local_frame(sx, sy, sz, tilted=st.mls_frame == "tilted")
     d = np.column_stack([sx, sy, sz]) - origin
@@ -180,7 +179,7 @@ def mls_surface(
         st.mls_min_points,
         st.mls_drop_tolerance,
     )
-    lattice = dense_band > 0 and rows is not None and np.any(dist > dense_band)
+    lattice = dense_band > 0 and pixels is not None and np.any(dist > dense_band)
     n = len(ex)
     z, order, flags = np.empty(n), np.empty(n, np.int64), np.zeros(n, np.int64)
     near = dist <= dense_band if lattice else np.ones(n, bool)
@@ -188,6 +187,7 @@ def mls_surface(
     z[near], order[near], flags[near] = _mls_eval(ex[near], ey[near], h, *args)
     if lattice:
         far = ~near
+        rows, cols = pixels
         z[far], order[far], flags[far] = _lattice_eval(rows[far], cols[far], step, pixel_size, sx, sy, st, h_min, args)
     return z, order, flags
 

@@ -187,22 +187,8 @@ def plan_mission(
     if not math.isfinite(home_ground) and sortie_visits:
         raise ValueError(f"no DSM height within 10 m of home {home}; choose a home point on open ground with data")
     to_lonlat = pyproj.Transformer.from_crs(pyproj.CRS.from_user_input(crs_wkt), "EPSG:4326", always_xy=True)
-    sorties = [
-        _sortie(
-            number,
-            visits,
-            units,
-            unit_ends,
-            home,
-            dsm,
-            transform,
-            params,
-            to_lonlat=to_lonlat,
-            home_ground=home_ground,
-            to_ellipsoid=to_ellipsoid,
-        )
-        for number, visits in enumerate(sortie_visits, start=1)
-    ]
+    shared = _SortieContext(units, unit_ends, home, dsm, transform, params, to_lonlat, home_ground, to_ellipsoid)
+    sorties = [_sortie(number, visits, shared) for number, visits in enumerate(sortie_visits, start=1)]
     home_lonlat = to_lonlat.transform(*home)
     return FlightPlan(
         decisions=tuple(decisions),
@@ -237,23 +223,28 @@ def _routes(
     return greedy, improved, [improve_route(v, unit_ends, home) for v in sortie_visits]
 
 
-def _sortie(
-    number: int,
-    visits: list[Visit],
-    units: list[CoveragePattern],
-    unit_ends: list[PatternEnds],
-    home: Point2,
-    dsm: np.ndarray,
-    transform: AffineLike,
-    params: FlightParams,
-    *,
-    to_lonlat: pyproj.Transformer,
-    home_ground: float,
-    to_ellipsoid: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None,
-) -> Sortie:
+@dataclass(frozen=True)
+class _SortieContext:
+    """What every sortie of a plan shares: the flyable patterns and their ends, home, the DSM, the conversions."""
+
+    units: list[CoveragePattern]
+    unit_ends: list[PatternEnds]
+    home: Point2
+    dsm: np.ndarray
+    transform: AffineLike
+    params: FlightParams
+    to_lonlat: pyproj.Transformer
+    home_ground: float
+    to_ellipsoid: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None
+
+
+def _sortie(number: int, visits: list[Visit], shared: _SortieContext) -> Sortie:
     """Sortie ``number``: its waypoints, the lanes it flies, its length and duration."""
-    raw = _sortie_points(visits, units, home, dsm, transform, params)
-    waypoints = _finish_waypoints(number, raw, to_lonlat, home_ground, params.altitude_reference, to_ellipsoid)
+    units, unit_ends, home, params = shared.units, shared.unit_ends, shared.home, shared.params
+    raw = _sortie_points(visits, units, home, shared.dsm, shared.transform, params)
+    waypoints = _finish_waypoints(
+        number, raw, shared.to_lonlat, shared.home_ground, params.altitude_reference, shared.to_ellipsoid
+    )
     lanes = tuple(
         FlownLane(number, units[v.pattern].pattern_id, units[v.pattern].hole_ids, lane)
         for v in visits
