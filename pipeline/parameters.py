@@ -22,7 +22,9 @@ adapter                    record               sections
 
 The adapters take the plan's numbers (pixel size, units) as arguments, not the plan:
 the plan itself is built with :func:`hole_params`, so this module imports nothing that
-runs after ``config``'s consumers.
+runs after ``config``'s consumers. The plan imports this module, and stage 1's workers
+import the plan: the records of the later stages (fill, rasters, flight plans) are
+imported inside their adapters, so a worker does not load those packages to bin points.
 """
 
 from __future__ import annotations
@@ -30,16 +32,18 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from .config import AUTO, CausesConfig, Config
 from .density import auto_min_area_m2, sampling_gap_width_m
-from .fill import FillSettings
-from .fill.by_cause import FillParams
-from .flightplan import CoverageParams, FlightParams
 from .holes.causes import CauseRules
 from .io import pdal_reader
-from .io.raster import RasterOptions
 from .rasterize import PointFilter
+
+if TYPE_CHECKING:
+    from .fill.by_cause import FillParams
+    from .flightplan import FlightParams
+    from .io.raster import RasterOptions
 
 __all__ = [
     "CONFIG_KEYS",
@@ -177,6 +181,9 @@ def fill_params(
     config: Config, holes: HoleParams, *, pixel_size: float, horizontal_unit_m: float, vertical_unit_m: float
 ) -> FillParams:
     """The ``[fill]`` settings in survey units (``pixel_size`` in survey units, as ``grid.resolution``)."""
+    from .fill import FillSettings
+    from .fill.by_cause import FillParams
+
     fill = config.fill
     return FillParams(
         method=fill.method,
@@ -194,6 +201,8 @@ def fill_params(
 
 def raster_options(config: Config) -> RasterOptions:
     """How the COGs are written, from ``[output]``."""
+    from .io.raster import RasterOptions
+
     out = config.output
     return RasterOptions(
         compress=out.compress,
@@ -205,6 +214,8 @@ def raster_options(config: Config) -> RasterOptions:
 
 def flight_params(config: Config) -> FlightParams:
     """The flight-planning kernels' parameters from ``[flightplan]`` (its ranges are checked by ``config``)."""
+    from .flightplan import CoverageParams, FlightParams
+
     plan = config.flightplan
     coverage = CoverageParams(
         altitude_agl_m=plan.altitude_agl_m,
