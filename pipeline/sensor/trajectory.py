@@ -237,22 +237,10 @@ def _fit_pass(
     if enough.sum() < 2:
         return None
     bins, values = bins[enough], values[enough]
-    middle = _centroids(values, origin)
-    sensor = np.full((len(bins), 3), np.nan)
-    times = bins * bin_seconds + values[:, _INDEX["st"]] / values[:, _INDEX["n"]]
-    methods = np.zeros(len(bins), np.int8)  # 0 nominal, 1 scan angle, 2 multiple returns
-    for i, row in enumerate(values):
-        position = _from_pulse_pairs(row, origin)
-        if position is not None and position[2] - middle[i, 2] >= MIN_FLYING_HEIGHT_M:
-            sensor[i], methods[i] = position, 2
-            times[i] = bins[i] * bin_seconds + row[_INDEX["pair_t"]] / row[_INDEX["pair_w"]]
-            continue
-        position = _from_scan_angles(row, origin)
-        if position is not None and position[2] - middle[i, 2] >= MIN_FLYING_HEIGHT_M:
-            sensor[i], methods[i] = position, 1
-            times[i] = bins[i] * bin_seconds + row[_INDEX["sa_t"]] / row[_INDEX["sa_n"]]
+    times, sensor, methods = _positions(bins, values, origin, bin_seconds)
     order = np.argsort(times, kind="stable")
-    times, sensor, middle, methods, values = times[order], sensor[order], middle[order], methods[order], values[order]
+    times, sensor, methods, values = times[order], sensor[order], methods[order], values[order]
+    middle = _centroids(values, origin)
     hulls = _hull_vertices(values, origin)
     evidence = _consistent(sensor)
     methods[~evidence] = 0
@@ -274,13 +262,15 @@ def _fit_pass(
         )  # fmt: skip
         across = np.einsum("kvd,d->kv", hulls - track[:, None, :], left)
         width = own_half_width if half_width is None else half_width
-        # a side the survey's edge cuts everywhere reaches as far as the other (a symmetric scanner)
-        half_left = (
-            width if cropped[:, 0].all() and width is not None else _side_median(across.max(axis=1), cropped[:, 0])
-        )
-        half_right = (
-            width if cropped[:, 1].all() and width is not None else _side_median(-across.min(axis=1), cropped[:, 1])
-        )
+        half_left = _side_median(across.max(axis=1), cropped[:, 0])
+        half_right = _side_median(-across.min(axis=1), cropped[:, 1])
+        if width is not None and cropped.all():
+            half_left = half_right = width
+    # a side the survey's edge cuts everywhere reaches as far as the other (a symmetric scanner)
+    if cropped[:, 0].all() and not cropped[:, 1].all():
+        half_left = half_right
+    elif cropped[:, 1].all() and not cropped[:, 0].all():
+        half_right = half_left
     if evidence.sum() >= 2:
         height = np.interp(times, times[evidence], sensor[evidence, 2])
     else:
@@ -304,6 +294,28 @@ def _fit_pass(
         max_scan_angle_deg=_largest_angle(recorded, measured),
     )
     return _Fit(flight_line, own_half_width)
+
+
+def _positions(
+    bins: np.ndarray, values: np.ndarray, origin: tuple[float, float, float], bin_seconds: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per bin: its time, the sensor's position where the bin's rays or scan angles place it (NaN
+    where neither does) and the evidence used (0 none, 1 scan angles, 2 pulses with several returns)."""
+    middle = _centroids(values, origin)
+    sensor = np.full((len(bins), 3), np.nan)
+    times = bins * bin_seconds + values[:, _INDEX["st"]] / values[:, _INDEX["n"]]
+    methods = np.zeros(len(bins), np.int8)
+    for i, row in enumerate(values):
+        position = _from_pulse_pairs(row, origin)
+        if position is not None and position[2] - middle[i, 2] >= MIN_FLYING_HEIGHT_M:
+            sensor[i], methods[i] = position, 2
+            times[i] = bins[i] * bin_seconds + row[_INDEX["pair_t"]] / row[_INDEX["pair_w"]]
+            continue
+        position = _from_scan_angles(row, origin)
+        if position is not None and position[2] - middle[i, 2] >= MIN_FLYING_HEIGHT_M:
+            sensor[i], methods[i] = position, 1
+            times[i] = bins[i] * bin_seconds + row[_INDEX["sa_t"]] / row[_INDEX["sa_n"]]
+    return times, sensor, methods
 
 
 def _cropped_sides(
