@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+import shapely
 
 from pipeline.sensor.sight import BLOCKED, OUTSIDE_SWATHS, SEEN, ground_targets, sight_classes
 from pipeline.sensor.sums import TrajectorySums, trajectory_sums
@@ -154,3 +155,28 @@ def test_the_largest_scan_angle_from_the_swath_s_edges_where_none_is_recorded():
     assert abs(line.max_scan_angle_deg - 20.0) < 1.0
     (recorded,) = _fit([_scan()])
     assert recorded.max_scan_angle_deg == pytest.approx(20.0, abs=0.01)
+
+
+@pytest.mark.parametrize("pairs", [True, False])
+def test_a_swath_cut_by_the_survey_s_edge_keeps_its_track_and_width(pairs):
+    """Points north of a boundary 60 m left of line 7's track are not in the survey: the cut side
+    neither narrows its swath nor, without rays or angles, pulls its track towards the data (the
+    uncut line 8, 400 m south, gives the half-width a line cut all along lacks)."""
+    full = _scan(pairs=pairs, angles=False)
+    track_y = ORIGIN[1] - 300.0
+    cut = track_y + 60.0
+    inside = full["y"] <= cut
+    points = {key: value[inside] for key, value in full.items()}
+    other = _scan(pairs=pairs, angles=False, line=8, seed=1)
+    other["y"] = other["y"] - 400.0
+    extent = shapely.box(ORIGIN[0] - 100.0, track_y - 900.0, ORIGIN[0] + 800.0, cut)
+    swath = (500.0 - 10.0) * math.tan(math.radians(20.0))  # 178 m each side on the ground
+    lines = {line.line: line for line in _fit([points, other], extent=extent)}
+    cut_line = lines[7]
+    assert np.all(np.abs(cut_line.sensor[:, 1] - track_y) < 2.0), cut_line.sensor[:, 1] - track_y
+    assert abs(cut_line.half_width_right - swath) < 0.05 * swath
+    assert abs(cut_line.half_width_left - swath) < 0.05 * swath  # the side cut all along reaches as far
+    if not pairs:
+        # without the extent the cut side is taken for the swath's edge: the track at the returns' middle
+        blind = {line.line: line for line in _fit([points, other])}[7]
+        assert np.median(np.abs(blind.sensor[:, 1] - track_y)) > 30.0

@@ -15,6 +15,14 @@ track, out to the median half-width of its bins (the extent of each bin's points
 across track, from their hull), so that a lake or a dark roof at the swath's edge,
 which returns nothing, still lies inside it; each bin's own hull is added, so every
 returned point lies in its line's swath.
+
+A swath the survey's edge cuts off says nothing of the scanner's reach: where a bin's
+farthest return on one side lies on the boundary of the data (the union of the tiles'
+extents, within a few point spacings), that side is *cropped* and left out of the
+half-widths. Without rays or scan angles the ground track itself is found from the
+edges (a scanner sweeps symmetrically about it): the middle between a bin's two edges,
+or one edge less the line's half-width where the other is cropped; the middle of a
+cropped bin's returns lies off the track, towards the data.
 """
 
 from __future__ import annotations
@@ -51,6 +59,10 @@ OUTLIER_MIN_M = 15.0
 #: One id's bins are one pass while the swath's middle moves on within this share of the swath
 #: width from where steady flight would take it.
 PASS_BREAK_SHARE = 0.5
+#: A bin's farthest return on one side within this many of its point spacings (the square root
+#: of its hull's area per return) of the data's boundary marks that side as cut off by the
+#: survey's edge: returns are dense enough that the edge return of a cut swath lies on the boundary.
+CROPPED_SPACINGS = 3.0
 
 
 @dataclass(frozen=True)
@@ -119,26 +131,46 @@ def fit_flight_lines(
     *,
     origin: tuple[float, float, float],
     nominal_fov_deg: float,
+    extent: shapely.Geometry | None = None,
     bin_seconds: float = BIN_SECONDS,
 ) -> list[FlightLine]:
     """Every flight line's trajectory and swath from the merged sums (:func:`pipeline.sensor.sums.merge_sums`).
 
     ``nominal_fov_deg`` is the scanner's full field of view assumed where a bin has neither
-    pulses with several returns nor scan angles. Lines with fewer than two usable bins are
+    pulses with several returns nor scan angles. ``extent`` is where the survey holds data
+    (world units; the union of the tiles' extents): a swath side reaching its boundary is
+    cropped (module docstring); None: no side is. Lines with fewer than two usable bins are
     left out (a handful of stray returns has no direction).
+
+    A line whose every bin is cropped on one side or the other has no half-width of its own;
+    it takes the median of the other assumed-height lines' (one scanner, one flying height
+    over a survey block), else its uncropped side's.
     """
-    out: list[FlightLine] = []
+    boundary = None if extent is None or extent.is_empty else shapely.boundary(extent)
+    passes = []
     for line in np.unique(lines):
         rows = np.flatnonzero(lines == line)
         rows = rows[values[rows, _INDEX["n"]] >= 1]
         rows = rows[np.argsort(bins[rows], kind="stable")]
         for part, pass_rows in enumerate(_passes(bins[rows], values[rows], bin_seconds, origin)):
-            fitted = _fit_pass(
-                int(line), part, bins[rows][pass_rows], values[rows][pass_rows], origin, nominal_fov_deg, bin_seconds
-            )
-            if fitted is not None:
-                out.append(fitted)
+            passes.append((int(line), part, bins[rows][pass_rows], values[rows][pass_rows]))
+    settings = (origin, nominal_fov_deg, boundary, bin_seconds)
+    fitted = [_fit_pass(line, part, b, v, *settings) for line, part, b, v in passes]
+    known = [f.half_width for f in fitted if f is not None and f.line.method == "nominal" and f.half_width is not None]
+    fallback = float(np.median(known)) if known else None
+    out: list[FlightLine] = []
+    for (line, part, b, v), fit in zip(passes, fitted, strict=True):
+        if fit is not None and fit.line.method == "nominal" and fit.half_width is None and fallback is not None:
+            fit = _fit_pass(line, part, b, v, *settings, half_width=fallback)
+        if fit is not None:
+            out.append(fit.line)
     return out
+
+
+@dataclass(frozen=True)
+class _Fit:
+    line: FlightLine
+    half_width: float | None  # the line's own half-width across both edges (None: every bin cropped on a side)
 
 
 def _centroids(values: np.ndarray, origin: tuple[float, float, float]) -> np.ndarray:
@@ -197,28 +229,18 @@ def _fit_pass(
     values: np.ndarray,
     origin: tuple[float, float, float],
     nominal_fov_deg: float,
+    boundary: shapely.Geometry | None,
     bin_seconds: float,
-) -> FlightLine | None:
+    half_width: float | None = None,
+) -> _Fit | None:
     enough = values[:, _INDEX["n"]] >= MIN_BIN_POINTS
     if enough.sum() < 2:
         return None
     bins, values = bins[enough], values[enough]
-    middle = _centroids(values, origin)
-    sensor = np.full((len(bins), 3), np.nan)
-    times = bins * bin_seconds + values[:, _INDEX["st"]] / values[:, _INDEX["n"]]
-    methods = np.zeros(len(bins), np.int8)  # 0 nominal, 1 scan angle, 2 multiple returns
-    for i, row in enumerate(values):
-        position = _from_pulse_pairs(row, origin)
-        if position is not None and position[2] - middle[i, 2] >= MIN_FLYING_HEIGHT_M:
-            sensor[i], methods[i] = position, 2
-            times[i] = bins[i] * bin_seconds + row[_INDEX["pair_t"]] / row[_INDEX["pair_w"]]
-            continue
-        position = _from_scan_angles(row, origin)
-        if position is not None and position[2] - middle[i, 2] >= MIN_FLYING_HEIGHT_M:
-            sensor[i], methods[i] = position, 1
-            times[i] = bins[i] * bin_seconds + row[_INDEX["sa_t"]] / row[_INDEX["sa_n"]]
+    times, sensor, methods = _positions(bins, values, origin, bin_seconds)
     order = np.argsort(times, kind="stable")
-    times, sensor, middle, methods, values = times[order], sensor[order], middle[order], methods[order], values[order]
+    times, sensor, methods, values = times[order], sensor[order], methods[order], values[order]
+    middle = _centroids(values, origin)
     hulls = _hull_vertices(values, origin)
     evidence = _consistent(sensor)
     methods[~evidence] = 0
@@ -229,8 +251,26 @@ def _fit_pass(
     heading = _heading(track)
     left = np.array([-heading[1], heading[0]])
     across = np.einsum("kvd,d->kv", hulls - track[:, None, :], left)
-    half_left = float(np.median(across.max(axis=1)))
-    half_right = float(np.median(-across.min(axis=1)))
+    cropped = _cropped_sides(values, hulls, across, boundary)
+    own_half_width = None
+    half_left = _side_median(across.max(axis=1), cropped[:, 0])
+    half_right = _side_median(-across.min(axis=1), cropped[:, 1])
+    if evidence.sum() < 2:
+        track, own_half_width = _track_from_edges(
+            times, track, left, across, _edge_heights(values, across), cropped,
+            ground_z=middle[:, 2], tan_nominal=math.tan(math.radians(nominal_fov_deg) / 2.0), half_width=half_width,
+        )  # fmt: skip
+        across = np.einsum("kvd,d->kv", hulls - track[:, None, :], left)
+        width = own_half_width if half_width is None else half_width
+        half_left = _side_median(across.max(axis=1), cropped[:, 0])
+        half_right = _side_median(-across.min(axis=1), cropped[:, 1])
+        if width is not None and cropped.all():
+            half_left = half_right = width
+    # a side the survey's edge cuts everywhere reaches as far as the other (a symmetric scanner)
+    if cropped[:, 0].all() and not cropped[:, 1].all():
+        half_left = half_right
+    elif cropped[:, 1].all() and not cropped[:, 0].all():
+        half_right = half_left
     if evidence.sum() >= 2:
         height = np.interp(times, times[evidence], sensor[evidence, 2])
     else:
@@ -238,8 +278,9 @@ def _fit_pass(
         height = middle[:, 2] + (max(half_left, 0.0) + max(half_right, 0.0)) / (2.0 * math.tan(fov / 2.0))
     sensor = _running_median(np.column_stack([track, np.where(evidence, sensor[:, 2], height)]), SMOOTHING_BINS)
     recorded = _recorded_max_angle(values)
-    measured = _edge_angle(values, across, sensor) if evidence.sum() >= 2 else math.nan
-    return FlightLine(
+    measured = _edge_angle(values, across, sensor, cropped)
+    method = ("nominal", "scan_angle", "multiple_returns")[int(np.bincount(methods, minlength=3).argmax())]
+    flight_line = FlightLine(
         line=line,
         part=part,
         times=times,
@@ -248,10 +289,116 @@ def _fit_pass(
         half_width_left=max(half_left, 0.0),
         half_width_right=max(half_right, 0.0),
         hulls=hulls,
-        method=("nominal", "scan_angle", "multiple_returns")[int(np.bincount(methods, minlength=3).argmax())],
+        method=method,
         points=int(values[:, _INDEX["n"]].sum()),
         max_scan_angle_deg=_largest_angle(recorded, measured),
     )
+    return _Fit(flight_line, own_half_width)
+
+
+def _positions(
+    bins: np.ndarray, values: np.ndarray, origin: tuple[float, float, float], bin_seconds: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per bin: its time, the sensor's position where the bin's rays or scan angles place it (NaN
+    where neither does) and the evidence used (0 none, 1 scan angles, 2 pulses with several returns)."""
+    middle = _centroids(values, origin)
+    sensor = np.full((len(bins), 3), np.nan)
+    times = bins * bin_seconds + values[:, _INDEX["st"]] / values[:, _INDEX["n"]]
+    methods = np.zeros(len(bins), np.int8)
+    for i, row in enumerate(values):
+        position = _from_pulse_pairs(row, origin)
+        if position is not None and position[2] - middle[i, 2] >= MIN_FLYING_HEIGHT_M:
+            sensor[i], methods[i] = position, 2
+            times[i] = bins[i] * bin_seconds + row[_INDEX["pair_t"]] / row[_INDEX["pair_w"]]
+            continue
+        position = _from_scan_angles(row, origin)
+        if position is not None and position[2] - middle[i, 2] >= MIN_FLYING_HEIGHT_M:
+            sensor[i], methods[i] = position, 1
+            times[i] = bins[i] * bin_seconds + row[_INDEX["sa_t"]] / row[_INDEX["sa_n"]]
+    return times, sensor, methods
+
+
+def _cropped_sides(
+    values: np.ndarray, hulls: np.ndarray, across: np.ndarray, boundary: shapely.Geometry | None
+) -> np.ndarray:
+    """Per bin, whether its left and right edges (columns 0, 1) lie on the data's boundary (cut off by the survey's edge)."""
+    out = np.zeros((len(values), 2), bool)
+    if boundary is None:
+        return out
+    local = hulls - hulls.mean(axis=1, keepdims=True)
+    x, y = local[..., 0], local[..., 1]
+    area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))  # shoelace
+    spacing = np.sqrt(np.maximum(area, 0.0) / np.maximum(values[:, _INDEX["n"]], 1.0))
+    rows = np.arange(len(values))
+    for column, vertex in enumerate((across.argmax(axis=1), across.argmin(axis=1))):
+        points = shapely.points(hulls[rows, vertex])
+        out[:, column] = shapely.distance(points, boundary) <= CROPPED_SPACINGS * spacing
+    return out
+
+
+def _edge_heights(values: np.ndarray, across: np.ndarray) -> np.ndarray:
+    """Per bin, the heights of the returns farthest left and right across the track (K, 2)."""
+    heights = values[:, _INDEX["e0"] : _INDEX["e0"] + SUPPORT_DIRECTIONS]
+    rows = np.arange(len(values))
+    return np.column_stack([heights[rows, across.argmax(axis=1)], heights[rows, across.argmin(axis=1)]])
+
+
+def _side_median(extents: np.ndarray, cropped: np.ndarray) -> float:
+    """The median of a side's extents over the bins the survey's edge does not cut (all bins where it cuts every one)."""
+    return float(np.median(extents[~cropped] if (~cropped).any() else extents))
+
+
+def _track_from_edges(
+    times: np.ndarray,
+    track: np.ndarray,
+    left: np.ndarray,
+    across: np.ndarray,
+    edge_z: np.ndarray,
+    cropped: np.ndarray,
+    *,
+    ground_z: np.ndarray,
+    tan_nominal: float,
+    half_width: float | None,
+) -> tuple[np.ndarray, float | None]:
+    """The ground track of a line without rays or scan angles, from its swath's edges.
+
+    A scanner sweeps symmetrically about its track: its outermost pulses leave at the same
+    angle on both sides, so an edge return ``d`` across and ``z`` high satisfies
+    ``d = (H - z) tan(a)``. The sensor's height ``H`` is the bins' ground plus the line's
+    half-width over ``tan_nominal``; ``tan(a)`` the median over bins with both edges of
+    ``(L + R) / ((H - z_L) + (H - z_R))``, which no offset of the track changes. Where both
+    edges of a bin stand, the track lies where the two angles agree; where one is cropped,
+    ``(H - z) tan(a)`` in from the other. ``track`` is the returns' middle per bin, ``across``
+    the hull's vertices' distances left of it and ``edge_z`` (K, 2) the heights of each bin's
+    left and right edge returns. ``half_width`` replaces the line's own (the median of
+    ``(L + R) / 2`` over its whole bins) where given. Bins with no edge of their own take the
+    positions of the others, interpolated in time (a straight line beyond them). Returns the
+    track and the line's own half-width (None where no bin has both edges).
+    """
+    left_edge, right_edge = across.max(axis=1), -across.min(axis=1)
+    whole = ~cropped[:, 0] & ~cropped[:, 1]
+    own = float(np.median((left_edge + right_edge)[whole] / 2.0)) if whole.any() else None
+    width = own if half_width is None else half_width
+    if width is None:
+        return track, own
+    height = ground_z + width / tan_nominal
+    rise_left = np.maximum(height - edge_z[:, 0], MIN_FLYING_HEIGHT_M)
+    rise_right = np.maximum(height - edge_z[:, 1], MIN_FLYING_HEIGHT_M)
+    if whole.any():
+        tan_edge = float(np.median(((left_edge + right_edge) / (rise_left + rise_right))[whole]))
+    else:
+        tan_edge = tan_nominal
+    shift = np.full(len(times), np.nan)
+    shift[whole] = ((left_edge * rise_right - right_edge * rise_left) / (rise_left + rise_right))[whole]
+    only_left = ~cropped[:, 0] & cropped[:, 1]
+    only_right = cropped[:, 0] & ~cropped[:, 1]
+    shift[only_left] = (left_edge - rise_left * tan_edge)[only_left]
+    shift[only_right] = (rise_right * tan_edge - right_edge)[only_right]
+    known = np.isfinite(shift)
+    if not known.any():
+        return track, own
+    placed = track[known] + shift[known, None] * left
+    return _along_time(times, times[known], placed), own
 
 
 def _recorded_max_angle(values: np.ndarray) -> float:
@@ -262,22 +409,27 @@ def _recorded_max_angle(values: np.ndarray) -> float:
     return float(angles.max())
 
 
-def _edge_angle(values: np.ndarray, across: np.ndarray, sensor: np.ndarray) -> float:
-    """The scanner's largest angle measured on the swath's edges: the median over bins of the wider side.
+def _edge_angle(values: np.ndarray, across: np.ndarray, sensor: np.ndarray, cropped: np.ndarray) -> float:
+    """The scanner's largest angle measured on the swath's edges: the mean of the two sides' medians over bins.
 
     For each bin, the hull's point farthest across track on each side (a return), its distance
-    from the track and its height; the angle from the vertical at the sensor. A survey edge crops one side of some bins; the other side, and
-    the median, still give the scanner's angle.
+    from the track and its height; the angle from the vertical at the sensor. Sides the survey's
+    edge crops (``cropped``, per bin left and right) are left out (every side is used where the
+    edge crops them all); a side without a bin of its own gives way to the other.
+    The mean of the sides cancels an offset of the track; a median of each bin's wider side
+    would not (it measured a 21.1 degree scanner 1 degree wide).
     """
-    heights = values[:, _INDEX["e0"] : _INDEX["e0"] + SUPPORT_DIRECTIONS]
-    rows = np.arange(len(values))
-    angles = []
-    for side in (across.argmax(axis=1), across.argmin(axis=1)):
-        distance = np.abs(across[rows, side])
-        rise = sensor[:, 2] - heights[rows, side]
-        angles.append(np.degrees(np.arctan2(distance, np.where(rise > 0, rise, np.nan))))
-    widest = np.fmax(*angles)
-    return float(np.nanmedian(widest)) if np.isfinite(widest).any() else math.nan
+    edge_z = _edge_heights(values, across)
+    distances = np.column_stack([across.max(axis=1), -across.min(axis=1)])
+    use = ~cropped if (~cropped).any() else np.ones_like(cropped)
+    sides = []
+    for column in range(2):
+        rise = sensor[:, 2] - edge_z[:, column]
+        valid = use[:, column] & (rise > 0)
+        angles = np.degrees(np.arctan2(distances[valid, column], rise[valid]))
+        sides.append(float(np.median(angles)) if len(angles) else math.nan)
+    known = [a for a in sides if math.isfinite(a)]
+    return float(np.mean(known)) if known else math.nan
 
 
 def _largest_angle(recorded: float, measured: float) -> float:

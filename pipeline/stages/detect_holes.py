@@ -138,6 +138,7 @@ def sensor_geometry(tiles: list[TileResult], plan: SurveyPlan, config: Config) -
         sums.values,
         origin=(grid.x_left, grid.y_top, 0.0),
         nominal_fov_deg=config.sensor.nominal_fov_deg,
+        extent=shapely.union_all([shapely.box(*tile.bounds) for tile in plan.survey.tiles]),
     )
     return SensorGeometry(
         lines=tuple(lines),
