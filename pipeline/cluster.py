@@ -40,18 +40,20 @@ WORKER_PRELOAD = ["pipeline.stages.bin_tiles", "pipeline.stages.merge_cells"]
 class ClusterStart:
     """A local cluster being started in a background thread.
 
-    SIGINT is ignored from :meth:`begin` until the workers are up (an ignored signal
-    stays ignored in a spawned child, and Python then installs no KeyboardInterrupt
-    handler there): a terminal's Ctrl-C reaches the whole process group, and only
-    the client should answer it, in one line. The client's handler is back as soon
-    as the workers are up, at the latest when :meth:`client` returns.
+    A terminal's Ctrl-C reaches the whole process group, and only the client should
+    answer it, in one line. The workers are forked from a fork server (the
+    ``forkserver`` start method) that :meth:`begin` starts with SIGINT blocked
+    (:func:`start_fork_server`): the server and every worker it forks keep it blocked.
+    The client's own handler never leaves, so a Ctrl-C in a run's first seconds
+    stops it (SIGINT ignored until the workers were up lost it, and the run went on
+    to exit 0). The workers fork with distributed already imported, which also
+    shortens their start.
     """
 
     def __init__(self, config: Config) -> None:
         self._config = config
         self._future: Future = Future()
-        self._previous_handler: Any = None
-        self._restore_lock = threading.Lock()
+        self._lock = threading.Lock()
         self._closed = False
         self._stopping: threading.Thread | None = None
 
@@ -66,8 +68,7 @@ class ClusterStart:
         """
         import_cluster_modules()
         start = cls(config)
-        if threading.current_thread() is threading.main_thread():
-            start._previous_handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        start_fork_server()
         threading.Thread(target=start._start, name="holefill-cluster-start", daemon=True).start()
         return start
 
@@ -84,18 +85,14 @@ class ClusterStart:
 
     def client(self) -> Any:
         """The client, once the workers are up (waits for them)."""
-        try:
-            return self._future.result()[1]
-        finally:
-            self._restore_ctrl_c()
+        return self._future.result()[1]
 
     def close(self) -> None:
         """Stop the client and the workers (waiting for a start still under way); idempotent.
 
         Waits for a stop begun by :meth:`close_in_background`.
         """
-        self._restore_ctrl_c()
-        with self._restore_lock:
+        with self._lock:
             stopping, self._stopping = self._stopping, None
             first, self._closed = not self._closed, True
         if stopping is not None:
@@ -105,8 +102,7 @@ class ClusterStart:
 
     def close_in_background(self) -> None:
         """Begin stopping the workers and return at once (the products are written meanwhile)."""
-        self._restore_ctrl_c()
-        with self._restore_lock:
+        with self._lock:
             if self._closed:
                 return
             self._closed = True
@@ -120,12 +116,6 @@ class ClusterStart:
             return  # it never started: nothing to stop
         client.close()
         cluster.close()
-
-    def _restore_ctrl_c(self) -> None:
-        with self._restore_lock:
-            if self._previous_handler is not None:
-                signal.signal(signal.SIGINT, self._previous_handler)
-                self._previous_handler = None
 
 
 #: Modules distributed imports lazily while a local cluster starts (in its start thread or
@@ -156,8 +146,42 @@ CLUSTER_MODULES = (
     "multiprocessing.resource_tracker",
     "multiprocessing.synchronize",
     "multiprocessing.popen_spawn_posix",
+    "multiprocessing.popen_forkserver",
+    "multiprocessing.forkserver",
     "tornado.platform.asyncio",
 )
+
+
+#: How local workers are started: forked from a server process (see :class:`ClusterStart`).
+START_METHOD = "forkserver"
+
+
+def start_fork_server() -> None:
+    """Start the server the local workers fork from, with SIGINT blocked while it starts (main thread only).
+
+    A blocked signal stays blocked across fork and exec: in the server and in every worker
+    it forks, so none of them answers a Ctrl-C. It is blocked in the calling thread alone,
+    so a Ctrl-C meanwhile still reaches the client (another thread takes it, and Python
+    raises it in the main thread). The resource tracker starts first: its own start
+    unblocks the signal. Elsewhere (a program calling holefill from a thread) the server
+    starts with the first worker, and the workers answer Ctrl-C themselves.
+    """
+    import multiprocessing.forkserver
+    import multiprocessing.resource_tracker
+
+    import dask
+    from distributed.utils import get_mp_context
+
+    dask.config.set({"distributed.worker.multiprocessing-method": START_METHOD})
+    get_mp_context()  # distributed's modules to import in the server, set before it starts
+    if threading.current_thread() is not threading.main_thread():
+        return
+    multiprocessing.resource_tracker.ensure_running()
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 def import_cluster_modules() -> None:

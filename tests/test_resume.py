@@ -157,6 +157,39 @@ def test_ctrl_c_to_the_process_group_exits_130_in_one_line_and_resumes(survey, r
     same_outputs(reference, out)
 
 
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (from /proc)."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                out.append(int(entry.name))
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
+def test_ctrl_c_while_the_workers_start_exits_130_in_one_line(survey, tmp_path):
+    """A Ctrl-C in a run's first seconds, while the local cluster starts: the run stops, it does not go on."""
+    out = tmp_path / "out"
+    run = holefill(
+        str(survey / "tiles"), "--out", str(out), preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)
+    )
+    started = time.monotonic()
+    while not _children(run.pid):  # the cluster's first helper process: its start is under way
+        assert run.poll() is None and time.monotonic() - started < 60, run.communicate()
+        time.sleep(0.01)
+    os.killpg(run.pid, signal.SIGINT)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 130, err
+    assert err.strip().splitlines() == [
+        "holefill: interrupted; finished tasks are kept: run again with --resume to continue"
+    ]
+
+
 @pytest.fixture
 def small_disk(tmp_path):
     """A 3 MB file system (tmpfs), grown on request; skipped where mounting is not allowed."""
