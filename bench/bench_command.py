@@ -8,6 +8,13 @@ default, decode, ...) so every command sees the same machine state; best of N.
 
     .venv/bin/python bench/bench_command.py                       # ~42 M points
     .venv/bin/python bench/bench_command.py --points 200e6        # ~211 M points, 320 tiles
+    .venv/bin/python bench/bench_command.py --workers 16,4,1      # scaling: each count in turn
+
+With several worker counts (``--workers 16,4,1``) each count is timed in turn, decode and
+holefill interleaved at that count, round after round; ``--json`` is rewritten after every
+command, so a run stopped early still leaves its figures, and ``--time-limit`` starts no
+repeat that would end past it. Where no ``holefill`` script lies beside the interpreter (a
+checkout run with ``PYTHONPATH``), the command is ``python -m pipeline.cli``.
 
 The survey: `pipeline.synth` preset `bench` (2 km x 2 km, 64 LAZ tiles, ~42 M points),
 generated once into bench-out/ and, for more points, copied side by side with shifted
@@ -23,6 +30,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import shutil
 import struct
 import subprocess
@@ -88,8 +96,11 @@ def base_survey(bench_dir: Path) -> Path:
         t0 = time.perf_counter()
         spec = preset("bench", width_m=2000.0, height_m=2000.0, tile_size_m=250.0)
         synthetic = generate_survey(folder, spec, keep_truth=False)
-        marker.write_text(json.dumps({"points": synthetic.n_points, "tiles": len(synthetic.tiles)}))
-        print(f"generated {synthetic.n_points:,} points in {time.perf_counter() - t0:.0f} s", flush=True)
+        seconds = time.perf_counter() - t0
+        marker.write_text(
+            json.dumps({"points": synthetic.n_points, "tiles": len(synthetic.tiles), "generation_s": round(seconds, 1)})
+        )
+        print(f"generated {synthetic.n_points:,} points in {seconds:.0f} s", flush=True)
     return folder
 
 
@@ -127,69 +138,152 @@ def main() -> None:
         return
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=float, default=42e6, help="at least this many points (copies of 42 M)")
-    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument(
+        "--workers",
+        type=worker_counts,
+        default=[os.cpu_count() or 1],
+        help="worker count, or several separated by commas (e.g. 16,4,1), timed in that order",
+    )
     parser.add_argument("--repeat", type=int, default=2)
     parser.add_argument("--bench-dir", type=Path, default=Path("bench-out"))
-    parser.add_argument("--json", type=Path, help="also write the figures to this file")
+    parser.add_argument("--json", type=Path, help="also write the figures to this file (after every command)")
+    parser.add_argument("--tiles", type=int, help="time only the first N tiles of the survey (a quick check)")
+    parser.add_argument(
+        "--time-limit",
+        type=float,
+        help="seconds: start no repeat of a command that would end after this (the first round always runs)",
+    )
     parser.add_argument(
         "--sensor-off",
         action="store_true",
         help="also time the default run without the sensor's geometry (sensor.enabled=false): what the causes cost",
     )
     args = parser.parse_args()
+    started = time.perf_counter()
 
     base = base_survey(args.bench_dir)
     per_copy = json.loads((base / "complete.json").read_text())["points"]
     survey = large_survey(args.bench_dir, base, max(1, -(-int(args.points) // per_copy)))
-    info = json.loads((survey / "complete.json").read_text())
     files = sorted(str(p) for p in survey.glob("*.laz"))
-    holefill = str(Path(sys.executable).with_name("holefill"))
+    if args.tiles:
+        files = files[: args.tiles]
+    points = survey_points(files)
     out = args.bench_dir / "command-out"
-    commands = {
-        "decode": [sys.executable, __file__, "decode", str(args.workers), *files],
-        "dsm_only": [holefill, "run", str(survey), "--out", str(out / "dsm"), "--workers", str(args.workers),
-                     "--no-progress", "--overwrite", "--set", "holes.enabled=false"],
-        "default": [holefill, "run", str(survey), "--out", str(out / "default"), "--workers", str(args.workers),
-                    "--no-progress", "--overwrite"],
-    }  # fmt: skip
-    if args.sensor_off:
-        commands["default_sensor_off"] = [*commands["default"][:4], str(out / "sensor_off"), *commands["default"][5:],
-                                          "--set", "sensor.enabled=false"]  # fmt: skip
     print(
-        f"survey: {info['points']:,} points, {len(files)} LAZ tiles, "
-        f"{sum(os.path.getsize(f) for f in files) / 1e6:.0f} MB; {args.workers} workers; "
-        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {sys.version.split()[0]}",
+        f"survey: {points:,} points, {len(files)} LAZ tiles, "
+        f"{sum(os.path.getsize(f) for f in files) / 1e6:.0f} MB; workers {args.workers}; "
+        f"{processor()}, {os.cpu_count()} cores, Python {sys.version.split()[0]}",
         flush=True,
     )
-    seconds: dict[str, list[float]] = {name: [] for name in commands}
-    peaks: dict[str, int] = {name: 0 for name in commands}
-    for i in range(args.repeat):
-        for name, command in commands.items():
-            s, peak, output = timed(command)
-            seconds[name].append(s)
-            peaks[name] = max(peaks[name], peak)
-            if name == "decode":
-                assert int(output.split()[-1]) == info["points"], output
-            print(f"run {i + 1}: {name} {s:.2f} s, peak {peak / 2**20:.0f} MB", flush=True)
-    best = {name: min(v) for name, v in seconds.items()}
-    stages = {}
-    for name in ("dsm_only", "default"):
-        manifest = json.loads((out / ("dsm" if name == "dsm_only" else "default") / "manifest.json").read_text())
-        assert manifest["summary"]["points_read"] == info["points"]
-        stages[name] = manifest["summary"]["stage_seconds"]
-    figures = {
-        "points": info["points"],
+    figures: dict = {
+        "points": points,
         "tiles": len(files),
-        "workers": args.workers,
+        "megabytes": round(sum(os.path.getsize(f) for f in files) / 1e6),
+        "machine": {"processor": processor(), "cores": os.cpu_count(), "python": sys.version.split()[0], **versions()},
+        "generation_s": json.loads((base / "complete.json").read_text()).get("generation_s"),
+        "by_workers": {},
+    }
+    runs = {n: commands(n, files, survey, out / f"w{n}", args.sensor_off) for n in args.workers}
+    seconds = {n: {name: [] for name in runs[n]} for n in args.workers}
+    peaks = {n: {name: 0 for name in runs[n]} for n in args.workers}
+    stages: dict[int, dict] = {n: {} for n in args.workers}
+    for i in range(args.repeat):
+        for n in args.workers:
+            for name, command in runs[n].items():
+                elapsed = time.perf_counter() - started
+                if i and args.time_limit and seconds[n][name] and elapsed + seconds[n][name][-1] > args.time_limit:
+                    print(f"run {i + 1}: {n} workers {name} skipped (time limit)", flush=True)
+                    continue
+                s, peak, output = timed(command)
+                seconds[n][name].append(s)
+                peaks[n][name] = max(peaks[n][name], peak)
+                if name == "decode":
+                    assert int(output.split()[-1]) == points, output
+                else:
+                    manifest = json.loads((Path(command[command.index("--out") + 1]) / "manifest.json").read_text())
+                    assert manifest["summary"]["points_read"] == points
+                    stages[n][name] = manifest["summary"]["stage_seconds"]
+                print(f"run {i + 1}: {n} workers {name} {s:.2f} s, peak {peak / 2**20:.0f} MB", flush=True)
+                figures["by_workers"][str(n)] = summary(points, seconds[n], peaks[n], stages[n])
+                if args.json:
+                    args.json.write_text(json.dumps(figures, indent=2))
+    print(json.dumps(figures, indent=2))
+
+
+def worker_counts(text: str) -> list[int]:
+    """``"16,4,1"`` -> ``[16, 4, 1]``."""
+    counts = [int(part) for part in text.split(",") if part.strip()]
+    if not counts or min(counts) < 1:
+        raise argparse.ArgumentTypeError(f"worker counts must be positive integers: {text!r}")
+    return counts
+
+
+def survey_points(files: list[str]) -> int:
+    """Points in the files, from their headers."""
+    import laspy
+
+    total = 0
+    for path in files:
+        with laspy.open(path) as reader:
+            total += reader.header.point_count
+    return total
+
+
+def holefill_command() -> list[str]:
+    """The ``holefill`` script beside this interpreter, or ``python -m pipeline.cli`` (a checkout on PYTHONPATH)."""
+    script = Path(sys.executable).with_name("holefill")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "pipeline.cli"]
+
+
+def commands(workers: int, files: list[str], survey: Path, out: Path, sensor_off: bool) -> dict[str, list[str]]:
+    """The timed commands at one worker count: decode, DSM only, default (and default without the sensor)."""
+    inputs = files if len(files) < len(list(survey.glob("*.laz"))) else [str(survey)]
+    run = [*holefill_command(), "run", *inputs, "--workers", str(workers), "--no-progress", "--overwrite"]
+    named = {
+        "decode": [sys.executable, __file__, "decode", str(workers), *files],
+        "dsm_only": [*run, "--out", str(out / "dsm"), "--set", "holes.enabled=false"],
+        "default": [*run, "--out", str(out / "default")],
+    }
+    if sensor_off:
+        named["default_sensor_off"] = [*run, "--out", str(out / "sensor_off"), "--set", "sensor.enabled=false"]
+    return named
+
+
+def summary(points: int, seconds: dict[str, list[float]], peaks: dict[str, int], stages: dict) -> dict:
+    """The figures at one worker count so far: best seconds, ratios to decode, rates, peaks, stage seconds."""
+    best = {name: min(v) for name, v in seconds.items() if v}
+    return {
         "seconds": {name: round(s, 2) for name, s in best.items()},
-        "ratio_vs_decode": {name: round(best[name] / best["decode"], 3) for name in ("dsm_only", "default")},
-        "points_per_s": {name: round(info["points"] / s) for name, s in best.items()},
-        "peak_process_rss_mb": {name: round(p / 2**20) for name, p in peaks.items()},
+        "runs": {name: [round(s, 2) for s in v] for name, v in seconds.items() if v},
+        "ratio_vs_decode": {
+            name: round(s / best["decode"], 3) for name, s in best.items() if name != "decode" and "decode" in best
+        },
+        "points_per_s": {name: round(points / s) for name, s in best.items()},
+        "peak_process_rss_mb": {name: round(p / 2**20) for name, p in peaks.items() if p},
         "stage_seconds_last_run": stages,
     }
-    print(json.dumps(figures, indent=2))
-    if args.json:
-        args.json.write_text(json.dumps(figures, indent=2))
+
+
+def processor() -> str:
+    """The CPU's model name where Linux says it, else what ``platform`` says."""
+    try:
+        match = re.search(r"^model name\s*:\s*(.+)$", Path("/proc/cpuinfo").read_text(), re.MULTILINE)
+    except OSError:
+        match = None
+    return match.group(1).strip() if match else (platform.processor() or platform.machine())
+
+
+def versions() -> dict[str, str]:
+    """Versions of the packages that set the pace (read from their metadata: nothing is imported)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    found = {}
+    for name in ("numpy", "numba", "laspy", "lazrs", "dask", "distributed", "rasterio", "scipy"):
+        try:
+            found[name] = version(name)
+        except PackageNotFoundError:
+            pass
+    return found
 
 
 if __name__ == "__main__":
