@@ -252,11 +252,11 @@ def _fit_pass(
     left = np.array([-heading[1], heading[0]])
     across = np.einsum("kvd,d->kv", hulls - track[:, None, :], left)
     cropped = _cropped_sides(values, hulls, across, boundary)
-    own_half_width = None
+    own_half_width, bin_widths = None, None
     half_left = _side_median(across.max(axis=1), cropped[:, 0])
     half_right = _side_median(-across.min(axis=1), cropped[:, 1])
     if evidence.sum() < 2:
-        track, own_half_width = _track_from_edges(
+        track, own_half_width, bin_widths = _track_from_edges(
             times, track, left, across, _edge_heights(values, across), cropped,
             ground_z=middle[:, 2], tan_nominal=math.tan(math.radians(nominal_fov_deg) / 2.0), half_width=half_width,
         )  # fmt: skip
@@ -274,8 +274,10 @@ def _fit_pass(
     if evidence.sum() >= 2:
         height = np.interp(times, times[evidence], sensor[evidence, 2])
     else:
-        fov = math.radians(nominal_fov_deg)
-        height = middle[:, 2] + (max(half_left, 0.0) + max(half_right, 0.0)) / (2.0 * math.tan(fov / 2.0))
+        tan_half = math.tan(math.radians(nominal_fov_deg) / 2.0)
+        if bin_widths is None:
+            bin_widths = np.full(len(times), (max(half_left, 0.0) + max(half_right, 0.0)) / 2.0)
+        height = middle[:, 2] + bin_widths / tan_half
     sensor = _running_median(np.column_stack([track, np.where(evidence, sensor[:, 2], height)]), SMOOTHING_BINS)
     recorded = _recorded_max_angle(values)
     measured = _edge_angle(values, across, sensor, cropped)
@@ -359,13 +361,13 @@ def _track_from_edges(
     ground_z: np.ndarray,
     tan_nominal: float,
     half_width: float | None,
-) -> tuple[np.ndarray, float | None]:
+) -> tuple[np.ndarray, float | None, np.ndarray | None]:
     """The ground track of a line without rays or scan angles, from its swath's edges.
 
     A scanner sweeps symmetrically about its track: its outermost pulses leave at the same
     angle on both sides, so an edge return ``d`` across and ``z`` high satisfies
-    ``d = (H - z) tan(a)``. The sensor's height ``H`` is the bins' ground plus the line's
-    half-width over ``tan_nominal``; ``tan(a)`` the median over bins with both edges of
+    ``d = (H - z) tan(a)``. The sensor's height ``H`` is each bin's ground plus its half-width
+    over ``tan_nominal``; ``tan(a)`` the median over bins with both edges of
     ``(L + R) / ((H - z_L) + (H - z_R))``, which no offset of the track changes. Where both
     edges of a bin stand, the track lies where the two angles agree; where one is cropped,
     ``(H - z) tan(a)`` in from the other. ``track`` is the returns' middle per bin, ``across``
@@ -373,15 +375,20 @@ def _track_from_edges(
     left and right edge returns. ``half_width`` replaces the line's own (the median of
     ``(L + R) / 2`` over its whole bins) where given. Bins with no edge of their own take the
     positions of the others, interpolated in time (a straight line beyond them). Returns the
-    track and the line's own half-width (None where no bin has both edges).
+    track, the line's own half-width (None where no bin has both edges) and each bin's
+    half-width (its own where both edges stand, else interpolated; None where unknown).
     """
     left_edge, right_edge = across.max(axis=1), -across.min(axis=1)
     whole = ~cropped[:, 0] & ~cropped[:, 1]
-    own = float(np.median((left_edge + right_edge)[whole] / 2.0)) if whole.any() else None
-    width = own if half_width is None else half_width
-    if width is None:
-        return track, own
-    height = ground_z + width / tan_nominal
+    halves = (left_edge + right_edge) / 2.0
+    own = float(np.median(halves[whole])) if whole.any() else None
+    if whole.any():  # each bin's own, interpolated in time where an edge is cut (an aircraft climbs, turns)
+        widths = np.interp(times, times[whole], halves[whole])
+    elif half_width is not None:
+        widths = np.full(len(times), half_width)
+    else:
+        return track, own, None
+    height = ground_z + widths / tan_nominal
     rise_left = np.maximum(height - edge_z[:, 0], MIN_FLYING_HEIGHT_M)
     rise_right = np.maximum(height - edge_z[:, 1], MIN_FLYING_HEIGHT_M)
     if whole.any():
@@ -396,9 +403,9 @@ def _track_from_edges(
     shift[only_right] = (rise_right * tan_edge - right_edge)[only_right]
     known = np.isfinite(shift)
     if not known.any():
-        return track, own
+        return track, own, widths
     placed = track[known] + shift[known, None] * left
-    return _along_time(times, times[known], placed), own
+    return _along_time(times, times[known], placed), own, widths
 
 
 def _recorded_max_angle(values: np.ndarray) -> float:
