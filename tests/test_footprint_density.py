@@ -73,6 +73,21 @@ def test_footprint_density_ignores_empty_header_box_and_tiling(tmp_path):
     )
 
 
+def test_the_pre_pass_in_processes_counts_what_threads_count(tmp_path, monkeypatch):
+    """Large surveys are decoded in processes (forked from the fork server): the same blocks and counts."""
+    import pipeline.footprint_density as footprint_density
+
+    rng = np.random.default_rng(2)
+    x, y = rng.uniform(0, 300, 30_000), rng.uniform(0, 200, 30_000)
+    survey = scan_survey(tiles_of(tmp_path, x, y, np.full(len(x), 5.0), [(-1, 100), (100, 200), (200, 1e4)]))
+    threads = measure_footprint(survey, workers=2).footprint
+    monkeypatch.setattr(footprint_density, "POINTS_PER_PROCESS", 1_000)
+    processes = measure_footprint(survey, workers=2).footprint
+    assert processes is not None and threads is not None
+    assert processes.area_m2 == threads.area_m2 and processes.pulses == threads.pulses == 30_000
+    assert np.array_equal(processes.blocks.count, threads.blocks.count)
+
+
 def sparse_survey(tmp_path):
     """240 m square at 0.44 points/m2 (a jittered 1.5 m lattice: 4 m pixels), with 12 m and 20 m square voids.
 
