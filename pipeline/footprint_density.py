@@ -208,8 +208,8 @@ def _count_files(
     """
     columns = list(zip(*tasks, strict=True)) if tasks else []
     if processes <= 1 or len(tasks) <= 1:
-        with ThreadPoolExecutor(max_workers=threads) as pool:
-            return list(pool.map(_count_file_or_none, *columns))
+        with ThreadPoolExecutor(max_workers=threads) as threads_pool:
+            return list(threads_pool.map(_count_file_or_none, *columns))
     method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
     pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context(method))
     try:
