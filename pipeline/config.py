@@ -308,6 +308,10 @@ class ReadConfig:
     pdal_streaming: bool = _opt(
         True, "Refuse stages that cannot stream; false allows them, each tile then read whole into memory."
     )
+    allow_network: bool = _opt(
+        False,
+        "Allow network paths (URLs, GDAL's /vsicurl/, /vsis3/, ...) in the configuration's file keys.",
+    )
 
 
 @dataclass(frozen=True)
@@ -491,13 +495,46 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
                 raise ConfigError(f"{path}: '{section}' must be a table ([{section}])")
             for key, value in table.items():
                 _check_key(section, key, str(path))
-                merged[section][key] = value
+                merged[section][key] = _relative_to(path, f"{section}.{key}", value)
                 sources[f"{section}.{key}"] = str(path)
     for item in overrides:
         section, key, value = _parse_override(item)
         merged[section][key] = value
         sources[f"{section}.{key}"] = f"--set {item}"
     return _build(merged, sources)
+
+
+#: Keys that name files: a relative path in a configuration file is relative to that file's folder
+#: (as a user who keeps the file beside its water polygons expects); from ``--set``, to the
+#: working directory.
+PATH_KEYS = ("holes.water", "read.pdal_pipeline")
+#: Prefixes of paths that reach over the network (GDAL's virtual file systems, URLs): a
+#: configuration handed to a scheduled job must not make it fetch from elsewhere unasked.
+NETWORK_PREFIXES = (
+    "/vsicurl",
+    "/vsis3",
+    "/vsigs",
+    "/vsiaz",
+    "/vsiadls",
+    "/vsioss",
+    "/vsiswift",
+    "/vsihdfs",
+    "/vsiwebhdfs",
+)
+
+
+def is_network_path(value: str) -> bool:
+    """Whether a path names a network location (``scheme://`` or one of ``NETWORK_PREFIXES``)."""
+    text = value.strip()
+    return "://" in text or any(text.startswith(prefix) for prefix in NETWORK_PREFIXES)
+
+
+def _relative_to(config_file: Path, key: str, value: Any) -> Any:
+    """A file key's relative path from a configuration file, made relative to that file's folder."""
+    if key not in PATH_KEYS or not isinstance(value, str) or not value.strip() or is_network_path(value):
+        return value
+    candidate = Path(value).expanduser()
+    return value if candidate.is_absolute() else str(config_file.parent / candidate)
 
 
 def _parse_override(item: str) -> tuple[str, str, Any]:
@@ -549,6 +586,14 @@ def _check_across_keys(config: Config, sources: dict[str, str]) -> None:
             f"{where}: output.points = true adds the filled pixels to the point clouds; "
             "it needs holes.enabled = true and fill.enabled = true"
         )
+    for dotted in PATH_KEYS:
+        section, key = dotted.split(".")
+        value = getattr(getattr(config, section), key)
+        if isinstance(value, str) and is_network_path(value) and not config.read.allow_network:
+            where = sources.get(dotted, "default")
+            raise ConfigError(
+                f"{where}: {dotted} = {value!r} is a network path; set read.allow_network = true to read it"
+            )
     if config.read.pdal_pipeline and config.read.reader != "pdal":
         where = sources.get("read.pdal_pipeline", "default")
         raise ConfigError(

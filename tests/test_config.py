@@ -3,6 +3,7 @@ from __future__ import annotations
 import dataclasses
 import re
 import tomllib
+from pathlib import Path
 
 import pytest
 
@@ -131,3 +132,29 @@ def test_papers_cited_in_the_docs_exist():
         pytest.skip("../shared/seeds is not beside this checkout")
     missing = sorted((doc, path) for doc, path in cited if not (REPO / path).is_file())
     assert not missing, missing
+
+
+def test_a_relative_file_in_a_configuration_file_is_relative_to_its_folder(tmp_path, monkeypatch):
+    """A configuration kept beside its water polygons works from any working directory."""
+    folder = tmp_path / "project"
+    folder.mkdir()
+    (folder / "run.toml").write_text('[holes]\nwater = "lakes.gpkg"\n')
+    monkeypatch.chdir(tmp_path)
+    config = load_config(folder / "run.toml")
+    assert Path(config.holes.water) == folder / "lakes.gpkg"
+    # from --set, relative to the working directory, as a command line's paths are
+    assert load_config(overrides=["holes.water=lakes.gpkg"]).holes.water == "lakes.gpkg"
+    (folder / "abs.toml").write_text(f'[holes]\nwater = "{tmp_path / "elsewhere.gpkg"}"\n')
+    assert Path(load_config(folder / "abs.toml").holes.water) == tmp_path / "elsewhere.gpkg"
+
+
+@pytest.mark.parametrize(
+    "value",
+    ["/vsicurl/https://example.org/lakes.gpkg", "https://example.org/pipeline.json", "/vsis3/bucket/lakes.gpkg"],
+)
+def test_a_network_path_in_a_configuration_needs_an_opt_in(tmp_path, value):
+    (tmp_path / "run.toml").write_text(f'[holes]\nwater = "{value}"\n')
+    with pytest.raises(ConfigError, match=r"run.toml: holes.water = .* is a network path; set read.allow_network"):
+        load_config(tmp_path / "run.toml")
+    allowed = load_config(tmp_path / "run.toml", overrides=["read.allow_network=true"])
+    assert allowed.holes.water == value  # left as written, never joined to the file's folder
