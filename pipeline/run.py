@@ -228,7 +228,7 @@ def _run_stages(runner: _Runner, plan: SurveyPlan, config: Config, staging: Stag
 def _water(water: str | os.PathLike | None, config: Config, plan: SurveyPlan) -> tuple[Any, Any]:
     """The file of known water (``--water`` or ``holes.water``) and its polygons in the survey CRS."""
     water = water or config.holes.water or None
-    return water, read_survey_area(water, plan.survey.crs, what="water") if water else None
+    return water, read_survey_area(water, plan.survey.crs, what="water", within=plan.survey_area) if water else None
 
 
 def _plan(

@@ -74,6 +74,23 @@ def test_filter_removing_every_point_and_aoi_outside_the_data(runner, tmp_path, 
     assert not (tmp_path / "o").exists()
 
 
+def test_water_beside_the_data_and_an_aoi_of_empty_polygons_are_named(runner, tmp_path, rng):
+    """Polygons that cannot apply get their own line: most likely a file in another CRS than it says."""
+    path = write_points(tmp_path / "a.laz", *random_points(rng, 2000))
+    water = tmp_path / "lakes.gpkg"
+    write_layer(water, "water", [{"id": 1}], [shapely.box(50_000, 50_000, 50_100, 50_100)], crs_wkt="EPSG:2154")
+    result = run(runner, path, "--out", tmp_path / "o", "--water", water)
+    line = one_error_line(result)
+    assert result.exit_code == 3 and "lakes.gpkg: water polygons do not overlap the survey area" in line
+    assert "is the file's CRS right?" in line and not (tmp_path / "o").exists()
+    aoi = tmp_path / "empty.gpkg"
+    write_layer(aoi, "aoi", [{"id": 1}], [shapely.Polygon()], crs_wkt="EPSG:2154")
+    result = run(runner, path, "--out", tmp_path / "o", "--aoi", aoi)
+    line = one_error_line(result)
+    assert result.exit_code == 3 and "empty.gpkg: AOI file holds only empty polygons" in line
+    assert not (tmp_path / "o").exists()
+
+
 def test_broken_links_are_named_and_skipped(runner, tmp_path, rng):
     folder = tmp_path / "tiles"
     folder.mkdir()

@@ -83,8 +83,15 @@ def list_layers(path: str | os.PathLike) -> list[str]:
     return [name for name, _ in pyogrio.list_layers(path)]
 
 
-def read_survey_area(path: str | os.PathLike, crs: CRS, *, what: str = "AOI") -> shapely.Geometry:
-    """The union of the polygons of a vector file, in the survey CRS."""
+def read_survey_area(
+    path: str | os.PathLike, crs: CRS, *, what: str = "AOI", within: shapely.Geometry | None = None
+) -> shapely.Geometry:
+    """The union of the polygons of a vector file, in the survey CRS.
+
+    Refused (:class:`InputDataError`, naming the file) where it holds no polygon, only empty
+    ones, or, with ``within`` (the survey area), none that overlaps it: polygons beside the
+    data are most likely in another CRS than their file says, or of another place.
+    """
     try:
         frame = pyogrio.read_dataframe(path)
     except Exception as e:
@@ -92,13 +99,25 @@ def read_survey_area(path: str | os.PathLike, crs: CRS, *, what: str = "AOI") ->
     polygons = [g for g in frame.geometry if g is not None and g.geom_type in ("Polygon", "MultiPolygon")]
     if not polygons:
         raise InputDataError(path, f"{what} file holds no polygon")
+    polygons = [g for g in polygons if not g.is_empty]
+    if not polygons:
+        raise InputDataError(path, f"{what} file holds only empty polygons (no coordinates)")
     if frame.crs is None:
         raise CRSError(path, f"{what} file has no CRS")
     area = shapely.union_all(polygons)
     if not CRS.from_user_input(frame.crs).equals(crs, ignore_axis_order=True):
         transformer = Transformer.from_crs(frame.crs, crs, always_xy=True)
         area = shapely.transform(area, lambda xy: _transform_xy(transformer, xy))
-    return shapely.make_valid(area)
+    area = shapely.make_valid(area)
+    if within is not None and not within.is_empty and not area.intersects(within):
+        bounds = ", ".join(f"{v:.6g}" for v in area.bounds)
+        survey = ", ".join(f"{v:.6g}" for v in within.bounds)
+        raise InputDataError(
+            path,
+            f"{what} polygons do not overlap the survey area (theirs: {bounds}; the survey's: {survey}; "
+            f"in {crs.to_string()}): is the file's CRS right?",
+        )
+    return area
 
 
 def _transform_xy(transformer: Transformer, xy: np.ndarray) -> np.ndarray:
