@@ -317,3 +317,24 @@ def test_points_not_used_are_named_first():
     page = render_report(record, largest())
     assert "Look at first" in page and "63,226 points lie outside" in page
     assert "points used" in page
+
+
+def test_products_and_fill_counts_say_what_the_run_wrote():
+    """The Products line lists the files the run wrote (no drone files where none were written); the
+    fill table tells the listed holes from every void the stage filled (small ones included)."""
+    page = render_report(manifest(), largest(), inputs=inputs())
+    products = page.split("<h2>Products</h2>", 1)[1]
+    assert "manifest.json" in products and ".plan" not in products and "drone" not in products
+    written = manifest()
+    written["outputs"] = {
+        "files": [
+            {"path": p}
+            for p in ("dsm/a.tif", "dsm/b.tif", "holes.gpkg", "flightplan.gpkg", "flightplan.plan", "flightplan.kmz")
+        ]
+    }
+    products = render_report(written, largest()).split("<h2>Products</h2>", 1)[1]
+    assert "dsm/*.tif, holes.gpkg, flightplan.gpkg, flightplan.plan, flightplan.kmz, manifest.json" in products
+    table = page.split("Holes by fill status", 1)[1].split("</table>", 1)[0]
+    assert "listed holes" in table and "all voids (small ones included)" in table
+    # one listed hole of each status in largest()/inputs(), the stage's own counts beside them
+    assert re.search(r"<td>filled</td><td>1</td><td>100</td><td>1</td>", table), table

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import html
 import math
 import os
 from pathlib import Path
@@ -95,13 +96,23 @@ def render_report(
             "<h2>Skipped tiles</h2>",
             _table(["file", "reason"], [[s["path"], s["reason"]] for s in manifest["skipped"]]),
         ]
-    parts += [
-        "<h2>Products</h2>",
-        "<p>dsm.vrt (and dsm/*.tif), fill_mask.vrt, fill_distance.vrt, holes.gpkg, flightplan.gpkg and the "
-        "drone files, manifest.json: see docs/outputs.md. Open dsm.vrt and holes.gpkg in QGIS or ArcGIS.</p>",
-        "</body></html>",
-    ]
+    parts += ["<h2>Products</h2>", _products(manifest), "</body></html>"]
     return "\n".join(p for p in parts if p)
+
+
+def _products(manifest: dict[str, Any]) -> str:
+    """What this run wrote (the manifest's files, folders as ``name/*``): no product it did not write."""
+    names: list[str] = []
+    for record in (manifest.get("outputs") or {}).get("files", []):
+        first, _, rest = str(record["path"]).partition("/")
+        name = f"{first}/*{Path(rest).suffix}" if rest else first
+        if name not in names:
+            names.append(name)
+    listed = ", ".join(html.escape(n) for n in names + ["manifest.json"])
+    hint = (
+        "Open dsm.vrt and holes.gpkg in QGIS or ArcGIS." if "holes.gpkg" in names else "Open dsm.vrt in QGIS or ArcGIS."
+    )
+    return f"<p>{listed}: see docs/outputs.md. {hint}</p>"
 
 
 # -- sections ------------------------------------------------------------------------
@@ -320,14 +331,18 @@ def _fill_section(fill: dict[str, Any], inputs: ReportInputs | None) -> list[str
             errors.append(h.fill_error_m)
 
     def rows(counts: dict[str, int], areas: dict[str, list[float]]) -> list[list[Any]]:
-        return [[k, f"{n:,}"] + ([f"{sum(areas.get(k, [])):,.0f}"] if inputs else []) for k, n in counts.items()]
+        listed = [[f"{len(areas.get(k, [])):,}", f"{sum(areas.get(k, [])):,.0f}"] for k in counts] if inputs else []
+        return [[k, *(listed[i] if inputs else []), f"{n:,}"] for i, (k, n) in enumerate(counts.items())]
 
-    extra = ["area m² (listed holes)"] if inputs else []
+    # the stage counts every void it filled, the small voids under the listing's area too; the
+    # listed holes are those of holes.gpkg
+    columns = ["listed holes", "area m² (listed holes)"] if inputs else []
+    every = "all voids (small ones included)"
     parts += [
         "<h3>Holes by fill status and by method</h3>",
         "<div class='cards'>",
-        _table(["status", "holes"] + extra, rows(fill["holes_by_status"], by_status)),
-        _table(["method", "holes"] + extra, rows(fill["holes_by_method"], by_method)),
+        _table(["status", *columns, every], rows(fill["holes_by_status"], by_status)),
+        _table(["method", *columns, every], rows(fill["holes_by_method"], by_method)),
         "</div>",
     ]
     if errors:
