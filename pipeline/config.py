@@ -340,14 +340,36 @@ class FlightPlanConfig:
     )
     setup_time_s: float = _opt(90.0, "Seconds added to every sortie for take-off, climb, descent and landing.", ge=0)
     terrain_step_m: float = _opt(
-        5.0, "A lane gets extra waypoints where the surface under it changes by more than this (m).", gt=0
+        5.0, "A lane is flown inclined (not level) when that lowers its mean height by more than this (m).", gt=0
+    )
+    max_climb_gradient: float = _opt(
+        0.15,
+        "Steepest climb or descent along an inclined lane (rise over run); 0: lanes always level.",
+        ge=0,
+        le=0.5,
+    )
+    min_clearance_m: float = _opt(
+        20.0, "Every leg clears the highest surface within clearance_radius_m by at least this (m).", ge=0
+    )
+    clearance_radius_m: float = _opt(
+        3.0, "Horizontal uncertainty of the flown path (m): GNSS and path-tracking error.", ge=0
+    )
+    acceleration_m_s2: float = _opt(
+        2.0, "Acceleration of the aircraft in turns and speed changes (m/s2), for flight times.", gt=0
     )
     home: list[float] = _opt(
         [],
-        "Take-off and landing point [x, y] in the survey CRS; empty: the centre of the survey area in "
-        "'holefill run', of the planned holes in 'holefill plan'.",
+        "Take-off and landing point [x, y] in the survey CRS; empty: the open ground nearest to the "
+        "planned holes (ground-class points, level, clear of obstacles and water).",
         lengths=(0, 2),
     )
+    home_clear_radius_m: float = _opt(
+        10.0, "Open ground for take-off: no obstacle or water within this radius (m).", gt=0
+    )
+    home_obstacle_m: float = _opt(
+        1.0, "Open ground for take-off: nothing higher than this (m) above the ground within the radius.", gt=0
+    )
+    home_max_slope_deg: float = _opt(5.0, "Open ground for take-off: the steepest ground slope (degrees).", gt=0, lt=45)
     altitude_reference: str = _opt(
         "takeoff",
         "Heights in drone files: relative to take-off, AMSL (the DSM's datum) or ellipsoidal.",
@@ -599,6 +621,12 @@ def _check_across_keys(config: Config, sources: dict[str, str]) -> None:
         raise ConfigError(
             f"{where}: read.pdal_pipeline = {config.read.pdal_pipeline!r} needs read.reader = 'pdal' "
             f"(it is {config.read.reader!r})"
+        )
+    if config.flightplan.altitude_agl_m < config.flightplan.min_clearance_m:
+        where = sources.get("flightplan.altitude_agl_m", sources.get("flightplan.min_clearance_m", "default"))
+        raise ConfigError(
+            f"{where}: flightplan.altitude_agl_m ({config.flightplan.altitude_agl_m:g}) is below "
+            f"flightplan.min_clearance_m ({config.flightplan.min_clearance_m:g}); every lane would be refused"
         )
     if not config.causes.low_quantile < config.causes.high_quantile:
         where = sources.get("causes.low_quantile", sources.get("causes.high_quantile", "default"))

@@ -12,7 +12,10 @@ into :class:`~pipeline.flightplan.FlightParams` by :func:`pipeline.parameters.fl
 
 from __future__ import annotations
 
+import json
+import logging
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -23,11 +26,13 @@ import shapely
 from .config import Config
 from .errors import CRSError, InputDataError
 from .flightplan.altitude import ellipsoid_transformer, vertical_crs_for
-from .flightplan.mission import FlightPlan, HoleInput, plan_mission
-from .io.flightplan_files import read_dsm, read_holes, write_flightplan
+from .flightplan.mission import FlightPlan, GroundGrid, HoleInput, plan_mission
+from .io.flightplan_files import read_dsm, read_ground, read_holes, write_flightplan
 from .parameters import flight_params
 
-__all__ = ["plan_flights", "summarize"]
+__all__ = ["plan_flights", "run_point_files", "summarize"]
+
+logger = logging.getLogger(__name__)
 
 
 def plan_flights(
@@ -37,6 +42,7 @@ def plan_flights(
     out_dir: str | os.PathLike,
     *,
     home: tuple[float, float] | None = None,
+    point_files: Sequence[str | os.PathLike] | None = None,
 ) -> dict[str, Any]:
     """Plan re-flights for the holes of ``holes_gpkg`` over ``dsm_path`` and write all files.
 
@@ -45,7 +51,11 @@ def plan_flights(
     config : Config
         Its ``[flightplan]`` section is used.
     home : (x, y), optional
-        Overrides ``flightplan.home`` (e.g. the AOI centroid from the pipeline).
+        Overrides ``flightplan.home``; neither: the open ground nearest to the planned holes.
+    point_files : list of paths, optional
+        The survey's LAS/LAZ files (in the DSM's CRS), for the ground-class points at
+        take-off; default: the inputs listed in ``manifest.json`` beside ``holes_gpkg``,
+        where they still exist. Without any, home and its height come from the DSM.
 
     Returns
     -------
@@ -69,6 +79,12 @@ def plan_flights(
     dsm, transform, dsm_crs = read_dsm(dsm_path, bounds)
     if not _same_crs(dsm_crs, holes_crs):
         raise CRSError(dsm_path, f"the DSM's CRS differs from the holes' CRS ({pyproj.CRS(holes_crs).name})")
+    if point_files is None:
+        point_files = run_point_files(holes_gpkg)
+    ground = None
+    if point_files:
+        height, water = read_ground(list(point_files), transform, dsm.shape)
+        ground = GroundGrid(height, water) if np.isfinite(height).any() else None
     to_ellipsoid = None
     if params.altitude_reference == "ellipsoid":
         probe = home or _centre(holes)
@@ -76,10 +92,12 @@ def plan_flights(
     try:
         plan = plan_mission(
             holes, dsm, transform, crs_wkt=holes_crs, params=params, home=home, to_ellipsoid=to_ellipsoid,
-            snap_home=not config.flightplan.home,
+            snap_home=not config.flightplan.home, ground=ground,
         )  # fmt: skip
     except ValueError as e:
         raise InputDataError(dsm_path, str(e)) from None
+    if plan.home_warning:
+        logger.warning("flight plan: %s", plan.home_warning)
     files = write_flightplan(
         plan, out_dir, drone_enum=config.flightplan.dji_drone_enum, payload_enum=config.flightplan.dji_payload_enum
     )
@@ -110,14 +128,30 @@ def summarize(plan: FlightPlan, files: list[Path]) -> dict[str, Any]:
         "lanes": sum(len(s.lanes) for s in plan.sorties),
         "sorties": len(plan.sorties),
         "sortie_durations_s": [round(s.duration_s, 1) for s in plan.sorties],
+        "sortie_min_clearance_m": [
+            round(s.least_clearance_m, 1) if np.isfinite(s.least_clearance_m) else None for s in plan.sorties
+        ],
         "greedy_route_m": round(plan.greedy_length_m, 1),
         "improved_route_m": round(plan.improved_length_m, 1),
         "flown_route_m": round(plan.flown_length_m, 1),
         "home": list(plan.home),
         "home_ground_m": round(plan.home_ground_m, 2),
+        "home_height_from": plan.home_source,
+        "home_warning": plan.home_warning,
         "altitude_reference": plan.altitude_reference,
         "files": [str(f) for f in files],
     }
+
+
+def run_point_files(holes_gpkg: str | os.PathLike) -> list[str]:
+    """The input point files a run lists in its ``manifest.json`` beside ``holes_gpkg``, those that exist."""
+    manifest = Path(holes_gpkg).parent / "manifest.json"
+    try:
+        inputs = json.loads(manifest.read_text()).get("inputs", [])
+    except (OSError, ValueError):
+        return []
+    paths = [i.get("path", "") for i in inputs] if isinstance(inputs, list) else list(inputs)
+    return [p for p in paths if p and Path(p).is_file()]
 
 
 def _centre(holes: list[HoleInput]) -> tuple[float, float]:

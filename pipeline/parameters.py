@@ -215,6 +215,7 @@ def raster_options(config: Config) -> RasterOptions:
 def flight_params(config: Config) -> FlightParams:
     """The flight-planning kernels' parameters from ``[flightplan]`` (its ranges are checked by ``config``)."""
     from .flightplan import CoverageParams, FlightParams
+    from .flightplan.takeoff import TakeoffParams
 
     plan = config.flightplan
     coverage = CoverageParams(
@@ -235,4 +236,13 @@ def flight_params(config: Config) -> FlightParams:
         setup_time_s=plan.setup_time_s,
         terrain_step_m=plan.terrain_step_m,
         altitude_reference=plan.altitude_reference,
+        max_climb_gradient=plan.max_climb_gradient,
+        min_clearance_m=plan.min_clearance_m,
+        clearance_radius_m=plan.clearance_radius_m,
+        acceleration_m_s2=plan.acceleration_m_s2,
+        takeoff=TakeoffParams(
+            clear_radius_m=plan.home_clear_radius_m,
+            obstacle_m=plan.home_obstacle_m,
+            max_slope_deg=plan.home_max_slope_deg,
+        ),
     )

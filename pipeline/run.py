@@ -552,10 +552,10 @@ def _write_products(
         if heights.normalised:  # safe heights need the terrain, which these heights have taken out
             flight_summary = {"not_planned": NO_TERRAIN} if hole_summary.get("listed") else {}
         else:
-            centroid = plan.survey_area.centroid  # the default home of a run; flightplan.home when set
-            home = None if config.flightplan.home else (centroid.x, centroid.y)
+            # home: flightplan.home, else the open ground nearest to the holes, from the ground points
+            points = [] if plan.survey.reproject else [t.path for t in plan.survey.tiles]
             try:
-                flight_summary = plan_flights(gpkg, vrt, config, staging.root, home=home)
+                flight_summary = plan_flights(gpkg, vrt, config, staging.root, point_files=points)
             except InputDataError as e:  # the survey's products stand; only the re-flight cannot be planned
                 flight_summary = {"not_planned": e.reason}
         timer.lap("flightplan")

@@ -219,7 +219,11 @@ def test_waypoint_heights_clear_the_surface_by_the_agl():
     scanning = [w for w in waypoints if w.lane_index is not None]
     assert min(w.height_m for w in scanning) >= 20.0 + PARAMS.altitude_agl_m - 1e-6
     assert max(w.height_m for w in scanning) == pytest.approx(45.0 + PARAMS.altitude_agl_m)
-    assert any("terrain" in w.actions for w in waypoints)
+    # one straight line per lane: the ridge raises the whole lane, no waypoint follows it
+    assert not any("terrain" in w.actions for w in waypoints)
+    for index in {w.lane_index for w in scanning}:
+        lane = [w.height_m for w in scanning if w.lane_index == index and w.actions[0].startswith("lane")]
+        assert max(lane) - min(lane) < 1e-6
 
 
 def test_known_point_lambert93_origin_is_3e_46_5n():

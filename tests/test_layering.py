@@ -45,6 +45,8 @@ KERNELS = [
     "pipeline.flightplan.coverage",
     "pipeline.flightplan.route",
     "pipeline.flightplan.altitude",
+    "pipeline.flightplan.takeoff",
+    "pipeline.flightplan.clearance",
     "pipeline.flightplan.mission",
 ]
 
@@ -86,6 +88,8 @@ FLOW = [
     "pipeline.flightplan.coverage",
     "pipeline.flightplan.route",
     "pipeline.flightplan.altitude",
+    "pipeline.flightplan.takeoff",
+    "pipeline.flightplan.clearance",
     "pipeline.flightplan.mission",
 ]
 LEAVES = {"pipeline.errors"}

@@ -37,6 +37,7 @@ __all__ = [
     "corridor_profile",
     "ellipsoid_transformer",
     "height_at",
+    "lane_line",
     "lane_sections",
     "max_height_along",
 ]
@@ -205,6 +206,51 @@ def lane_sections(
         if k < len(maxima):
             first, low, high = k, maxima[k], maxima[k]
     return sections
+
+
+def lane_line(
+    dsm: np.ndarray,
+    transform: AffineLike,
+    start: Point2,
+    end: Point2,
+    *,
+    half_width_m: float,
+    altitude_agl_m: float,
+    max_gradient: float,
+    slope_gain_m: float,
+) -> tuple[float, float]:
+    """Heights (DSM datum) at the ends of a lane flown as one straight line, level or inclined.
+
+    Level: the highest surface under the whole swath plus ``altitude_agl_m``. Inclined:
+    the lowest straight line with a gradient of at most ``max_gradient`` that keeps
+    ``altitude_agl_m`` above the highest surface of every along-track bin, chosen only
+    when it lowers the lane's mean height by more than ``slope_gain_m`` (strongly
+    sloping ground). Either way the lane is one straight segment: it never follows
+    the canopy, and the lidar range changes smoothly.
+
+    Raises
+    ------
+    ValueError
+        If the corridor holds no DSM value at all.
+    """
+    pixel = max(math.hypot(transform.a, transform.d), math.hypot(transform.b, transform.e))
+    edges, maxima = corridor_profile(dsm, transform, start, end, half_width_m=half_width_m, step_m=max(pixel, 1.0))
+    if not np.isfinite(maxima).any():
+        raise ValueError(f"no DSM height within {half_width_m:.0f} m of the lane {start} -> {end}")
+    need = np.where(np.isfinite(maxima), maxima, np.nanmax(maxima)) + altitude_agl_m
+    length = float(edges[-1])
+    level = float(need.max())
+    if max_gradient <= 0 or length <= 0:
+        return level, level
+    slopes = np.linspace(-max_gradient, max_gradient, 81)
+    # the line c + s u stays above every bin's need over the whole bin (both edges)
+    low_edge = np.minimum(slopes[:, None] * edges[None, :-1], slopes[:, None] * edges[None, 1:])
+    intercepts = (need[None, :] - low_edge).max(axis=1)
+    means = intercepts + slopes * length / 2.0
+    best = int(np.argmin(means))
+    if level - means[best] <= slope_gain_m:
+        return level, level
+    return float(intercepts[best]), float(intercepts[best] + slopes[best] * length)
 
 
 def ellipsoid_transformer(

@@ -23,7 +23,8 @@ import numpy as np
 import pyproj
 import shapely
 
-from .altitude import AffineLike, height_at, lane_sections, max_height_along, nearest_data_point
+from .altitude import AffineLike, height_at, lane_line, max_height_along, nearest_data_point
+from .clearance import flight_time_s, leg_clearance
 from .coverage import CoverageParams, CoveragePattern, Lane, Point2, cluster_holes, plan_pattern, split_pattern
 from .route import (
     PatternEnds,
@@ -36,6 +37,7 @@ from .route import (
     sortie_duration,
     split_sorties,
 )
+from .takeoff import Takeoff, TakeoffParams, check_home, choose_takeoff
 
 __all__ = ["FlightParams", "FlightPlan", "HoleDecision", "HoleInput", "Sortie", "Waypoint", "plan_mission"]
 
@@ -55,6 +57,19 @@ class FlightParams:
     setup_time_s: float = 90.0
     terrain_step_m: float = 5.0
     altitude_reference: str = "takeoff"
+    max_climb_gradient: float = 0.15
+    min_clearance_m: float = 20.0
+    clearance_radius_m: float = 3.0
+    acceleration_m_s2: float = 2.0
+    takeoff: TakeoffParams = field(default_factory=TakeoffParams)
+
+
+@dataclass(frozen=True)
+class GroundGrid:
+    """Ground-class points on the DSM's grid: mean height per pixel (NaN: none), water points per pixel."""
+
+    height: np.ndarray
+    water: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -117,6 +132,7 @@ class Sortie:
     lanes: tuple[FlownLane, ...]
     length_m: float
     duration_s: float
+    least_clearance_m: float = math.inf
 
 
 @dataclass(frozen=True)
@@ -134,6 +150,8 @@ class FlightPlan:
     params: FlightParams
     greedy_length_m: float
     improved_length_m: float
+    home_source: str = "DSM (no ground points)"
+    home_warning: str = ""
 
     @property
     def flown_length_m(self) -> float:
@@ -150,11 +168,14 @@ def plan_mission(
     home: Point2 | None = None,
     to_ellipsoid: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
     snap_home: bool = False,
+    ground: GroundGrid | None = None,
 ) -> FlightPlan:
     """Plan the re-flight of the holes a drone can re-scan.
 
-    With ``snap_home`` (a home point nobody chose: the centre of the survey or the
-    holes), a home without a DSM height moves to the nearest pixel with one.
+    Home: the given one, its ground height from ``ground`` (a warning when it is on a
+    roof or canopy); else, with ``ground``, the open ground nearest to the planned holes
+    (:mod:`.takeoff`); else the centre of the holes, moved with ``snap_home`` (a home
+    nobody chose) to the nearest pixel with data, its height from the DSM.
 
     Parameters
     ----------
@@ -163,7 +184,9 @@ def plan_mission(
     dsm : ndarray of shape (M, N)
         Surface heights, NaN for no data; ``transform`` is its affine transform.
     home : (x, y), optional
-        Take-off and landing point; default: the centroid of the planned holes.
+        Take-off and landing point; default: the open ground nearest to the planned holes.
+    ground : GroundGrid, optional
+        Ground-class points on the DSM's grid, for the take-off point and its height.
     to_ellipsoid : callable, optional
         ``(x, y, height) -> ellipsoidal height``, checked by
         :func:`~.altitude.ellipsoid_transformer`; required for ``"ellipsoid"``.
@@ -171,7 +194,8 @@ def plan_mission(
     Raises
     ------
     ValueError
-        No DSM height at home, or an unknown altitude reference.
+        No DSM height at home, an unknown altitude reference, or a leg that does not
+        clear the surface by ``min_clearance_m`` (the message names the sortie and leg).
     """
     if params.altitude_reference not in REFERENCES:
         raise ValueError(f"altitude_reference must be one of {REFERENCES}, got {params.altitude_reference!r}")
@@ -179,11 +203,11 @@ def plan_mission(
         raise ValueError("altitude_reference 'ellipsoid' needs a checked to_ellipsoid conversion")
     selected, decisions = _select(holes, params)
     patterns = _patterns(selected, params.coverage)
-    home = _choose_home(home, patterns, holes, dsm, transform, snap=snap_home)
+    takeoff = _choose_home(home, patterns, holes, dsm, transform, ground=ground, snap=snap_home, params=params)
+    home, home_ground = takeoff.xy, takeoff.ground_m
     units, unit_ends, unflyable = _flyable_units(patterns, home, params)
     decisions = _mark_unflyable(decisions, unflyable, patterns)
     greedy, improved, sortie_visits = _routes(unit_ends, home, params)
-    home_ground = height_at(dsm, transform, home)
     if not math.isfinite(home_ground) and sortie_visits:
         raise ValueError(f"no DSM height within 10 m of home {home}; choose a home point on open ground with data")
     to_lonlat = pyproj.Transformer.from_crs(pyproj.CRS.from_user_input(crs_wkt), "EPSG:4326", always_xy=True)
@@ -202,6 +226,8 @@ def plan_mission(
         params=params,
         greedy_length_m=route_length(greedy, unit_ends, home),
         improved_length_m=route_length(improved, unit_ends, home),
+        home_source=takeoff.source,
+        home_warning=takeoff.warning,
     )
 
 
@@ -219,6 +245,7 @@ def _routes(
         transit_speed_m_s=params.transit_speed_m_s,
         setup_time_s=params.setup_time_s,
         max_flight_time_s=params.max_flight_time_s,
+        acceleration_m_s2=params.acceleration_m_s2,
     )
     return greedy, improved, [improve_route(v, unit_ends, home) for v in sortie_visits]
 
@@ -242,6 +269,7 @@ def _sortie(number: int, visits: list[Visit], shared: _SortieContext) -> Sortie:
     """Sortie ``number``: its waypoints, the lanes it flies, its length and duration."""
     units, unit_ends, home, params = shared.units, shared.unit_ends, shared.home, shared.params
     raw = _sortie_points(visits, units, home, shared.dsm, shared.transform, params)
+    least = _check_clearance(number, raw, shared.dsm, shared.transform, params)
     waypoints = _finish_waypoints(
         number, raw, shared.to_lonlat, shared.home_ground, params.altitude_reference, shared.to_ellipsoid
     )
@@ -251,8 +279,35 @@ def _sortie(number: int, visits: list[Visit], shared: _SortieContext) -> Sortie:
         for lane in pattern_variants(units[v.pattern])[v.variant]
     )
     length = route_length(visits, unit_ends, home)
-    duration = sortie_duration(visits, unit_ends, home, params.speed_m_s, params.transit_speed_m_s, params.setup_time_s)
-    return Sortie(number, waypoints, lanes, length, duration)
+    return Sortie(number, waypoints, lanes, length, params.setup_time_s + _flight_time(raw, params), least)
+
+
+def _leg_speeds(points: list[_Point], params: FlightParams) -> np.ndarray:
+    """Transit speed on legs from take-off or a pattern's exit, lane speed on the others."""
+    transit = [p.actions[0] in ("takeoff", "pattern_exit") for p in points[:-1]]
+    return np.where(transit, params.transit_speed_m_s, params.speed_m_s).astype(float)
+
+
+def _flight_time(points: list[_Point], params: FlightParams) -> float:
+    """Seconds in the air between the take-off height and home: legs, turns and speed changes."""
+    xyz = np.array([(p.xy[0], p.xy[1], p.height) for p in points], dtype=float)
+    return flight_time_s(xyz, _leg_speeds(points, params), acceleration_m_s2=params.acceleration_m_s2)
+
+
+def _check_clearance(sortie: int, points: list[_Point], dsm: np.ndarray, transform, params: FlightParams) -> float:
+    """The least clearance of a sortie's legs; refuses a leg below ``min_clearance_m``."""
+    least = math.inf
+    for leg, (a, b) in enumerate(zip(points[:-1], points[1:]), start=1):
+        clearance = leg_clearance(dsm, transform, a.xy, b.xy, (a.height, b.height), radius_m=params.clearance_radius_m)
+        if clearance < params.min_clearance_m:
+            raise ValueError(
+                f"sortie {sortie}, leg {leg} ({a.actions[0]} -> {b.actions[0]}, from {a.xy[0]:.1f}, {a.xy[1]:.1f} "
+                f"to {b.xy[0]:.1f}, {b.xy[1]:.1f}) clears the highest surface within "
+                f"{params.clearance_radius_m:g} m by {clearance:.1f} m < flightplan.min_clearance_m = "
+                f"{params.min_clearance_m:g}; raise flightplan.altitude_agl_m or lower min_clearance_m"
+            )
+        least = min(least, clearance)
+    return least
 
 
 def _select(holes: list[HoleInput], params: FlightParams) -> tuple[list[HoleInput], list[HoleDecision]]:
@@ -293,15 +348,49 @@ def _patterns(selected: list[HoleInput], coverage: CoverageParams) -> list[Cover
 
 
 def _choose_home(
-    home: Point2 | None, patterns: list[CoveragePattern], holes: list[HoleInput], dsm, transform, *, snap: bool
-) -> Point2:
-    """The given home, or the centre of the holes; with ``snap``, moved onto the nearest surface with data."""
+    home: Point2 | None,
+    patterns: list[CoveragePattern],
+    holes: list[HoleInput],
+    dsm: np.ndarray,
+    transform: AffineLike,
+    *,
+    ground: GroundGrid | None,
+    snap: bool,
+    params: FlightParams,
+) -> Takeoff:
+    """The take-off point and its ground height (the module docstring of :mod:`.takeoff`)."""
+    if home is not None and ground is not None:
+        return check_home(dsm, ground.height, transform, home, params=params.takeoff)
+    if home is None and ground is not None and patterns:
+        targets = _rasterize_areas([p.area for p in patterns], dsm.shape, transform)
+        found = choose_takeoff(dsm, ground.height, ground.water, transform, targets, params=params.takeoff)
+        if found is not None:
+            return found
+    warning = "" if ground is None else "no open ground with ground points near the holes"
     if home is None:
         home = _default_home(patterns, holes)
     if snap and not math.isfinite(height_at(dsm, transform, home)):
         # a home nobody chose, in a hole or off the data: the nearest point with a surface height
         home = nearest_data_point(dsm, transform, home) or home
-    return home
+    return Takeoff(home, height_at(dsm, transform, home), "DSM (no ground points)", warning)
+
+
+def _rasterize_areas(areas: list[shapely.Geometry], shape: tuple[int, ...], transform: AffineLike) -> np.ndarray:
+    """True at the pixels whose centres lie in any of the areas (an axis-aligned DSM grid)."""
+    mask = np.zeros(shape[:2], dtype=bool)
+    t = transform
+    for area in areas:
+        x0, y0, x1, y1 = area.bounds
+        c0, c1 = sorted(((x0 - t.c) / t.a, (x1 - t.c) / t.a))
+        r0, r1 = sorted(((y0 - t.f) / t.e, (y1 - t.f) / t.e))
+        c0, r0 = max(0, int(c0)), max(0, int(r0))
+        c1, r1 = min(shape[1], int(math.ceil(c1)) + 1), min(shape[0], int(math.ceil(r1)) + 1)
+        if c0 >= c1 or r0 >= r1:
+            continue
+        rr, cc = np.mgrid[r0:r1, c0:c1]
+        inside = shapely.contains_xy(area, t.a * (cc + 0.5) + t.c, t.e * (rr + 0.5) + t.f)
+        mask[r0:r1, c0:c1] |= inside
+    return mask
 
 
 def _default_home(patterns: list[CoveragePattern], holes: list[HoleInput]) -> Point2:
@@ -321,7 +410,15 @@ def _flyable_units(
     def alone(pattern: CoveragePattern) -> tuple[float, PatternEnds]:
         e = pattern_ends(pattern)
         best = min(
-            sortie_duration([Visit(0, v)], [e], home, params.speed_m_s, params.transit_speed_m_s, params.setup_time_s)
+            sortie_duration(
+                [Visit(0, v)],
+                [e],
+                home,
+                params.speed_m_s,
+                params.transit_speed_m_s,
+                params.setup_time_s,
+                acceleration_m_s2=params.acceleration_m_s2,
+            )  # fmt: skip
             for v in range(len(e.entries))
         )
         return best, e
@@ -408,28 +505,28 @@ def _sortie_points(
 def _lane_points(
     lane: Lane, pattern: CoveragePattern, dsm: np.ndarray, transform: AffineLike, params: FlightParams
 ) -> list[_Point]:
-    """Turn point, lane start, terrain breaks, lane end, turn point; heights per section."""
+    """Turn point, lane start, lane end, turn point, on one straight line (:func:`.altitude.lane_line`)."""
     t = pattern.turnaround_m
     length = lane.length_m
     d = ((lane.end[0] - lane.start[0]) / length, (lane.end[1] - lane.start[1]) / length)
     before = (lane.start[0] - d[0] * t, lane.start[1] - d[1] * t)
     after = (lane.end[0] + d[0] * t, lane.end[1] + d[1] * t)
-    sections = lane_sections(
-        dsm, transform, before, after, half_width_m=params.coverage.swath_m / 2, terrain_step_m=params.terrain_step_m
+    first, last = lane_line(
+        dsm,
+        transform,
+        before,
+        after,
+        half_width_m=params.coverage.swath_m / 2,
+        altitude_agl_m=params.coverage.altitude_agl_m,
+        max_gradient=params.max_climb_gradient,
+        slope_gain_m=params.terrain_step_m,
     )
-    agl = params.coverage.altitude_agl_m
-    cuts = [math.dist(before, s.end) for s in sections[:-1]]
-    along = [0.0, t] + [c for c in cuts if t < c < t + length] + [t + length, 2 * t + length]
-    actions = [["turn"], ["lane_start"]] + [["terrain"]] * (len(along) - 4) + [["lane_end"], ["turn"]]
+    total = 2 * t + length
     points = []
-    for u, action in zip(along, actions):
-        touching = [
-            s.surface_max_m
-            for s in sections
-            if math.dist(before, s.start) - 1e-6 <= u <= math.dist(before, s.end) + 1e-6
-        ]
+    for u, action in ((0.0, "turn"), (t, "lane_start"), (t + length, "lane_end"), (total, "turn")):
         xy = (before[0] + d[0] * u, before[1] + d[1] * u)
-        points.append(_Point(xy, max(touching) + agl, action, pattern.pattern_id, lane.index))
+        height = first + (last - first) * (u / total if total > 0 else 0.0)
+        points.append(_Point(xy, height, [action], pattern.pattern_id, lane.index))
     return points
 
 

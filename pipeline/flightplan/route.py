@@ -56,6 +56,7 @@ class PatternEnds:
     exits: tuple[Point2, ...]
     reverse: tuple[int, ...]
     internal_m: float
+    lanes: int = 1
 
 
 def pattern_variants(pattern: CoveragePattern) -> list[tuple[Lane, ...]]:
@@ -86,7 +87,8 @@ def pattern_ends(pattern: CoveragePattern) -> PatternEnds:
             key=lambda w: math.dist(entries[w], exits[v]) + math.dist(exits[w], entries[v]),
         )
         reverse.append(match)
-    return PatternEnds(tuple(entries), tuple(exits), tuple(reverse), pattern.scan_length_m + pattern.turn_length_m)
+    internal = pattern.scan_length_m + pattern.turn_length_m
+    return PatternEnds(tuple(entries), tuple(exits), tuple(reverse), internal, len(pattern.lanes))
 
 
 def route_length(route: list[Visit], ends: list[PatternEnds], home: Point2, *, internal: bool = True) -> float:
@@ -139,6 +141,7 @@ def split_sorties(
     transit_speed_m_s: float,
     setup_time_s: float,
     max_flight_time_s: float,
+    acceleration_m_s2: float = math.inf,
 ) -> list[list[Visit]]:
     """Cut a route into sorties (each from and back to home) within the time limit.
 
@@ -152,7 +155,10 @@ def split_sorties(
         return []
 
     def duration(i: int, j: int) -> float:  # visits i..j inclusive
-        return sortie_duration(route[i : j + 1], ends, home, lane_speed_m_s, transit_speed_m_s, setup_time_s)
+        return sortie_duration(
+            route[i : j + 1], ends, home, lane_speed_m_s, transit_speed_m_s, setup_time_s,
+            acceleration_m_s2=acceleration_m_s2,
+        )  # fmt: skip
 
     inf = (math.inf, math.inf)
     best: list[tuple[float, float]] = [(0.0, 0.0)] + [inf] * n
@@ -182,11 +188,26 @@ def sortie_duration(
     lane_speed_m_s: float,
     transit_speed_m_s: float,
     setup_time_s: float,
+    *,
+    acceleration_m_s2: float = math.inf,
 ) -> float:
-    """Seconds for one sortie: setup, transits at transit speed, patterns at lane speed."""
+    """Seconds for one sortie: setup, transits at transit speed, patterns at lane speed, and turns.
+
+    A turn between lanes has two right-angle corners, each costing the time to turn
+    the velocity vector (``sqrt(2) v / a``); entering and leaving a pattern changes speed
+    and direction (at most ``(v_transit + v_lane) / a``); the start from and stop at home
+    ``v_transit / a`` each. The same model as the waypoints' flight time
+    (:func:`pipeline.flightplan.clearance.flight_time_s`), without the climbs.
+    """
     internal = sum(ends[v.pattern].internal_m for v in visits)
     transit = route_length(visits, ends, home, internal=False)
-    return setup_time_s + transit / transit_speed_m_s + internal / lane_speed_m_s
+    corners = sum(2 * (ends[v.pattern].lanes - 1) for v in visits)
+    changes = (
+        corners * math.sqrt(2) * lane_speed_m_s
+        + len(visits) * 2 * (transit_speed_m_s + lane_speed_m_s)
+        + 2 * transit_speed_m_s
+    )
+    return setup_time_s + transit / transit_speed_m_s + internal / lane_speed_m_s + changes / acceleration_m_s2
 
 
 def _beyond(origin: Point2, point: Point2, distance: float) -> Point2:

@@ -23,9 +23,14 @@ from shapely.geometry import LineString, Point
 from ..errors import CRSError, InputDataError, OutputError
 from ..flightplan.mission import FlightPlan, HoleInput
 from .flightplan_formats import write_kml, write_kmz, write_plan, write_waypoints
+from .las import iter_point_chunks, read_header
 from .vector import write_layer
 
-__all__ = ["read_dsm", "read_holes", "sortie_file_names", "write_flightplan"]
+__all__ = ["read_dsm", "read_ground", "read_holes", "sortie_file_names", "write_flightplan"]
+
+#: ASPRS classes read for the take-off point: ground, and water (not to take off beside).
+_GROUND, _WATER = 2, 9
+_CHUNK_POINTS = 2_000_000
 
 
 def read_holes(path: str | os.PathLike, *, layer: str = "holes") -> tuple[list[HoleInput], str]:
@@ -96,6 +101,43 @@ def read_dsm(path: str | os.PathLike, bounds: tuple[float, float, float, float] 
     if not crs:
         raise CRSError(path, "the DSM has no CRS")
     return data, transform, crs
+
+
+def read_ground(
+    point_files: list[str | os.PathLike], transform, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-class points binned on a DSM window: mean height per pixel (NaN: none) and water points.
+
+    Only files whose header bounds meet the window are decoded; withheld points are
+    left out. Used for the take-off height (:mod:`pipeline.flightplan.takeoff`), which
+    must be the ground, never the DSM's top of a roof or tree.
+    """
+    t = transform
+    rows, cols = shape
+    x0, x1 = sorted((t.c, t.c + t.a * cols))
+    y0, y1 = sorted((t.f, t.f + t.e * rows))
+    total = np.zeros(rows * cols)
+    count = np.zeros(rows * cols)
+    water = np.zeros(rows * cols)
+    for path in point_files:
+        header = read_header(path)
+        b = header.bounds
+        if b[2] < x0 or b[0] > x1 or b[3] < y0 or b[1] > y1:
+            continue
+        for chunk in iter_point_chunks(path, _CHUNK_POINTS):
+            x, y, z = chunk.coordinates()
+            c = np.floor((x - t.c) / t.a).astype(np.int64)
+            r = np.floor((y - t.f) / t.e).astype(np.int64)
+            inside = (r >= 0) & (r < rows) & (c >= 0) & (c < cols) & ~chunk.withheld
+            index = r * cols + c
+            is_ground = inside & (chunk.classification == _GROUND)
+            total += np.bincount(index[is_ground], weights=z[is_ground], minlength=total.size)
+            count += np.bincount(index[is_ground], minlength=count.size)
+            is_water = inside & (chunk.classification == _WATER)
+            water += np.bincount(index[is_water], minlength=water.size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ground = np.where(count > 0, total / np.maximum(count, 1.0), np.nan)
+    return ground.reshape(shape), water.reshape(shape)
 
 
 def sortie_file_names(n_sorties: int) -> list[str]:
@@ -199,6 +241,7 @@ def _write_route_layer(path: Path, plan: FlightPlan) -> None:
                 "length_m": round(s.length_m, 1),
                 "duration_s": round(s.duration_s, 1),
                 "waypoints": len(s.waypoints),
+                "min_clearance_m": round(s.least_clearance_m, 1) if math.isfinite(s.least_clearance_m) else None,
             }
             for s in plan.sorties
         ],

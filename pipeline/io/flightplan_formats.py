@@ -49,6 +49,11 @@ TRIGGER_DISTANCE_M = 1.0
 WPML_NS = "http://www.dji.com/wpmz/1.0.2"
 
 
+#: DJI WPML turn mode of every waypoint: pass through it on a continuous-curvature path,
+#: never stop (a stop per waypoint doubles the time of a lane and shakes the lidar).
+WPML_TURN_MODE = "toPointAndPassWithContinuityCurvature"
+
+
 def _frame(plan: FlightPlan) -> int:
     return MAV_FRAME_GLOBAL_RELATIVE_ALT if plan.altitude_reference == "takeoff" else MAV_FRAME_GLOBAL
 
@@ -216,7 +221,7 @@ def write_kmz(path: str | os.PathLike, plan: FlightPlan, sortie: Sortie, *, dron
         "<wpml:gimbalPitchMode>usePointSetting</wpml:gimbalPitchMode>"
         "<wpml:globalWaypointHeadingParam><wpml:waypointHeadingMode>followWayline</wpml:waypointHeadingMode>"
         "</wpml:globalWaypointHeadingParam>"
-        "<wpml:globalWaypointTurnMode>toPointAndStopWithDiscontinuityCurvature</wpml:globalWaypointTurnMode>"
+        f"<wpml:globalWaypointTurnMode>{WPML_TURN_MODE}</wpml:globalWaypointTurnMode>"
         "<wpml:globalUseStraightLine>1</wpml:globalUseStraightLine>"
         f"{''.join(template_marks)}</Folder></Document></kml>\n"
     )
@@ -330,7 +335,7 @@ def _placemark(w: Waypoint, index: int, height: float, plan: FlightPlan, *, temp
         f"{head}<wpml:executeHeight>{height:.2f}</wpml:executeHeight><wpml:waypointSpeed>{speed:g}</wpml:waypointSpeed>"
         "<wpml:waypointHeadingParam><wpml:waypointHeadingMode>followWayline</wpml:waypointHeadingMode>"
         "</wpml:waypointHeadingParam><wpml:waypointTurnParam>"
-        "<wpml:waypointTurnMode>toPointAndStopWithDiscontinuityCurvature</wpml:waypointTurnMode>"
+        f"<wpml:waypointTurnMode>{WPML_TURN_MODE}</wpml:waypointTurnMode>"
         "<wpml:waypointTurnDampingDist>0</wpml:waypointTurnDampingDist></wpml:waypointTurnParam>"
         f"<wpml:gimbalPitchAngle>-90</wpml:gimbalPitchAngle>{actions}</Placemark>"
     )

@@ -1,0 +1,208 @@
+"""Flight plans a pilot accepts (issue 17): take-off on open ground, straight lanes, clearance, durations."""
+
+from __future__ import annotations
+
+import json
+import math
+import zipfile
+
+import laspy
+import numpy as np
+import pytest
+import shapely
+from affine import Affine
+
+from pipeline.flightplan import CoverageParams, FlightParams, HoleInput, plan_mission
+from pipeline.flightplan.mission import GroundGrid
+from pipeline.flightplan.takeoff import TakeoffParams, check_home, open_ground
+from pipeline.io.vector import read_layer
+
+PARAMS = CoverageParams(
+    altitude_agl_m=50.0, fov_deg=60.0, side_overlap=0.3, run_in_m=15.0, turnaround_m=8.0, margin_m=4.0
+)
+CRS_2154 = "EPSG:2154"
+SIZE = 1200
+TRANSFORM = Affine(1, 0, 0.0, 0, -1, float(SIZE))  # x 0..1200, y 0..1200, 1 m pixels
+
+
+def _xy():
+    cols, rows = np.meshgrid(np.arange(SIZE) + 0.5, np.arange(SIZE) + 0.5)
+    return cols, SIZE - rows
+
+
+def _forest():
+    """Gently sloping ground under 25 m canopy everywhere but a clearing around (250, 900)."""
+    x, y = _xy()
+    ground = 100.0 + 0.01 * x
+    clearing = np.hypot(x - 250.0, y - 900.0) < 40.0
+    dsm = np.where(clearing, ground + 0.2, ground + 25.0).astype(float)
+    return dsm, ground, clearing
+
+
+def _independent_least_clearance(sortie, dsm, radius_m=3.0):
+    """Brute force: points every 0.5 m along each leg against every pixel within the radius."""
+    least = math.inf
+    x, y = _xy()
+    for a, b in zip(sortie.waypoints[:-1], sortie.waypoints[1:]):
+        n = max(2, int(math.dist((a.x, a.y), (b.x, b.y)) / 0.5) + 1)
+        for f in np.linspace(0.0, 1.0, n):
+            px, py, h = a.x + f * (b.x - a.x), a.y + f * (b.y - a.y), a.height_m + f * (b.height_m - a.height_m)
+            c0, c1 = max(0, int(px - radius_m) - 1), min(SIZE, int(px + radius_m) + 2)
+            r0, r1 = max(0, int(SIZE - py - radius_m) - 1), min(SIZE, int(SIZE - py + radius_m) + 2)
+            near = np.hypot(x[r0:r1, c0:c1] - px, y[r0:r1, c0:c1] - py) <= radius_m
+            if near.any():
+                least = min(least, float(h - dsm[r0:r1, c0:c1][near].max()))
+    return least
+
+
+def test_home_in_a_forest_is_the_clearing_at_the_ground_points_height():
+    dsm, ground, clearing = _forest()
+    hole = shapely.box(600, 600, 800, 640)
+    dsm[int(SIZE - 640) : int(SIZE - 600), 600:800] = np.nan
+    params = FlightParams(coverage=PARAMS, min_area_m2=0.0)
+    plan = plan_mission(
+        [HoleInput(1, hole, "missed_coverage", hole.area)],
+        dsm,
+        TRANSFORM,
+        crs_wkt=CRS_2154,
+        params=params,
+        ground=GroundGrid(ground),
+    )
+    hx, hy = plan.home
+    assert math.hypot(hx - 250.0, hy - 900.0) < 40.0 - params.takeoff.clear_radius_m + 1.0  # inside the clearing
+    assert plan.home_ground_m == pytest.approx(100.0 + 0.01 * hx, abs=0.5)  # the ground, not the 25 m canopy
+    assert plan.home_source == "ground points" and plan.home_warning == ""
+    for w in plan.sorties[0].waypoints:
+        assert w.altitude_m == pytest.approx(w.height_m - plan.home_ground_m)
+
+
+def test_open_ground_excludes_obstacles_water_slopes_and_voids():
+    dsm = np.full((100, 100), 10.0)
+    ground = np.full((100, 100), 10.0)
+    water = np.zeros((100, 100))
+    transform = Affine(1, 0, 0, 0, -1, 100)
+    params = TakeoffParams()
+    assert open_ground(dsm, ground, water, transform, params=params)[50, 50]
+    tree = dsm.copy()
+    tree[55, 55] = 15.0
+    assert not open_ground(tree, ground, water, transform, params=params)[50, 50]
+    wet = water.copy()
+    wet[58, 50] = 3
+    assert not open_ground(dsm, ground, wet, transform, params=params)[50, 50]
+    void = dsm.copy()
+    void[45, 45] = np.nan
+    assert not open_ground(void, ground, water, transform, params=params)[50, 50]
+    steep = 10.0 + 0.2 * np.arange(100)[None, :] + np.zeros((100, 1))  # 11 degrees
+    assert not open_ground(steep, steep, water, transform, params=params)[50, 50]
+
+
+def test_a_chosen_home_on_a_canopy_is_kept_with_its_ground_height_and_a_warning():
+    dsm, ground, _ = _forest()
+    takeoff = check_home(dsm, ground, TRANSFORM, (700.5, 300.5), params=TakeoffParams())
+    assert takeoff.xy == (700.5, 300.5)
+    assert takeoff.ground_m == pytest.approx(107.005, abs=0.01)
+    assert "roof or canopy" in takeoff.warning and "25.0 m" in takeoff.warning
+
+
+def _hill_and_tower():
+    x, y = _xy()
+    dsm = 50.0 + 80.0 * np.exp(-((x - 600.0) ** 2 + (y - 600.0) ** 2) / (2 * 120.0**2))
+    dsm[(np.abs(x - 300.0) < 1.5) & (np.abs(y - 450.0) < 1.5)] = 140.0  # a 90 m tower on the way
+    return dsm
+
+
+def test_every_leg_clears_the_hill_and_the_tower_by_the_minimum():
+    dsm = _hill_and_tower()
+    holes = [shapely.box(550, 560, 700, 600), shapely.box(900, 300, 960, 420)]
+    params = FlightParams(coverage=PARAMS, min_area_m2=0.0)
+    plan = plan_mission(
+        [HoleInput(i + 1, h, "missed_coverage", h.area) for i, h in enumerate(holes)],
+        dsm,
+        TRANSFORM,
+        crs_wkt=CRS_2154,
+        params=params,
+        home=(150.0, 300.0),
+    )
+    for sortie in plan.sorties:
+        least = _independent_least_clearance(sortie, dsm)
+        assert least >= params.min_clearance_m
+        assert sortie.least_clearance_m == pytest.approx(least, abs=1.5)  # pixels vs samples
+
+
+def test_a_plan_below_the_minimum_clearance_is_refused_naming_the_leg():
+    dsm = _hill_and_tower()
+    hole = shapely.box(550, 560, 700, 600)
+    params = FlightParams(coverage=PARAMS, min_area_m2=0.0, min_clearance_m=55.0)
+    with pytest.raises(ValueError, match=r"sortie 1, leg \d+ .* by \d+\.\d m < flightplan.min_clearance_m = 55"):
+        plan_mission(
+            [HoleInput(1, hole, "missed_coverage", hole.area)],
+            dsm,
+            TRANSFORM,
+            crs_wkt=CRS_2154,
+            params=params,
+            home=(150.0, 300.0),
+        )
+
+
+def test_lanes_on_a_slope_are_one_inclined_line_within_the_gradient():
+    x, _ = _xy()
+    dsm = 100.0 + 0.3 * x  # a 17 degree slope, lanes along it
+    hole = shapely.box(400, 590, 800, 610)
+    params = FlightParams(coverage=PARAMS, min_area_m2=0.0, max_climb_gradient=0.15)
+    plan = plan_mission(
+        [HoleInput(1, hole, "missed_coverage", hole.area, azimuth_deg=90.0)],
+        dsm,
+        TRANSFORM,
+        crs_wkt=CRS_2154,
+        params=params,
+        home=(300.0, 600.0),
+    )
+    lane = [w for w in plan.sorties[0].waypoints if w.actions[0] in ("lane_start", "lane_end")]
+    (a, b) = lane[:2]
+    gradient = abs(b.height_m - a.height_m) / math.dist((a.x, a.y), (b.x, b.y))
+    assert gradient == pytest.approx(0.15, abs=1e-3)
+    assert not any("terrain" in w.actions for w in plan.sorties[0].waypoints)
+    assert _independent_least_clearance(plan.sorties[0], dsm) >= params.min_clearance_m
+
+
+def test_durations_include_turns_and_speed_changes():
+    dsm = np.full((SIZE, SIZE), 40.0)
+    hole = shapely.box(500, 400, 700, 560)  # several lanes
+    holes = [HoleInput(1, hole, "missed_coverage", hole.area)]
+
+    def duration(acceleration):
+        params = FlightParams(coverage=PARAMS, min_area_m2=0.0, acceleration_m_s2=acceleration, setup_time_s=0)
+        plan = plan_mission(holes, dsm, TRANSFORM, crs_wkt=CRS_2154, params=params, home=(300.0, 300.0))
+        return plan.sorties[0].duration_s, len(plan.sorties[0].lanes)
+
+    slow, lanes = duration(2.0)
+    fast, _ = duration(1e9)
+    turn = 2 * math.sqrt(2) * 6.0 / 2.0  # two right-angle corners at 6 m/s and 2 m/s2
+    assert lanes >= 3
+    assert slow - fast >= (lanes - 1) * turn * 0.9
+
+
+def test_demo_take_off_on_the_ground_clearance_and_continuous_turns(tmp_path):
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    out = tmp_path / "demo"
+    result = CliRunner().invoke(main, ["demo", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    plan = json.loads((out / "manifest.json").read_text())["flightplan"]
+    assert plan["sorties"] >= 1 and plan["home_height_from"] == "ground points"
+    hx, hy = plan["home"]
+    z = []
+    for tile in (out / "survey" / "tiles").glob("*.laz"):
+        las = laspy.read(tile)
+        near = (np.hypot(las.x - hx, las.y - hy) < 2.0) & (las.classification == 2)
+        z.append(np.asarray(las.z[near]))
+    assert abs(np.median(np.concatenate(z)) - plan["home_ground_m"]) < 1.0
+    assert all(c >= 20.0 for c in plan["sortie_min_clearance_m"])
+    route = read_layer(out / "flightplan.gpkg", "route")
+    assert (route["min_clearance_m"] >= 20.0).all()
+    kmz = next(out.glob("flightplan*.kmz"))
+    with zipfile.ZipFile(kmz) as z_:
+        wpml = z_.read("wpmz/waylines.wpml").decode()
+    assert "toPointAndPassWithContinuityCurvature" in wpml and "Stop" not in wpml
