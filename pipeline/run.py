@@ -25,7 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict, Unpack
 
 from . import __version__, interrupt
 from .budget import MemoryBudget, check_plan_memory, memory_budget
@@ -51,20 +51,22 @@ from .survey import scan_survey
 logger = logging.getLogger(__name__)
 
 
+class RunOptions(TypedDict, total=False):
+    """The keyword options of :func:`run_survey` (all optional; see its docstring)."""
+
+    scheduler: str | None
+    client: Any
+    aoi: str | os.PathLike | None
+    water: str | os.PathLike | None
+    progress: bool
+    resume: bool
+    overwrite: bool
+    incremental: bool
+    cluster: ClusterStart | None
+
+
 def run_survey(
-    inputs: list[str] | tuple[str, ...],
-    out_dir: str | os.PathLike,
-    config: Config,
-    *,
-    scheduler: str | None = None,
-    client: Any = None,
-    aoi: str | os.PathLike | None = None,
-    water: str | os.PathLike | None = None,
-    progress: bool = False,
-    resume: bool = False,
-    overwrite: bool = False,
-    incremental: bool = False,
-    cluster: ClusterStart | None = None,
+    inputs: list[str] | tuple[str, ...], out_dir: str | os.PathLike, config: Config, **options: Unpack[RunOptions]
 ) -> RunSummary:
     """Run the pipeline on a survey and write the products into ``out_dir``.
 
@@ -100,14 +102,17 @@ def run_survey(
     """
     started = time.perf_counter()
     out = Path(out_dir).absolute()  # workers of a remote cluster resolve paths on their own machines
+    client, scheduler, aoi = options.get("client"), options.get("scheduler"), options.get("aoi")
+    resume, overwrite = options.get("resume", False), options.get("overwrite", False)
+    incremental = options.get("incremental", False)
     check_before_run(out, config_key(config), overwrite=overwrite)
     timer = _StageTimer(started)
     with contextlib.ExitStack() as cluster_scope:
-        connect = cluster_scope.enter_context(dask_client(client, scheduler, config, start=cluster))
+        connect = cluster_scope.enter_context(dask_client(client, scheduler, config, start=options.get("cluster")))
         budget = memory_budget(config, scheduler=scheduler if client is None else "client")
         plan = _plan(inputs, config, aoi, out, budget)  # the headers are scanned while the workers start
         check_same_survey(out, [t.path for t in plan.survey.tiles], overwrite=overwrite or resume)
-        water, water_area = _water(water, config, plan)
+        water, water_area = _water(options.get("water"), config, plan)
         timer.lap("scan")
         created_out = not out.exists()
         reuse = incremental and _holds_result_of(out, config)
@@ -117,8 +122,8 @@ def run_survey(
             return _finish_commit(staging)
         try:
             summary = _run_and_publish(
-                connect, cluster_scope, staging, plan, config, (started, timer), water_area, progress=progress,
-                keep_work=config.output.keep_intermediate or incremental,
+                connect, cluster_scope, staging, plan, config, (started, timer), water_area,
+                progress=options.get("progress", False), keep_work=config.output.keep_intermediate or incremental,
             )  # fmt: skip
         except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError, ClusterError):
             # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
