@@ -215,15 +215,29 @@ def _run_stages(runner: _Runner, state: RunState, timer: _StageTimer) -> RunStat
             continue
         if stage.worker is None:
             if batch:  # the client stage reads what the open batch gathers
-                state, batch, submitted = _gather_batch(runner, state, batch, timer), [], {}
+                state, batch, submitted = _close_batch(runner, state, batch, submitted, timer), [], {}
             state = state.with_result(stage, stage.gather(state, []))
             if stage.lap:
                 timer.lap(stage.lap)
             continue
-        batch.append((stage, _submit_stage(runner, stage, state, submitted)))
+        batch.append((stage, [] if stage.background else _submit_stage(runner, stage, state, submitted)))
         if not stage.streams:
-            state, batch, submitted = _gather_batch(runner, state, batch, timer), [], {}
-    return _gather_batch(runner, state, batch, timer) if batch else state
+            state, batch, submitted = _close_batch(runner, state, batch, submitted, timer), [], {}
+    return _close_batch(runner, state, batch, submitted, timer) if batch else state
+
+
+def _close_batch(
+    runner: _Runner,
+    state: RunState,
+    batch: list[tuple[Stage, list[Any]]],
+    submitted: dict[Dependency, Any],
+    timer: _StageTimer,
+) -> RunState:
+    """Submit the batch's background stages (after the others: idle workers start on the real work), gather it."""
+    for stage, futures in batch:
+        if stage.background:
+            futures.extend(_submit_stage(runner, stage, state, submitted))
+    return _gather_batch(runner, state, batch, timer)
 
 
 def _submit_stage(runner: _Runner, stage: Stage, state: RunState, submitted: dict[Dependency, Any]) -> list[Any]:

@@ -41,7 +41,9 @@ from ..staging import Staging, input_fingerprint
 from ..survey import source_crs_for_task
 from .stage import Dependency, RunState, Stage
 
-logger = logging.getLogger(__name__)
+#: What a run tells of its tiles as they arrive (skipped, points off their bounds), under the engine's name
+#: it has always been logged under (the gather runs in the engine, on the client).
+logger = logging.getLogger("pipeline.run")
 
 
 @dataclass(frozen=True)

@@ -48,4 +48,5 @@ CHECKSUMS: Stage[ChecksumTask, Mapping[str, dict[str, Any]]] = Stage(
     bar="checksums",
     priority=lambda task: -1,  # after the decoding, which the file is then cached for
     streams=True,
+    background=True,
 )

@@ -2,8 +2,9 @@
 
 :mod:`pipeline.run` walks :data:`STAGES`: a stage that does not run in this
 configuration is passed over, a stage without a worker runs on the client, and the
-stages that stream (stage 1, the merge, the checksums) are submitted with the next
-one and gathered in the same loop, so that a cell runs as soon as its tiles are done.
+stages that stream (the checksums, stage 1, the merge) are submitted with the next
+one and gathered in the same loop, so that a cell runs as soon as its tiles are done
+(a background stage, the checksums, is submitted last in its loop).
 A new stage is one module in ``pipeline/stages/`` with its :class:`~.stage.Stage`
 record, and one entry here, after the stages whose results it reads.
 """
@@ -29,9 +30,9 @@ from .write_rasters import WRITE_FILLED, WRITE_MERGED, WriteResult
 #: Every stage, in the order it runs (a stage reads only the results of stages before it).
 STAGES: tuple[Stage[Any, Any], ...] = (
     READ_TASKS,  # client: stage 1's recipes
-    BIN_TILES,  # per read task: decode once, bin                     } one graph, one
-    MERGE_CELLS,  # per cell: merge the tiles touching it               } gather loop
-    CHECKSUMS,  # per file: size, time, SHA-256                         }
+    CHECKSUMS,  # per file: size, time, SHA-256 (background)            } one graph, one
+    BIN_TILES,  # per read task: decode once, bin                       } gather loop
+    MERGE_CELLS,  # per cell: merge the tiles touching it               }
     WRITE_MERGED,  # per cell: the rasters, when nothing is filled      }
     COVERAGE,  # client: footprint, flight lines, coverage gaps
     GAP_VOIDS,  # per cell a gap reaches: is the gap empty?
