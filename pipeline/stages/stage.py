@@ -7,7 +7,7 @@ stage's recipe builder and gather step read a :class:`RunState`: the plan, the
 configuration, the staging folder and what the stages before it gathered.
 
 Nothing here imports a stage: a stage module imports this one, and reads the results of
-the stages before it by their records (``state[merge_cells.MERGE]``), so the results are
+the stages before it by their records (``state[merge_cells.MERGE_CELLS]``), so the results are
 typed without any module knowing the ones after it.
 """
 
@@ -71,7 +71,7 @@ def _unnamed(task: Any) -> str:
     return repr(task)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Stage(Generic[T, R_co]):
     """One stage: its slots, and how the engine schedules its tasks.
 
@@ -80,11 +80,11 @@ class Stage(Generic[T, R_co]):
     """
 
     name: str  # unique; names the stage's result in the run state
-    gather: Callable[[RunState, list[Any]], R_co]  # the workers' results (completion order) -> the stage's result
     recipes: Callable[[RunState], Sequence[T]] = _no_tasks  # recipe builder: the task records, in plan order
     worker: Callable[..., Any] | None = None  # module level, picklable: worker(task, *results of its `after`)
     key: Callable[[T], str] = _unnamed  # the task's stable name: its kept result (resume, incremental)
     label: Callable[[T], str] = _unnamed  # how a failure names the task ("cell 500_1000 (merge)")
+    gather: Callable[[RunState, list[Any]], R_co]  # the workers' results (completion order) -> the stage's result
     bar: str = ""  # the progress bar's label
     runs: Callable[[RunState], bool] = _always  # whether this run has the stage
     ident: Callable[[T], Hashable] | None = None  # how later tasks name a task of this stage (default: its key)
