@@ -12,9 +12,11 @@ pixels.
 from __future__ import annotations
 
 import collections
+import json
 import math
 import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -155,6 +157,52 @@ def check_truth_lattice(truth_path: str | os.PathLike, run_lattice: tuple[float,
         if not CRS.from_wkt(crs_wkt).equals(CRS.from_wkt(run_crs), ignore_axis_order=True):
             raise InputDataError(truth_path, f"truth CRS '{CRS.from_wkt(crs_wkt).name}' is not the run's; {advice}")
     return resolution
+
+
+def score_run(out_dir: str | os.PathLike, truth_causes: str | os.PathLike, *, min_area_m2: float | str) -> HoleScore:
+    """Score the holes of the finished run in ``out_dir`` against a truth raster of cause codes.
+
+    Parameters
+    ----------
+    out_dir : path-like
+        The run's output folder (its ``holes.gpkg``, and ``manifest.json`` or ``dsm.vrt``).
+    truth_causes : path-like
+        A raster of true cause codes on the run's pixel lattice (:func:`check_truth_lattice`).
+    min_area_m2 : float or "auto"
+        ``holes.min_area_m2``; "auto": the value the run settled (from its manifest).
+
+    Raises
+    ------
+    InputDataError
+        ``out_dir`` holds no finished run, its minimum area or pixel grid cannot be told,
+        or the truth is not on its lattice.
+    """
+    out = Path(out_dir)
+    if not (out / "holes.gpkg").exists():
+        raise InputDataError(out, "holds no finished holefill run (no holes.gpkg)")
+    manifest = json.loads((out / "manifest.json").read_text()) if (out / "manifest.json").exists() else None
+    if min_area_m2 == "auto":  # as the run resolved it
+        if manifest is None:
+            raise InputDataError(out, "has no manifest.json to tell holes.min_area_m2: give --set holes.min_area_m2=")
+        min_area_m2 = manifest["holes"]["min_area_m2"]
+    resolution = check_truth_lattice(truth_causes, run_lattice(out, manifest))
+    return score_holes(out / "holes.gpkg", truth_causes, min_area_px=min_area_px(float(min_area_m2), resolution))
+
+
+def run_lattice(out: Path, manifest: dict | None) -> tuple[float, float, float, str]:
+    """The pixel lattice ``(resolution, left, top, crs_wkt)`` of the run in ``out``: from its manifest, else its DSM."""
+    if manifest is not None and "grid" in manifest:
+        grid = manifest["grid"]
+        return float(grid["resolution"]), grid["bounds"][0], grid["bounds"][3], manifest.get("crs", {}).get("wkt", "")
+    if not (out / "dsm.vrt").exists():
+        raise InputDataError(out, "has neither manifest.json nor dsm.vrt to tell the run's pixel grid")
+    resolution, left, top, crs_wkt = raster_lattice(out / "dsm.vrt")
+    return float(resolution or 0.0), left, top, crs_wkt
+
+
+def min_area_px(min_area_m2: float, resolution: float) -> int:
+    """The smallest hole scored, in pixels of side ``resolution``: at least one."""
+    return max(1, math.ceil(min_area_m2 / resolution**2))
 
 
 def _first_line(e: BaseException) -> str:

@@ -13,6 +13,7 @@ import math
 import os
 import socket
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,7 @@ from .stages.bin_tiles import TileResult
 from .stages.detect_holes import DetectResult
 from .stages.link_holes import HoleSet
 from .stages.merge_cells import CellResult
+from .stages.registry import RunResults
 from .stages.write_rasters import DESCRIPTIONS, WriteResult
 from .staging import Staging
 from .survey import tile_index_records
@@ -119,7 +121,49 @@ class RunSummary:
         )
 
 
-def write_mosaics(staging: Staging, plan: SurveyPlan, written: list[WriteResult]) -> None:
+def write_layers(staging: Staging, plan: SurveyPlan, config: Config, results: RunResults) -> dict[str, Any]:
+    """The mosaics and the layers of ``holes.gpkg``; returns the holes' figures (empty without hole detection)."""
+    write_mosaics(staging, plan, results.written)
+    gpkg = staging.product("holes.gpkg")
+    write_survey_layers(gpkg, plan, results.tiles, results.cells, results.written, results.skipped(plan))
+    if results.holes is None:
+        return {}
+    return write_hole_layers(gpkg, plan, config, results.holes, results.detected, results.fills, results.written)
+
+
+def run_summary(
+    results: RunResults,
+    plan: SurveyPlan,
+    staging: Staging,
+    *,
+    holes: dict[str, Any],
+    flightplan: dict[str, Any],
+    seconds: float,
+    stage_seconds: dict[str, float],
+) -> RunSummary:
+    """What the run did, for the manifest and the command's last lines."""
+    tiles = results.tiles
+    return RunSummary(
+        flightplan=flightplan,
+        resumed_tasks=results.resumed_tasks,
+        reused_tasks=results.reused_tasks,
+        holes=holes,
+        out_dir=str(staging.out),
+        tiles=len(tiles),
+        cells=len(results.cells),
+        points_read=sum(r.points_read for r in tiles),
+        points_used=sum(r.points_used for r in tiles),
+        points_outside=sum(r.points_outside for r in tiles),
+        seconds=seconds,
+        stage_seconds=stage_seconds,
+        skipped=results.skipped(plan),
+        dsm_tiles=sorted(os.path.relpath(r.paths["dsm"], staging.root) for r in results.written if r.paths),
+        point_files=list(results.points),
+        heights=results.ground.as_record(),
+    )
+
+
+def write_mosaics(staging: Staging, plan: SurveyPlan, written: Sequence[WriteResult]) -> None:
     """One VRT per raster product over its cell tiles (none when no cell holds a point)."""
     grid = plan.grid
     cells = plan.cell_by_id()
@@ -148,9 +192,9 @@ def write_mosaics(staging: Staging, plan: SurveyPlan, written: list[WriteResult]
 def write_survey_layers(
     gpkg: Path,
     plan: SurveyPlan,
-    tile_results: list[TileResult],
-    cell_results: list[CellResult],
-    written: list[WriteResult],
+    tile_results: Sequence[TileResult],
+    cell_results: Sequence[CellResult],
+    written: Sequence[WriteResult],
     skipped: list[dict[str, str]],
 ) -> None:
     """The ``tiles``, ``cells`` and ``survey_area`` layers."""
@@ -294,9 +338,9 @@ def write_hole_layers(
     plan: SurveyPlan,
     config: Config,
     holes: HoleSet,
-    detected: list[DetectResult],
-    fills: list[HoleFill] | None = None,
-    written: list[WriteResult] | None = None,
+    detected: Sequence[DetectResult],
+    fills: Sequence[HoleFill] | None = None,
+    written: Sequence[WriteResult] | None = None,
 ) -> dict[str, Any]:
     """The ``holes``, ``hole_parts``, ``vertical_holes`` and ``walls`` layers; returns the report's counts.
 
@@ -350,7 +394,7 @@ def write_hole_layers(
 
 
 def _hole_records(
-    plan: SurveyPlan, config: Config, holes: HoleSet, part_outlines: dict, fills: list[HoleFill] | None
+    plan: SurveyPlan, config: Config, holes: HoleSet, part_outlines: dict, fills: Sequence[HoleFill] | None
 ) -> tuple[list, list]:
     """One record per listed hole, with its outline dissolved from its parts (exact: pixel edges)."""
     fill_of = {f.hole_id: f for f in fills or []}
@@ -418,7 +462,7 @@ def _fill_fields(fill: HoleFill | None, plan: SurveyPlan) -> dict[str, Any]:
 
 
 def _fill_counts(
-    plan: SurveyPlan, catalog, fills: list[HoleFill], listed: set[int], written: list[WriteResult]
+    plan: SurveyPlan, catalog, fills: Sequence[HoleFill], listed: set[int], written: Sequence[WriteResult]
 ) -> dict[str, Any]:
     """Fill figures for the manifest and the report: holes and pixels by status and method.
 
@@ -504,7 +548,7 @@ def _flight_line_records(holes: HoleSet) -> tuple[list, list, list]:
     return records, tracks, swaths
 
 
-def _vertical_records(plan: SurveyPlan, detected: list[DetectResult]) -> tuple[list, list]:
+def _vertical_records(plan: SurveyPlan, detected: Sequence[DetectResult]) -> tuple[list, list]:
     records, geometries = [], []
     for d in detected:
         for record in d.vertical_holes:
@@ -516,7 +560,7 @@ def _vertical_records(plan: SurveyPlan, detected: list[DetectResult]) -> tuple[l
     return records, geometries
 
 
-def _wall_records(plan: SurveyPlan, detected: list[DetectResult]) -> tuple[list, list]:
+def _wall_records(plan: SurveyPlan, detected: Sequence[DetectResult]) -> tuple[list, list]:
     unit = plan.survey.horizontal_unit_m
     records, geometries = [], []
     for d in detected:
@@ -561,20 +605,18 @@ def write_manifest(
     summary: RunSummary,
     plan: SurveyPlan,
     config: Config,
-    tile_results: list[TileResult],
-    cell_results: list[CellResult],
+    results: RunResults,
     *,
-    inputs: dict[str, dict[str, Any]] | None = None,
     outputs: list[dict[str, Any]] | None = None,
 ) -> dict:
     """``manifest.json``: the resolved configuration, inputs, outputs and figures of the run.
 
-    ``inputs``: size, modification time and SHA-256 of each input file, by path;
+    ``results.inputs``: size, modification time and SHA-256 of each input file, by path;
     ``outputs``: path, size and SHA-256 of each product file (the report and the
     manifest itself excepted).
     """
     grid = plan.grid
-    inputs = inputs or {}
+    inputs, tile_results, cell_results = results.inputs, results.tiles, results.cells
     headers = {t.path: t for t in plan.survey.tiles}
     manifest = {
         "complete": True,  # written last: a manifest in OUT means one complete result (pipeline.staging)

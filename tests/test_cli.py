@@ -88,10 +88,10 @@ def test_crs_given_as_wkt_reaches_the_config_intact(runner, tmp_path, rng):
     assert result.exit_code == 2  # --workers -1 is refused after --crs was accepted as it is
     assert "--workers -1: dask.workers = -1 is invalid" in result.output
 
-    from pipeline.cli import _with_options
+    from pipeline.cli.options import with_options
     from pipeline.config import load_config
 
-    config = _with_options(load_config(), crs=wkt, workers=2)
+    config = with_options(load_config(), crs=wkt, workers=2)
     assert config.survey.crs == wkt and config.dask.workers == 2
 
 

@@ -10,6 +10,7 @@ which is the whole interface between a reader and the binning; another reader
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
@@ -39,6 +40,11 @@ from ..reads import Node, cell_of
 from ..sensor.sums import TrajectorySums, trajectory_sums
 from ..staging import Staging, input_fingerprint
 from ..survey import source_crs_for_task
+from .stage import Dependency, RunState, Stage
+
+#: What a run tells of its tiles as they arrive (skipped, points off their bounds), under the engine's name
+#: it has always been logged under (the gather runs in the engine, on the client).
+logger = logging.getLogger("pipeline.run")
 
 
 @dataclass(frozen=True)
@@ -64,6 +70,7 @@ class TileTask:
     cells: tuple[tuple[int, int], ...] = ()  # a top task: the cells its file has tasks for
     pdal: pdal_reader.PdalRead | None = None  # read through PDAL (read.reader = "pdal"), else laspy
     sensor: bool = False  # decode the pulses' fields and sum them for the flight lines' trajectories
+    skip_bad_tile: bool = False  # survey.on_error = "skip": a tile that cannot be decoded is reported, not raised
 
 
 @dataclass(frozen=True)
@@ -421,3 +428,97 @@ def adopt_result(task: TileTask, kept: TileResult | TileFailure) -> TileResult |
     if isinstance(kept, TileResult):
         return replace(kept, tile_index=task.tile_index, read_index=task.read_index, output_dir=task.output_dir)
     return replace(kept, tile_index=task.tile_index)
+
+
+# -- the stage's records: pipeline.stages.registry lists them, pipeline.run walks them --------
+
+
+@dataclass(frozen=True)
+class DecodedTiles:
+    """Stage 1's gathered result: one result per file decoded (in tile order) and the files left out."""
+
+    tiles: tuple[TileResult, ...]
+    failed: tuple[dict[str, str], ...]  # {"path", "reason"}: skipped, or none of its points passes the filter
+
+
+def bin_tile(task: TileTask, *after: object) -> TileResult | TileFailure:
+    """The stage's worker: :func:`rasterize_tile`, or :func:`rasterize_tile_or_skip` when bad tiles are skipped."""
+    return rasterize_tile_or_skip(task, *after) if task.skip_bad_tile else rasterize_tile(task, *after)
+
+
+def result_folder(task: TileTask) -> str:
+    """The name of a read task's result folder (its file's stem and fingerprint): what its task keys are made of."""
+    return Path(task.output_dir).name
+
+
+def _read_tasks(state: RunState, results: list[object]) -> tuple[TileTask, ...]:
+    skip = state.config.survey.on_error == "skip"
+    return tuple(replace(task, skip_bad_tile=skip) for task in tile_tasks(state.plan, state.config, state.staging))
+
+
+def _top_task(task: TileTask) -> tuple[Dependency, ...]:
+    """A split COPC file's cell task takes its file's top task's result (the points the top hands over)."""
+    return ((BIN_TILES.name, Path(task.top_dir).name),) if task.role == "cell" and task.top_dir else ()
+
+
+def _tell(result: TileResult | TileFailure) -> int:
+    """As a tile's result arrives: warn of a skipped tile or of points off its bounds; its points (the bar's rate)."""
+    if isinstance(result, TileFailure):
+        logger.warning("skipping %s: %s", result.path, result.reason)
+        return 0
+    if result.points_outside:
+        logger.warning(
+            "%s: %d points lie outside the bounds its header (or, for a split COPC file, its octree nodes) declares; they were not used",
+            result.path,
+            result.points_outside,
+        )
+    return result.points_read
+
+
+def _gather_tiles(state: RunState, results: list[TileResult | TileFailure]) -> DecodedTiles:
+    """One result per file (a split file's tasks summed); a file with no point used is listed as skipped."""
+    tiles = [r for r in results if isinstance(r, TileResult)]
+    _check_points_left(tiles, state.config)
+    failed = {r.path: {"path": r.path, "reason": r.reason} for r in results if isinstance(r, TileFailure)}
+    tiles = results_by_file(tiles)
+    left_out = list(failed.values())  # a split file's failed tasks: once
+    for empty in (r for r in tiles if not r.points_used):  # listed and warned like a skipped tile
+        reason = f"no point used: none of its {empty.points_read:,} points passes the filter ([filter])"
+        logger.warning("skipping %s: %s", empty.path, reason)
+        left_out.append({"path": empty.path, "reason": reason})
+    return DecodedTiles(tuple(tiles), tuple(left_out))
+
+
+def _check_points_left(tiles: list[TileResult], config: Config) -> None:
+    """Stop with one line when no tile could be decoded or the filter left no point."""
+    if not tiles:
+        raise InputDataError("INPUT", "no tile could be decoded: every tile failed")
+    if not any(r.points_used for r in tiles):
+        f = config.filter
+        raise InputDataError(
+            "INPUT",
+            f"no point is left after filtering (filter.keep_classes = {f.keep_classes}, "
+            f"filter.drop_classes = {f.drop_classes}, filter.drop_withheld = {str(f.drop_withheld).lower()})",
+        )
+
+
+#: Stage 1's recipes, on the client: its read tasks, whose result folders the checksums and the merge name too.
+READ_TASKS: Stage[object, tuple[TileTask, ...]] = Stage(name="read_tasks", gather=_read_tasks)
+
+#: Stage 1: one task per read task, decoding its points once; a split COPC file's top tasks come first.
+BIN_TILES: Stage[TileTask, DecodedTiles] = Stage(
+    name="bin_tiles",
+    recipes=lambda state: state[READ_TASKS],
+    worker=bin_tile,
+    key=lambda task: f"rasterize-{result_folder(task)}",
+    label=lambda task: f"tile {task.path}" + (f" (COPC read task {task.part})" if task.part else ""),
+    gather=_gather_tiles,
+    bar="decode + bin tiles",
+    ident=result_folder,
+    after=_top_task,
+    priority=lambda task: 3 if task.role == "top" else 0,
+    adopt=adopt_result,
+    on_result=_tell,
+    streams=True,  # each cell is merged as soon as its tiles are done
+    lap="rasterize",
+)

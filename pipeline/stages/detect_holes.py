@@ -6,6 +6,7 @@ stage reads it) and returns only small tables and outlines to the client.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 from dataclasses import dataclass, replace
@@ -37,8 +38,19 @@ from ..sensor.sight import OUTSIDE_SWATHS, ground_targets, sight_classes, surfac
 from ..sensor.sums import TrajectorySums
 from ..sensor.trajectory import FlightLine, fit_flight_lines, swath_polygon
 from ..staging import Staging
-from .bin_tiles import TileResult
-from .merge_cells import CellResult
+from .bin_tiles import BIN_TILES, TileResult
+from .merge_cells import (
+    MERGE_CELLS,
+    CellResult,
+    GapVoidTask,
+    count_gap_voids,
+    footprint_blocks,
+    gap_void_tasks,
+    survey_coverage_gaps,
+    survey_line_moments,
+    survey_void_gaps,
+)
+from .stage import RunState, Stage, in_plan_order
 
 logger = logging.getLogger(__name__)
 
@@ -473,3 +485,96 @@ def _part_outlines(holes: CellHoles, cell: Cell, params: HoleParams) -> dict[int
         connectivity=params.connectivity,
     )
     return {label: shapely.to_wkb(polygon) for label, polygon in polygons.items()}
+
+
+# -- the stage's records ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SurveyCoverage:
+    """What detection needs of the whole survey, gathered on the client after stage 2."""
+
+    blocks: BlockMap  # the data footprint
+    line_moments: np.ndarray  # every flight line's pixel moments (LINE_MOMENT_DTYPE)
+    geometry: SensorGeometry | None  # the flight lines' trajectories and swaths (None: sensor.enabled off)
+    sight: dict[str, SightInputs] | None  # per cell, where the lines account for the survey's points
+    gaps: CoverageGaps  # the coverage gaps and extent strips, before they are checked for voids
+
+
+def finds_holes(state: RunState) -> bool:
+    return state.config.holes.enabled
+
+
+def survey_coverage(state: RunState, results: list[object]) -> SurveyCoverage:
+    """Gather: the footprint, the flight lines and the coverage gaps from stages 1 and 2."""
+    plan, config, cells = state.plan, state.config, list(state[MERGE_CELLS])
+    line_moments = survey_line_moments(cells)
+    geometry, sight = sensor_inputs(list(state[BIN_TILES].tiles), cells, plan, config)
+    # with the swaths known, no coverage gap is sought between the bands of the lines' pixels
+    bands = line_moments[:0] if sight is not None else line_moments
+    gaps = with_tile_grid(plan, survey_coverage_gaps(bands))
+    logger.debug("flight-line bands %s; coverage gaps %s", gaps.bands, gaps.gaps)
+    return SurveyCoverage(footprint_blocks(cells, plan, config), line_moments, geometry, sight, gaps)
+
+
+def _has_gaps(state: RunState) -> bool:
+    gaps = state[COVERAGE].gaps if finds_holes(state) else None
+    return gaps is not None and bool(gaps.gaps or gaps.extent_strips)
+
+
+def _gaps_key(task: GapVoidTask) -> str:
+    digest = hashlib.sha1(repr((task.gaps.gaps, task.gaps.extent_strips)).encode()).hexdigest()[:12]
+    return f"gaps-{digest}-{task.cell_id}"
+
+
+def void_gaps(state: RunState, counts: list[np.ndarray]) -> CoverageGaps:
+    """Gather: the coverage gaps and extent strips empty beside measured flanks."""
+    gaps = state[COVERAGE].gaps
+    kept = survey_void_gaps(gaps, counts)
+    logger.debug(
+        "coverage gaps: %d of %d, extent strips: %d of %d empty beside measured flanks, kept",
+        len(kept.gaps),
+        len(gaps.gaps),
+        len(kept.extent_strips),
+        len(gaps.extent_strips),
+    )
+    return kept
+
+
+def cell_detect_tasks(state: RunState) -> list[DetectTask]:
+    """:func:`detect_tasks` over the merged cells, with the coverage gathered and the gaps checked."""
+    coverage = state[COVERAGE]
+    gaps = state.get(GAP_VOIDS, coverage.gaps)
+    cells = list(state[MERGE_CELLS])
+    plan = state.plan
+    return detect_tasks(
+        plan, plan.hole_params, cells, coverage.blocks, state.water, state.staging, gaps, coverage.sight
+    )
+
+
+#: On the client, after stage 2: the footprint, the flight lines and the coverage gaps.
+COVERAGE: Stage[object, SurveyCoverage] = Stage(name="coverage", gather=survey_coverage, runs=finds_holes)
+
+#: One task per cell a coverage gap or strip reaches: its pixels inside them, and the empty ones.
+GAP_VOIDS: Stage[GapVoidTask, CoverageGaps] = Stage(
+    name="gap_voids",
+    recipes=lambda state: gap_void_tasks(list(state[MERGE_CELLS]), state.plan, state[COVERAGE].gaps),
+    worker=count_gap_voids,
+    key=_gaps_key,
+    label=lambda task: f"cell {task.cell_id} (check gaps)",
+    gather=void_gaps,
+    bar="check coverage gaps",
+    runs=_has_gaps,
+)
+
+#: One task per merged cell: hole parts, vertical holes and walls.
+DETECT_HOLES: Stage[DetectTask, tuple[DetectResult, ...]] = Stage(
+    name="detect_holes",
+    recipes=cell_detect_tasks,
+    worker=detect_cell,
+    key=lambda task: f"detect-{task.cell.id}",
+    label=lambda task: f"cell {task.cell.id} (find holes)",
+    gather=lambda state, results: in_plan_order(state.plan, results, lambda d: d.cell_holes.cell.id),
+    bar="find holes",
+    runs=finds_holes,
+)

@@ -36,9 +36,12 @@ from ..fill.by_cause import (
 )
 from ..grid import Grid, PixelWindow
 from ..io.intermediate import load_cell_statistics, load_labels, save_task_fill
+from ..parameters import fill_params
 from ..plan import SurveyPlan
 from ..staging import Staging
-from .link_holes import HoleSet
+from .link_holes import LINK_HOLES, HoleSet
+from .merge_cells import MERGE_CELLS
+from .stage import RunState, Stage
 
 #: Largest window (pixels) a hole is filled over; a hole spread wider is a strip for the flight plan.
 MAX_WINDOW_PX = 4096 * 4096
@@ -235,3 +238,58 @@ class _WindowReader:
             measured[inside] = cell_measured[within]
             hole_ids[inside] = cell_holes[within]
         return zmax, zmin, measured, hole_ids
+
+
+# -- the stage's records ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FillPlan:
+    """The fill's recipes, made on the client after linking: the tasks, and what the writer needs."""
+
+    params: FillParams
+    sources: dict[str, CellSource]  # every merged cell's kept files and label-to-hole lookup
+    tasks: tuple[FillTask, ...]
+    skipped: tuple[HoleFill, ...]  # the holes not filled, decided before any work
+
+
+def fills_holes(state: RunState) -> bool:
+    return state.config.holes.enabled and state.config.fill.enabled
+
+
+def plan_fills(state: RunState, results: list[object]) -> FillPlan:
+    plan, holes = state.plan, state[LINK_HOLES]
+    survey = plan.survey
+    params = fill_params(
+        state.config,
+        plan.hole_params,
+        pixel_size=plan.grid.resolution,
+        horizontal_unit_m=survey.horizontal_unit_m,
+        vertical_unit_m=survey.vertical_unit_m,
+    )
+    sources = cell_sources(plan, holes, state.staging, [r.cell_id for r in state[MERGE_CELLS]])
+    tasks, skipped = fill_tasks(plan, state.config, holes, sources, params, state.staging)
+    return FillPlan(params, sources, tuple(tasks), tuple(skipped))
+
+
+def by_hole(state: RunState, results: list[list[HoleFill]]) -> tuple[HoleFill, ...]:
+    """Gather: every hole's fill record (the skipped ones too), by hole id."""
+    fills = list(state[PLAN_FILLS].skipped)
+    for cell_fills in results:
+        fills.extend(cell_fills)
+    return tuple(sorted(fills, key=lambda f: f.hole_id))
+
+
+PLAN_FILLS: Stage[object, FillPlan] = Stage(name="plan_fills", gather=plan_fills, runs=fills_holes)
+
+#: One task per cell owning holes to fill.
+FILL_HOLES: Stage[FillTask, tuple[HoleFill, ...]] = Stage(
+    name="fill_holes",
+    recipes=lambda state: state[PLAN_FILLS].tasks,
+    worker=fill_cell_holes,
+    key=lambda task: f"fill-{task.owner_cell}",
+    label=lambda task: f"cell {task.owner_cell} (fill)",
+    gather=by_hole,
+    bar="fill holes",
+    runs=fills_holes,
+)

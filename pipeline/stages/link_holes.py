@@ -21,7 +21,8 @@ from ..holes.flight_lines import line_azimuths, strip_azimuths
 from ..io.intermediate import save_object
 from ..parameters import HoleParams, cause_rules
 from ..plan import SurveyPlan
-from .detect_holes import DetectResult, SensorGeometry
+from .detect_holes import COVERAGE, DETECT_HOLES, DetectResult, SensorGeometry, finds_holes
+from .stage import RunState, Stage
 
 
 @dataclass(frozen=True)
@@ -92,3 +93,18 @@ def link_cells(
 def keep_hole_set(holes: HoleSet, path: str) -> None:
     """Writer: keep the linked holes for the later stages and for a resumed run."""
     save_object(path, holes)
+
+
+# -- the stage's record ----------------------------------------------------------------------
+
+
+def link_detected(state: RunState, results: list[object]) -> HoleSet:
+    """Gather, on the client: the detected cells' holes linked and classified, and kept."""
+    coverage, plan = state[COVERAGE], state.plan
+    detected = list(state[DETECT_HOLES])
+    holes = link_cells(detected, plan, state.config, plan.hole_params, coverage.line_moments, coverage.geometry)
+    keep_hole_set(holes, str(state.staging.hole_catalog))
+    return holes
+
+
+LINK_HOLES: Stage[object, HoleSet] = Stage(name="link_holes", gather=link_detected, runs=finds_holes, lap="holes")

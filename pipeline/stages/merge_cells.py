@@ -11,7 +11,6 @@ import hashlib
 import logging
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -24,7 +23,8 @@ from ..io.intermediate import load_cell_statistics, load_tile_shared_keys, load_
 from ..plan import SurveyPlan
 from ..rasterize import merge_statistics, shared_pixel_mask
 from ..staging import Staging
-from .bin_tiles import TileFailure, TileResult, TileTask
+from .bin_tiles import BIN_TILES, READ_TASKS, TileFailure, TileResult, TileTask, result_folder
+from .stage import RunState, Stage, in_plan_order
 
 logger = logging.getLogger(__name__)
 
@@ -42,6 +42,7 @@ class CellTask:
     planned_windows: tuple[PixelWindow, ...]  # windows of every planned tile touching the cell
     statistics_path: str
     block_px: int
+    reads: tuple[str, ...] = ()  # result folders of the read tasks touching the cell (their results are its arguments)
 
 
 @dataclass(frozen=True)
@@ -78,7 +79,7 @@ def merge_tasks(plan: SurveyPlan, tiles: list[TileTask], staging: Staging) -> li
     return recipes
 
 
-def merge_key(task: CellTask, tiles: list[TileTask]) -> str:
+def merge_key(task: CellTask) -> str:
     """The key of a cell's merge: what its result is made of (the cell, the lattice, its tiles' keys).
 
     An incremental run reuses the previous run's merge of a cell whose key is unchanged.
@@ -88,7 +89,7 @@ def merge_key(task: CellTask, tiles: list[TileTask]) -> str:
         task.grid,
         task.planned_windows,
         task.block_px,
-        sorted(Path(t.output_dir).name for t in tiles),
+        sorted(task.reads),
     )
     return f"merge-{hashlib.sha1(repr(made_of).encode()).hexdigest()[:12]}-{task.cell.id}"
 
@@ -188,3 +189,33 @@ def survey_void_gaps(gaps: CoverageGaps, counts: list[np.ndarray]) -> CoverageGa
     total = np.sum(counts, axis=0) if counts else np.zeros((len(gaps.gaps) + len(gaps.extent_strips), 3, 2), np.int64)
     logger.debug("coverage gaps, then extent strips: (pixels, empty) in each and its flanks: %s", total.tolist())
     return keep_void_gaps(gaps, total)
+
+
+# -- the stage's record ----------------------------------------------------------------------
+
+
+def cell_tasks(state: RunState) -> list[CellTask]:
+    """:func:`merge_tasks`, each task naming the read tasks whose results it takes."""
+    reads = state[READ_TASKS]
+    folders = {task.read_index: result_folder(task) for task in reads}
+    return [
+        dataclasses.replace(task, reads=tuple(folders[i] for i in touching))
+        for task, touching in merge_tasks(state.plan, list(reads), state.staging)
+    ]
+
+
+#: Stage 2: one task per cell, run as soon as the tiles touching it are done.
+MERGE_CELLS: Stage[CellTask, tuple[CellResult, ...]] = Stage(
+    name="merge_cells",
+    recipes=cell_tasks,
+    worker=merge_cell,
+    key=merge_key,
+    label=lambda task: f"cell {task.cell.id} (merge)",
+    gather=lambda state, results: in_plan_order(state.plan, results),
+    bar="merge cells",
+    ident=lambda task: task.cell.id,
+    after=lambda task: tuple((BIN_TILES.name, folder) for folder in task.reads),
+    priority=lambda task: 1,
+    adopt=adopt_result,
+    streams=True,  # the rasters of a cell are written as soon as it is merged (when nothing is filled)
+)

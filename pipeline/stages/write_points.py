@@ -38,8 +38,10 @@ from ..io.raster import read_raster
 from ..plan import SurveyPlan
 from ..staging import Staging
 from ..survey import source_crs_for_task
-from .bin_tiles import TileResult
-from .write_rasters import WriteResult
+from .bin_tiles import BIN_TILES, TileResult
+from .fill_holes import fills_holes
+from .stage import RunState, Stage
+from .write_rasters import WRITE_FILLED, WriteResult
 
 Bounds = tuple[float, float, float, float]
 
@@ -191,3 +193,26 @@ def gather_points(results: list[PointsResult], written: list[WriteResult], root:
     if added != filled:
         raise RuntimeError(f"{added} fill points written for {filled} filled pixels (tile ownership)")
     return [os.path.relpath(r.path, root) for r in sorted(results, key=lambda r: r.tile_index)]
+
+
+# -- the stage's record ----------------------------------------------------------------------
+
+
+def repaired_tiles(state: RunState) -> list[PointsTask]:
+    """:func:`points_tasks` over the decoded tiles and the rasters written after the fill."""
+    written = list(state[WRITE_FILLED])
+    return points_tasks(state.plan, state.config, list(state[BIN_TILES].tiles), written, state.staging)
+
+
+#: With ``output.points``, after the writer: one task per tile read (the fill points come from the rasters).
+WRITE_POINTS: Stage[PointsTask, tuple[str, ...]] = Stage(
+    name="write_points",
+    recipes=repaired_tiles,
+    worker=write_tile_points,
+    key=lambda task: f"points-{Path(task.target).stem}",
+    label=lambda task: f"tile {task.path} (write points)",
+    gather=lambda state, results: tuple(gather_points(results, list(state[WRITE_FILLED]), state.staging.root)),
+    bar="write point clouds",
+    runs=lambda state: fills_holes(state) and state.config.output.points,
+    lap="points",
+)

@@ -32,8 +32,10 @@ from ..parameters import raster_options
 from ..plan import SurveyPlan
 from ..rasterize import PixelStatistics
 from ..staging import Staging
-from .fill_holes import CellSource
-from .link_holes import HoleSet
+from .fill_holes import FILL_HOLES, PLAN_FILLS, CellSource, fills_holes
+from .link_holes import LINK_HOLES, HoleSet
+from .merge_cells import MERGE_CELLS
+from .stage import RunState, Stage, in_plan_order
 
 #: Descriptions of the raster products, also used for their mosaics.
 DESCRIPTIONS = {
@@ -196,3 +198,56 @@ def _fill_settled_voids(fill: CellFill, stats: PixelStatistics, window, settled,
     dsm[done] = outcome.heights[rows, cols][done]
     codes[done] = outcome.method_code[rows, cols][done]
     distance[done] = near[done] * fill.unit_m
+
+
+# -- the stage's records: the rasters right after the merge, or after the fill ---------------
+
+
+def merged_write_tasks(state: RunState) -> list[WriteTask]:
+    """One task per cell, right after its merge; none when holes are filled (the writer then follows the fill)."""
+    if fills_holes(state):
+        return []
+    return write_tasks(state.plan, state.config, [cell.id for cell in state.plan.cells], state.staging)
+
+
+def filled_write_tasks(state: RunState) -> list[WriteTask]:
+    """One task per merged cell, painting in the fills of the holes that have a part in it."""
+    plan, fill_plan = state.plan, state[PLAN_FILLS]
+    fills = cell_fills(plan, state[LINK_HOLES], fill_plan.sources, list(state[FILL_HOLES]), fill_plan.params)
+    return write_tasks(plan, state.config, [r.cell_id for r in state[MERGE_CELLS]], state.staging, fills)
+
+
+def _write_key(task: WriteTask) -> str:
+    return f"write-{task.cell.id}"
+
+
+def _write_label(task: WriteTask) -> str:
+    return f"cell {task.cell.id} (write rasters)"
+
+
+#: The writer in stage 2's graph: a cell's rasters as soon as it is merged (its bar stays empty when filling).
+WRITE_MERGED: Stage[WriteTask, tuple[WriteResult, ...]] = Stage(
+    name="write_rasters",
+    recipes=merged_write_tasks,
+    worker=write_cell_rasters,
+    key=_write_key,
+    label=_write_label,
+    gather=lambda state, results: in_plan_order(state.plan, results),
+    bar="write rasters",
+    after=lambda task: ((MERGE_CELLS.name, task.cell.id),),
+    priority=lambda task: 2,
+    lap="merge_tail",
+)
+
+#: The writer after the fill: one task per merged cell.
+WRITE_FILLED: Stage[WriteTask, tuple[WriteResult, ...]] = Stage(
+    name="write_filled_rasters",
+    recipes=filled_write_tasks,
+    worker=write_cell_rasters,
+    key=_write_key,
+    label=_write_label,
+    gather=lambda state, results: in_plan_order(state.plan, [*state[WRITE_MERGED], *results]),
+    bar="write rasters",
+    runs=fills_holes,
+    lap="fill",
+)

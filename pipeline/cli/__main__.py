@@ -1,0 +1,6 @@
+"""``python -m pipeline.cli``: the ``holefill`` command."""
+
+from . import main
+
+if __name__ == "__main__":
+    main()
