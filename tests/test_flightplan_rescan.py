@@ -136,3 +136,15 @@ def test_the_rescan_share_is_in_the_layer_and_the_summary(rescan_survey):
 )
 def test_the_rescan_plan_files_pass_their_format_loaders(rescan_survey, check):
     check(rescan_survey)
+
+
+def test_a_pattern_shared_with_missed_coverage_keeps_its_lanes_and_gains_one():
+    """Missed coverage keeps its lanes (spacing, overlap); what they do not see, beside the walls, gets lanes of its own."""
+    dsm, transform = _building_scene()
+    holes = [shapely.box(145, 110, 153, 190), shapely.box(117, 110, 125, 190)]  # occlusion, missed coverage
+    pattern = plan_pattern(shapely.union_all(holes), params=CoverageParams(), hole_ids=(1, 2))
+    placed = place_pattern(
+        pattern, holes, dsm, transform, params=SightParams(CoverageParams()), rescan=True, keep_lanes=True
+    )
+    assert set(pattern.lanes[0].start) <= {c for lane in placed.pattern.lanes for c in lane.start}
+    assert len(placed.pattern.lanes) == 3 and min(placed.shares.values()) >= 0.95

@@ -374,7 +374,9 @@ def _placed_patterns(
     for pattern in patterns:
         members = [by_id[i] for i in pattern.hole_ids]
         rescan = any(h.cause == "occlusion" for h in members)
-        found = place_pattern(pattern, [h.geometry for h in members], dsm, transform, params=sight, rescan=rescan)
+        keep = any(h.cause != "occlusion" for h in members)  # their lanes keep their spacing and overlap
+        geometries = [h.geometry for h in members]
+        found = place_pattern(pattern, geometries, dsm, transform, params=sight, rescan=rescan, keep_lanes=keep)
         placed.append(found.pattern)
         shares.update(found.shares)
     return placed, shares

@@ -14,8 +14,9 @@ every ``altitude_agl_m x tan(CANDIDATE_ANGLE_STEP_DEG)``. Each candidate's visib
 pixels are cast alone; lanes are then chosen greedily, the one that sees most of what
 is not yet seen first, while a lane adds at least ``min_gain_m2`` of newly visible
 ground (the smallest hole worth a flight, ``flightplan.min_area_m2``) or sees all the
-rest the candidates can see; a lane the later ones made redundant is dropped. The regular pattern laid over the hole is kept when it
-sees as much with no more lanes.
+rest the candidates can see; a lane the later ones made redundant is dropped. The regular
+pattern laid over the hole is kept when it sees as much with no more lanes; a pattern that also
+covers holes of other causes keeps its lanes (their spacing and side overlap) and only gains lanes.
 
 Pure: numpy arrays and shapely geometries in, frozen dataclasses out.
 """
@@ -87,6 +88,7 @@ def place_pattern(
     *,
     params: SightParams,
     rescan: bool,
+    keep_lanes: bool = False,
 ) -> Placement:
     """The share of each hole visible from ``pattern``; with ``rescan``, the lanes that see most.
 
@@ -98,6 +100,9 @@ def place_pattern(
         The (repaired) surface heights on a north-up grid of square pixels; ``transform`` its affine.
     rescan : bool
         Choose the lanes by the visible share (an occlusion); else only measure the pattern's.
+    keep_lanes : bool
+        Keep the pattern's lanes and only add lanes to them (the pattern also covers holes of
+        other causes, whose lanes keep their spacing and side overlap).
 
     Returns
     -------
@@ -106,30 +111,26 @@ def place_pattern(
     """
     if abs(abs(transform.a) - abs(transform.e)) > 1e-9 * abs(transform.a) or transform.b or transform.d:
         return Placement(pattern, {h: math.nan for h in pattern.hole_ids})  # rays are cast on north-up square pixels
-    frame = _Frame.of(pattern)
     cover = params.coverage
     reach = cover.swath_m + cover.run_in_m + cover.turnaround_m
     window = _window(pattern, holes, dsm, transform, reach=reach, ground_step_m=params.ground_step_m)
     if window is None:
         return Placement(pattern, {h: math.nan for h in pattern.hole_ids})
-    regular = [
-        _seen(window, _track(lane, pattern.turnaround_m, dsm, transform, params), cover) for lane in pattern.lanes
-    ]
-    best = pattern
-    seen = np.logical_or.reduce(regular)
-    if rescan:
-        offsets = frame.candidate_offsets(pattern, cover)
-        lanes = [frame.lane(v, pattern) for v in offsets]
-        views = np.array(
-            [_seen(window, _track(lane, pattern.turnaround_m, dsm, transform, params), cover) for lane in lanes]
-        )
-        chosen = _greedy(views, min_gain=params.min_gain_m2 / window.pixel**2)
-        union = np.logical_or.reduce(views[chosen]) if chosen else np.zeros_like(seen)
-        better = union.sum() > seen.sum() or (union.sum() == seen.sum() and len(chosen) < len(pattern.lanes))
-        if better:
-            best = frame.pattern(pattern, sorted(offsets[i] for i in chosen))
-            seen = union
-    return Placement(best, _shares(window, seen, pattern.hole_ids), placed=best is not pattern)
+    seen = np.logical_or.reduce([_seen(window, _track(lane, dsm, transform, params), cover) for lane in pattern.lanes])
+    if not rescan:
+        return Placement(pattern, _shares(window, seen, pattern.hole_ids))
+    frame = _Frame.of(pattern)
+    offsets = frame.candidate_offsets(pattern, cover)
+    views = np.array([_seen(window, _track(frame.lane(v, pattern), dsm, transform, params), cover) for v in offsets])
+    base = seen if keep_lanes else np.zeros_like(seen)
+    chosen = _greedy(views, base, min_gain=params.min_gain_m2 / window.pixel**2)
+    union = (base | np.logical_or.reduce(views[chosen])) if chosen else base
+    kept = [frame.offset(lane) for lane in pattern.lanes] if keep_lanes else []
+    count = len(kept) + len(chosen)
+    if union.sum() > seen.sum() or (union.sum() == seen.sum() and count < len(pattern.lanes)):
+        placed = frame.pattern(pattern, sorted(kept + [offsets[i] for i in chosen]))
+        return Placement(placed, _shares(window, union, pattern.hole_ids), placed=True)
+    return Placement(pattern, _shares(window, seen, pattern.hole_ids))
 
 
 @dataclass(frozen=True)
@@ -159,6 +160,10 @@ class _Frame:
         grid = middle + (np.arange(count) - (count - 1) / 2) * step
         return [float(g) for g in sorted(grid, key=lambda g: (abs(g - middle), g))]
 
+    def offset(self, lane: Lane) -> float:
+        """A lane's across-track position."""
+        return float(np.asarray(lane.start) @ self.across)
+
     def lane(self, v: float, pattern: CoveragePattern, index: int = 0) -> Lane:
         start = self.u0 * self.along + v * self.across
         end = self.u1 * self.along + v * self.across
@@ -180,13 +185,17 @@ class _Frame:
         )
 
 
-def _greedy(views: np.ndarray, *, min_gain: float) -> list[int]:
-    """Candidates in the order chosen: most newly seen pixels first, while worth a lane (module docstring)."""
+def _greedy(views: np.ndarray, covered: np.ndarray, *, min_gain: float) -> list[int]:
+    """Candidates in the order chosen: most newly seen pixels first, while worth a lane (module docstring).
+
+    ``covered``: the pixels the lanes kept already see.
+    """
     chosen: list[int] = []
     if views.size == 0:
         return chosen
-    covered = np.zeros(views.shape[1], bool)
-    reachable = np.logical_or.reduce(views)
+    base = covered.copy()
+    covered = covered.copy()
+    reachable = np.logical_or.reduce(views) & ~base
     while True:
         gains = (views & ~covered).sum(axis=1)
         best = int(np.argmax(gains))  # ties: the first, nearest the middle
@@ -197,36 +206,44 @@ def _greedy(views: np.ndarray, *, min_gain: float) -> list[int]:
         covered |= views[best]
     for lane in list(chosen):  # an early pick that the later ones made redundant (a compromise): dropped
         others = [k for k in chosen if k != lane]
-        if others and not (covered & ~np.logical_or.reduce(views[others])).any():
+        if others and not (covered & ~(base | np.logical_or.reduce(views[others]))).any():
             chosen = others
     return chosen
 
 
-def _track(lane: Lane, turnaround_m: float, dsm: np.ndarray, transform: AffineLike, params: SightParams) -> np.ndarray:
-    """The lidar's path along ``lane`` (x, y, height), as :mod:`.mission` flies it: one straight line with its turns."""
-    length = lane.length_m
-    d = np.subtract(lane.end, lane.start) / length
-    before = tuple(np.asarray(lane.start) - d * turnaround_m)
-    after = tuple(np.asarray(lane.end) + d * turnaround_m)
-    first, last = lane_line(
-        dsm,
-        transform,
-        (float(before[0]), float(before[1])),
-        (float(after[0]), float(after[1])),
-        half_width_m=params.coverage.swath_m / 2,
-        altitude_agl_m=params.coverage.altitude_agl_m,
-        max_gradient=params.max_climb_gradient,
-        slope_gain_m=params.terrain_step_m,
-    )
+def _track(lane: Lane, dsm: np.ndarray, transform: AffineLike, params: SightParams) -> np.ndarray | None:
+    """The lidar's path along ``lane`` (x, y, height), as :mod:`.mission` flies it: one straight line with its turns.
+
+    None where no DSM lies under the lane's swath (off the survey): its height, and so its clearance, is unknown.
+    """
+    length, turnaround_m = lane.length_m, params.coverage.turnaround_m
+    dx, dy = (lane.end[0] - lane.start[0]) / length, (lane.end[1] - lane.start[1]) / length
+    before = (lane.start[0] - dx * turnaround_m, lane.start[1] - dy * turnaround_m)
+    after = (lane.end[0] + dx * turnaround_m, lane.end[1] + dy * turnaround_m)
+    try:
+        first, last = lane_line(
+            dsm,
+            transform,
+            before,
+            after,
+            half_width_m=params.coverage.swath_m / 2,
+            altitude_agl_m=params.coverage.altitude_agl_m,
+            max_gradient=params.max_climb_gradient,
+            slope_gain_m=params.terrain_step_m,
+        )
+    except ValueError:
+        return None
     total = 2 * turnaround_m + length
     z_start = first + (last - first) * turnaround_m / total
     z_end = first + (last - first) * (turnaround_m + length) / total
     return np.array([[lane.start[0], lane.start[1], z_start], [lane.end[0], lane.end[1], z_end]])
 
 
-def _seen(window: _Window, track: np.ndarray, cover: CoverageParams) -> np.ndarray:
-    """Per hole pixel of the window (in :meth:`_Window.cells` order): seen from the lane ``track``."""
+def _seen(window: _Window, track: np.ndarray | None, cover: CoverageParams) -> np.ndarray:
+    """Per hole pixel of the window (in :meth:`_Window.cells` order): seen from the lane ``track`` (None: nothing)."""
     candidates = window.labels > 0
+    if track is None:
+        return np.zeros(int(candidates.sum()), bool)
     classes = sight_classes(
         candidates,
         window.surface,
