@@ -148,3 +148,13 @@ def test_a_pattern_shared_with_missed_coverage_keeps_its_lanes_and_gains_one():
     )
     assert set(pattern.lanes[0].start) <= {c for lane in placed.pattern.lanes for c in lane.start}
     assert len(placed.pattern.lanes) == 3 and min(placed.shares.values()) >= 0.95
+
+
+def test_candidate_lanes_off_the_survey_are_no_candidates():
+    """A hole at the survey's edge: lanes with no DSM under their swath have no height, and are skipped."""
+    dsm, transform = _building_scene()
+    dsm[:, :200] = np.nan  # no survey west of x = 200 m: the hole lies at its edge
+    hole = shapely.box(200, 110, 210, 190)
+    pattern = plan_pattern(hole, params=CoverageParams(), hole_ids=(1,))
+    placed = place_pattern(pattern, [hole], dsm, transform, params=SightParams(CoverageParams()), rescan=True)
+    assert placed.shares[1] >= 0.95
