@@ -321,7 +321,7 @@ class FlightPlanConfig:
     enabled: bool = _opt(True, "Write re-flight plans after a run (needs holes.enabled).")
     causes: list[str] = _opt(
         ["missed_coverage"],
-        "Hole causes that are re-flown; the others are listed, not flown.",
+        "Hole causes that are re-flown (occlusion: from where its ground is in sight); the others are listed, not flown.",
         item_choices=("occlusion", "water", "missed_coverage", "no_return", "covered", "unknown"),
     )
     min_area_m2: float = _opt(25.0, "Holes smaller than this (m2) are not re-flown.", ge=0)

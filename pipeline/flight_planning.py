@@ -124,6 +124,11 @@ def summarize(plan: FlightPlan, files: list[Path]) -> dict[str, Any]:
         "holes": len(plan.decisions),
         "holes_planned": len(planned),
         "holes_not_planned": {d.hole_id: d.reason for d in plan.decisions if not d.planned},
+        "hole_visible_share": {
+            d.hole_id: round(d.visible_share, 4)
+            for d in planned
+            if d.visible_share is not None and np.isfinite(d.visible_share)
+        },
         "patterns": len({p.pattern_id for p in plan.patterns}),
         "lanes": sum(len(s.lanes) for s in plan.sorties),
         "sorties": len(plan.sorties),

@@ -245,4 +245,5 @@ def flight_params(config: Config) -> FlightParams:
             obstacle_m=plan.home_obstacle_m,
             max_slope_deg=plan.home_max_slope_deg,
         ),
+        ground_step_m=config.holes.jump_threshold_m,
     )

@@ -1,6 +1,7 @@
 """Re-flight planning for holes a drone can re-scan (docs/flightplans.md).
 
-Pure kernels: :mod:`.coverage` (boustrophedon lanes over a hole), :mod:`.route`
+Pure kernels: :mod:`.coverage` (boustrophedon lanes over a hole), :mod:`.rescan` (lanes
+where an occlusion's ground is in sight), :mod:`.route`
 (greedy order improved by 2-opt / or-opt, sorties), :mod:`.altitude` (heights
 from the DSM, vertical reference checks) and :mod:`.mission` (the whole plan).
 File formats live in :mod:`pipeline.io.flightplan_files`; the planning tool (holes

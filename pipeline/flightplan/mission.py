@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pyproj
@@ -26,6 +26,7 @@ import shapely
 from .altitude import AffineLike, height_at, lane_line, max_height_along, nearest_data_point
 from .clearance import flight_time_s, leg_clearance
 from .coverage import CoverageParams, CoveragePattern, Lane, Point2, cluster_holes, plan_pattern, split_pattern
+from .rescan import SightParams, place_pattern
 from .route import (
     PatternEnds,
     Visit,
@@ -62,6 +63,9 @@ class FlightParams:
     clearance_radius_m: float = 3.0
     acceleration_m_s2: float = 2.0
     takeoff: TakeoffParams = field(default_factory=TakeoffParams)
+    #: The height jump that tells a wall from the ground beside it (``holes.jump_threshold_m``),
+    #: for the ground in an occlusion hole (:mod:`.rescan`).
+    ground_step_m: float = 2.5
 
 
 @dataclass(frozen=True)
@@ -94,6 +98,8 @@ class HoleDecision:
     reason: str
     pattern_id: int | None = None
     geometry: shapely.Geometry | None = None
+    #: Share of the hole's pixels whose ground its lanes see (:mod:`.rescan`); None: not planned.
+    visible_share: float | None = None
 
 
 @dataclass(frozen=True)
@@ -202,11 +208,12 @@ def plan_mission(
     if params.altitude_reference == "ellipsoid" and to_ellipsoid is None:
         raise ValueError("altitude_reference 'ellipsoid' needs a checked to_ellipsoid conversion")
     selected, decisions = _select(holes, params)
-    patterns = _patterns(selected, params.coverage)
+    patterns, shares = _placed_patterns(_patterns(selected, params.coverage), selected, dsm, transform, params)
     takeoff = _choose_home(home, patterns, holes, dsm, transform, ground=ground, snap=snap_home, params=params)
     home, home_ground = takeoff.xy, takeoff.ground_m
     units, unit_ends, unflyable = _flyable_units(patterns, home, params)
     decisions = _mark_unflyable(decisions, unflyable, patterns)
+    decisions = [replace(d, visible_share=shares.get(d.hole_id)) if d.planned else d for d in decisions]
     greedy, improved, sortie_visits = _routes(unit_ends, home, params)
     if not math.isfinite(home_ground) and sortie_visits:
         raise ValueError(f"no DSM height within 10 m of home {home}; choose a home point on open ground with data")
@@ -345,6 +352,34 @@ def _patterns(selected: list[HoleInput], coverage: CoverageParams) -> list[Cover
             )
         )
     return patterns
+
+
+def _placed_patterns(
+    patterns: list[CoveragePattern],
+    selected: list[HoleInput],
+    dsm: np.ndarray,
+    transform: AffineLike,
+    params: FlightParams,
+) -> tuple[list[CoveragePattern], dict[int, float]]:
+    """Each pattern with an occlusion hole re-placed where its ground is in sight, and every hole's visible share."""
+    sight = SightParams(
+        coverage=params.coverage,
+        max_climb_gradient=params.max_climb_gradient,
+        terrain_step_m=params.terrain_step_m,
+        ground_step_m=params.ground_step_m,
+        min_gain_m2=params.min_area_m2,
+    )
+    by_id = {h.hole_id: h for h in selected}
+    placed, shares = [], {}
+    for pattern in patterns:
+        members = [by_id[i] for i in pattern.hole_ids]
+        rescan = any(h.cause == "occlusion" for h in members)
+        keep = any(h.cause != "occlusion" for h in members)  # their lanes keep their spacing and overlap
+        geometries = [h.geometry for h in members]
+        found = place_pattern(pattern, geometries, dsm, transform, params=sight, rescan=rescan, keep_lanes=keep)
+        placed.append(found.pattern)
+        shares.update(found.shares)
+    return placed, shares
 
 
 def _choose_home(

@@ -263,6 +263,7 @@ def _write_holes_status_layer(path: Path, plan: FlightPlan) -> None:
                 "planned": d.planned,
                 "reason": d.reason,
                 "pattern_id": d.pattern_id,
+                "visible_share": _share(d.visible_share),
             }
             for d in plan.decisions
         ],
@@ -270,3 +271,8 @@ def _write_holes_status_layer(path: Path, plan: FlightPlan) -> None:
         crs_wkt=plan.crs_wkt,
         geometry_type="MultiPolygon",
     )
+
+
+def _share(value: float | None) -> float | None:
+    """A visible share rounded for the layer; None where not planned or not measured (NaN)."""
+    return round(value, 4) if value is not None and math.isfinite(value) else None
