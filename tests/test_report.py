@@ -338,3 +338,21 @@ def test_products_and_fill_counts_say_what_the_run_wrote():
     assert "listed holes" in table and "all voids (small ones included)" in table
     # one listed hole of each status in largest()/inputs(), the stage's own counts beside them
     assert re.search(r"<td>filled</td><td>1</td><td>100</td><td>1</td>", table), table
+
+
+def test_the_flight_section_gives_clearance_take_off_and_the_ground_seen():
+    """A pilot reads the least clearance of each sortie, where the drone takes off and from what height."""
+    plan = manifest()
+    plan["flightplan"].update(
+        sortie_min_clearance_m=[67.8],
+        home=[500197.5, 5000183.5],
+        home_ground_m=50.63,
+        home_height_from="ground points",
+        home_warning="",
+        hole_visible_share={"3": 0.97, "26": 1.0},
+    )
+    page = render_report(plan, largest())
+    section = page.split("<h2>Re-flight plan</h2>", 1)[1].split("</table>", 1)[0]
+    assert "<td>least clearance per sortie (m)</td><td>67.8</td>" in section
+    assert "(500,197.5, 5,000,183.5), ground 50.63 (from ground points)" in section
+    assert "least 97% (hole 3), median 100%, over 2 planned holes" in section

@@ -365,9 +365,42 @@ def _flight_section(plan: dict[str, Any]) -> list[str]:
         ["patterns, lanes, sorties", f"{plan['patterns']}, {plan['lanes']}, {plan['sorties']}"],
         ["route (greedy)", f"{plan['flown_route_m']:,.0f} m ({plan['greedy_route_m']:,.0f} m)"],
         ["sortie durations (s)", ", ".join(f"{d:,.0f}" for d in plan["sortie_durations_s"]) or "-"],
+        ["least clearance per sortie (m)", _clearances(plan.get("sortie_min_clearance_m"))],
+        ["take-off", _take_off(plan)],
         ["altitude reference", plan["altitude_reference"]],
     ]
+    shares: dict[str, float] = plan.get("hole_visible_share") or {}
+    if shares:
+        values = sorted(shares.values())
+        least = min(shares, key=lambda hole: shares[hole])
+        rows.append(
+            [
+                "hole ground seen from its lanes",
+                f"least {values[0]:.0%} (hole {least}), median {values[len(values) // 2]:.0%}"
+                f", over {len(values)} planned holes",
+            ]
+        )
     return ["<h2>Re-flight plan</h2>", _table(["", ""], rows)]
+
+
+def _clearances(values: list[float | None] | None) -> str:
+    """Each sortie's least clearance above the highest surface near its legs (flightplan.min_clearance_m)."""
+    return ", ".join("-" if v is None else f"{v:,.1f}" for v in values) if values else "-"
+
+
+def _take_off(plan: dict[str, Any]) -> str:
+    """Where the drone takes off, the ground height there and where it comes from; the warning if any (plain text: the table escapes it)."""
+    home = plan.get("home")
+    if not home:
+        return "-"
+    text = f"({home[0]:,.1f}, {home[1]:,.1f})"
+    if plan.get("home_ground_m") is not None:
+        text += f", ground {plan['home_ground_m']:,.2f}"
+    if plan.get("home_height_from"):
+        text += f" (from {plan['home_height_from']})"
+    if plan.get("home_warning"):
+        text += f"; warning: {plan['home_warning']}"
+    return text
 
 
 def _survey_section(manifest: dict[str, Any]) -> list[str]:
