@@ -129,6 +129,29 @@ def test_every_leg_clears_the_hill_and_the_tower_by_the_minimum():
         assert sortie.least_clearance_m == pytest.approx(least, abs=1.5)  # pixels vs samples
 
 
+def test_a_tower_on_the_transit_leg_is_cleared_by_the_minimum():
+    """The tower stands on the leg from take-off to the first lane (placed there from a first plan):
+    the leg climbs over it by the minimum, checked point by point against the pixels within 3 m."""
+    x, y = _xy()
+    dsm = 50.0 + 0.0 * x
+    hole = shapely.box(900, 800, 1000, 840)
+    params = FlightParams(coverage=PARAMS, min_area_m2=0.0)
+    plan_kwargs = dict(crs_wkt=CRS_2154, params=params, home=(150.0, 200.0))
+    first = plan_mission([HoleInput(1, hole, "missed_coverage", hole.area)], dsm, TRANSFORM, **plan_kwargs)
+    a, b = first.sorties[0].waypoints[:2]
+    tx, ty = (a.x + b.x) / 2, (a.y + b.y) / 2
+    tower = (np.abs(x - tx) < 1.5) & (np.abs(y - ty) < 1.5)
+    dsm = np.where(tower, 150.0, dsm)  # 100 m above the ground, on the leg
+    plan = plan_mission([HoleInput(1, hole, "missed_coverage", hole.area)], dsm, TRANSFORM, **plan_kwargs)
+    (sortie,) = plan.sorties
+    near_tower = [w for w in sortie.waypoints if math.dist((w.x, w.y), (tx, ty)) < math.dist((a.x, a.y), (b.x, b.y))]
+    assert near_tower  # the same route: the leg passes the tower
+    least = _independent_least_clearance(sortie, dsm)
+    assert least >= params.min_clearance_m
+    assert _independent_least_clearance(sortie, np.where(tower, dsm, -np.inf)) >= params.min_clearance_m
+    assert _independent_least_clearance(sortie, np.where(tower, dsm, -np.inf)) < 60.0  # the tower was in reach
+
+
 def test_a_plan_below_the_minimum_clearance_is_refused_naming_the_leg():
     dsm = _hill_and_tower()
     hole = shapely.box(550, 560, 700, 600)
