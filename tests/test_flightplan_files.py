@@ -81,7 +81,11 @@ def test_summary_and_layers(planned):
     assert {"hole_ids", "pattern_id", "sortie", "lane_index", "length_m", "azimuth_deg"} <= set(lines.columns)
     waypoints = read_layer(out / "flightplan.gpkg", "waypoints")
     assert {"sortie", "sequence", "altitude_m", "altitude_ref", "action"} <= set(waypoints.columns)
-    assert (waypoints["altitude_ref"] == "relative to take-off (DSM at home)").all()
+    assert (
+        waypoints["altitude_ref"]
+        .str.fullmatch(r"relative to take-off \((ground points|DSM \(no ground points\)) at home\)")
+        .all()
+    )
     status = read_layer(out / "flightplan.gpkg", "holes_status")
     assert status.set_index("hole_id").loc[4, "planned"] == 0
 

@@ -174,9 +174,10 @@ def _write_gpkg(path: Path, plan: FlightPlan) -> None:
     _write_holes_status_layer(path, plan)
 
 
-#: The ``altitude_ref`` attribute of the waypoints layer, per altitude reference.
+#: The ``altitude_ref`` attribute of the waypoints layer, per altitude reference (``{home}``: where the
+#: take-off point's height comes from, ``FlightPlan.home_source``).
 _ALTITUDE_REFERENCE_LABELS = {
-    "takeoff": "relative to take-off (DSM at home)",
+    "takeoff": "relative to take-off ({home} at home)",
     "amsl": "AMSL (DSM datum)",
     "ellipsoid": "WGS84 ellipsoid",
 }
@@ -205,7 +206,7 @@ def _write_flight_lines_layer(path: Path, plan: FlightPlan) -> None:
 
 
 def _write_waypoints_layer(path: Path, plan: FlightPlan) -> None:
-    reference = _ALTITUDE_REFERENCE_LABELS[plan.altitude_reference]
+    reference = _ALTITUDE_REFERENCE_LABELS[plan.altitude_reference].format(home=plan.home_source)
     points = [w for s in plan.sorties for w in s.waypoints]
     write_layer(
         path,
