@@ -22,7 +22,8 @@ logger = logging.getLogger(__package__)  # "pipeline.cli", the name it logged un
 @config_option
 @set_option
 @click.option(
-    "--home", help="Take-off point X,Y in the survey CRS (flightplan.home; default: the centre of the holes)."
+    "--home",
+    help="Take-off point X,Y in the survey CRS (flightplan.home; default: the open ground nearest to the holes, docs/flightplans.md).",
 )
 def plan_command(
     holes_gpkg: str, dsm_path: str, out_dir: str, config_path: str | None, overrides: tuple[str, ...], home: str | None
