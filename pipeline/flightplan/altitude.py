@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -96,10 +96,22 @@ def corridor_profile(
     edges = np.linspace(0.0, length, n_bins + 1)
     maxima = np.full(n_bins, np.nan)
     bin_width = length / n_bins if length > 0 else 1.0
+    for values, along in pixels_near_segment(dsm, transform, start, end, half_width_m):
+        bins = np.minimum((along / bin_width).astype(int), n_bins - 1)
+        np.fmax.at(maxima, bins, values)
+    return edges, maxima
+
+
+def pixels_near_segment(
+    dsm: np.ndarray, transform: AffineLike, start: Point2, end: Point2, radius_m: float
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """The DSM's measured pixels whose centre lies within ``radius_m`` (plus half a pixel's diagonal)
+    of a segment: their values and their distance along it from ``start``, window by window (a
+    long diagonal segment is read piece by piece, so the windows stay small)."""
+    length = math.dist(start, end)
     pixel = math.hypot(transform.a, transform.d), math.hypot(transform.b, transform.e)
-    reach = half_width_m + 0.5 * math.hypot(*pixel)
+    reach = radius_m + 0.5 * math.hypot(*pixel)
     direction = (np.array([end[0] - start[0], end[1] - start[1]]) / length) if length > 0 else np.zeros(2)
-    # a long diagonal segment is read piece by piece, so the windows stay small
     pieces = max(1, math.ceil(length / max(4 * reach, 50.0)))
     for k in range(pieces):
         a = (start[0] + direction[0] * length * k / pieces, start[1] + direction[1] * length * k / pieces)
@@ -111,14 +123,10 @@ def corridor_profile(
         x = transform.a * (cols + 0.5) + transform.b * (rows + 0.5) + transform.c
         y = transform.d * (cols + 0.5) + transform.e * (rows + 0.5) + transform.f
         dx, dy = x - start[0], y - start[1]
-        u = np.clip(dx * direction[0] + dy * direction[1], 0.0, length)
-        distance = np.hypot(dx - u * direction[0], dy - u * direction[1])
-        keep = (distance <= reach) & np.isfinite(values)
-        if not keep.any():
-            continue
-        bins = np.minimum((u[keep] / bin_width).astype(int), n_bins - 1)
-        np.fmax.at(maxima, bins, values[keep])
-    return edges, maxima
+        along = np.clip(dx * direction[0] + dy * direction[1], 0.0, length)
+        keep = (np.hypot(dx - along * direction[0], dy - along * direction[1]) <= reach) & np.isfinite(values)
+        if keep.any():
+            yield values[keep], along[keep]
 
 
 def max_height_along(

@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from .altitude import AffineLike, _window
+from .altitude import AffineLike, pixels_near_segment
 from .coverage import Point2
 
 __all__ = ["flight_time_s", "leg_clearance"]
@@ -46,28 +46,11 @@ def leg_clearance(
     ``heights`` are the leg's ends in the DSM's datum.
     """
     length = math.dist(start, end)
-    pixel = math.hypot(transform.a, transform.d), math.hypot(transform.b, transform.e)
-    reach = radius_m + 0.5 * math.hypot(*pixel)
-    direction = np.array([end[0] - start[0], end[1] - start[1]]) / length if length > 0 else np.zeros(2)
-    pieces = max(1, math.ceil(length / max(4 * reach, 50.0)))
     least = math.inf
-    for k in range(pieces):
-        a = (start[0] + direction[0] * length * k / pieces, start[1] + direction[1] * length * k / pieces)
-        b = (start[0] + direction[0] * length * (k + 1) / pieces, start[1] + direction[1] * length * (k + 1) / pieces)
-        rows, cols = _window(dsm.shape, transform, a, b, reach)
-        if rows.size == 0:
-            continue
-        values = dsm[rows, cols].astype(float)
-        x = transform.a * (cols + 0.5) + transform.b * (rows + 0.5) + transform.c
-        y = transform.d * (cols + 0.5) + transform.e * (rows + 0.5) + transform.f
-        dx, dy = x - start[0], y - start[1]
-        u = np.clip(dx * direction[0] + dy * direction[1], 0.0, length)
-        near = (np.hypot(dx - u * direction[0], dy - u * direction[1]) <= reach) & np.isfinite(values)
-        if not near.any():
-            continue
-        fraction = np.clip(np.stack([u[near] - radius_m, u[near] + radius_m]) / (length or 1.0), 0.0, 1.0)
+    for values, along in pixels_near_segment(dsm, transform, start, end, radius_m):
+        fraction = np.clip(np.stack([along - radius_m, along + radius_m]) / (length or 1.0), 0.0, 1.0)
         lowest = (heights[0] + (heights[1] - heights[0]) * fraction).min(axis=0)
-        least = min(least, float((lowest - values[near]).min()))
+        least = min(least, float((lowest - values).min()))
     return least
 
 
