@@ -29,7 +29,7 @@ import numpy as np
 import pyproj
 
 from ..errors import ConfigError, CRSError
-from .coverage import Point2
+from .coverage import CoverageParams, Lane, Point2
 
 __all__ = [
     "AffineLike",
@@ -369,3 +369,33 @@ def _window(
         return np.array([], dtype=int), np.array([], dtype=int)
     rr, cc = np.meshgrid(np.arange(r0, r1), np.arange(c0, c1), indexing="ij")
     return rr.ravel(), cc.ravel()
+
+
+def lane_with_turns(
+    lane: Lane,
+    turnaround_m: float,
+    dsm: np.ndarray,
+    transform: AffineLike,
+    coverage: CoverageParams,
+    *,
+    max_gradient: float,
+    slope_gain_m: float,
+) -> tuple[Point2, Point2, float, float]:
+    """A lane extended by ``turnaround_m`` at both ends, flown as one straight line (:func:`lane_line`):
+    the turn points before and after it and the heights there (DSM datum). Raises ``ValueError``
+    where no DSM lies under the lane's swath."""
+    length = lane.length_m
+    dx, dy = (lane.end[0] - lane.start[0]) / length, (lane.end[1] - lane.start[1]) / length
+    before = (lane.start[0] - dx * turnaround_m, lane.start[1] - dy * turnaround_m)
+    after = (lane.end[0] + dx * turnaround_m, lane.end[1] + dy * turnaround_m)
+    first, last = lane_line(
+        dsm,
+        transform,
+        before,
+        after,
+        half_width_m=coverage.swath_m / 2,
+        altitude_agl_m=coverage.altitude_agl_m,
+        max_gradient=max_gradient,
+        slope_gain_m=slope_gain_m,
+    )
+    return before, after, first, last

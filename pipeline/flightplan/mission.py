@@ -23,7 +23,7 @@ import numpy as np
 import pyproj
 import shapely
 
-from .altitude import AffineLike, height_at, lane_line, max_height_along, nearest_data_point
+from .altitude import AffineLike, height_at, lane_with_turns, max_height_along, nearest_data_point
 from .clearance import flight_time_s, leg_clearance
 from .coverage import CoverageParams, CoveragePattern, Lane, Point2, cluster_holes, plan_pattern, split_pattern
 from .rescan import SightParams, place_pattern
@@ -544,15 +544,12 @@ def _lane_points(
     t = pattern.turnaround_m
     length = lane.length_m
     d = ((lane.end[0] - lane.start[0]) / length, (lane.end[1] - lane.start[1]) / length)
-    before = (lane.start[0] - d[0] * t, lane.start[1] - d[1] * t)
-    after = (lane.end[0] + d[0] * t, lane.end[1] + d[1] * t)
-    first, last = lane_line(
+    before, _, first, last = lane_with_turns(
+        lane,
+        t,
         dsm,
         transform,
-        before,
-        after,
-        half_width_m=params.coverage.swath_m / 2,
-        altitude_agl_m=params.coverage.altitude_agl_m,
+        params.coverage,
         max_gradient=params.max_climb_gradient,
         slope_gain_m=params.terrain_step_m,
     )

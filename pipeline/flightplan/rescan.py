@@ -30,7 +30,7 @@ import numpy as np
 import shapely
 
 from ..sensor.sight import SEEN, ground_targets, sight_classes
-from .altitude import AffineLike, lane_line
+from .altitude import AffineLike, lane_with_turns
 from .coverage import CoverageParams, CoveragePattern, Lane
 
 __all__ = ["CANDIDATE_ANGLE_STEP_DEG", "Placement", "SightParams", "place_pattern"]
@@ -217,17 +217,13 @@ def _track(lane: Lane, dsm: np.ndarray, transform: AffineLike, params: SightPara
     None where no DSM lies under the lane's swath (off the survey): its height, and so its clearance, is unknown.
     """
     length, turnaround_m = lane.length_m, params.coverage.turnaround_m
-    dx, dy = (lane.end[0] - lane.start[0]) / length, (lane.end[1] - lane.start[1]) / length
-    before = (lane.start[0] - dx * turnaround_m, lane.start[1] - dy * turnaround_m)
-    after = (lane.end[0] + dx * turnaround_m, lane.end[1] + dy * turnaround_m)
     try:
-        first, last = lane_line(
+        _, _, first, last = lane_with_turns(
+            lane,
+            turnaround_m,
             dsm,
             transform,
-            before,
-            after,
-            half_width_m=params.coverage.swath_m / 2,
-            altitude_agl_m=params.coverage.altitude_agl_m,
+            params.coverage,
             max_gradient=params.max_climb_gradient,
             slope_gain_m=params.terrain_step_m,
         )
