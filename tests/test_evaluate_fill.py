@@ -12,8 +12,8 @@ import pytest
 from affine import Affine
 from click.testing import CliRunner
 
-from pipeline import evaluate_fill as ef
 from pipeline.cli import main
+from pipeline.evaluate import fill as ef
 
 from .lasfiles import write_points
 

@@ -40,7 +40,7 @@ __all__ = [
 ]
 
 #: Coverage classes of a pixel (:meth:`CoverageGaps.classes`, ``detect_cell_holes(coverage=)``).
-#: ``IN_MISSING_TILE``: in the square of a missing tile of the tile grid (:mod:`pipeline.tile_grid`),
+#: ``IN_MISSING_TILE``: in the square of a missing tile of the tile grid (:mod:`pipeline.survey.tile_grid`),
 #: a coverage gap of its own kind.
 #: ``OUTSIDE_TILE_EXTENTS``: in the square of a delivered tile but outside every tile's declared
 #: extent (the tile's data stops short of its square): evidence of missed coverage only, it does

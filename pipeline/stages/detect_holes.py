@@ -15,7 +15,6 @@ import numpy as np
 import shapely
 
 from ..config import HOLE_CONTEXT_PX, Config
-from ..footprint import BlockMap, aoi_mask
 from ..grid import Cell, Grid, PixelWindow, window_union_mask
 from ..holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
 from ..holes.coverage import (
@@ -38,6 +37,7 @@ from ..sensor.sight import OUTSIDE_SWATHS, ground_targets, sight_classes, surfac
 from ..sensor.sums import TrajectorySums
 from ..sensor.trajectory import FlightLine, fit_flight_lines, swath_polygon
 from ..staging import Staging
+from ..survey.footprint import BlockMap, aoi_mask
 from .bin_tiles import BIN_TILES, TileResult
 from .merge_cells import (
     MERGE_CELLS,

@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from ..cluster import dask_client
-from ..config import Config
-from ..errors import ConfigError, HolefillError
+from ...cluster import dask_client
+from ...config import Config
+from ...errors import ConfigError, HolefillError
 from .alternatives import ALTERNATIVES, AlternativeUnavailable, _hole_windows
 from .cutting import _write_cut_holes, align, cut_points
 from .formatting import write_json
@@ -233,7 +233,7 @@ def _scan(
 
     None when the survey cannot be read.
     """
-    from ..survey import scan_survey
+    from ...survey.scan import scan_survey
 
     try:
         survey = scan_survey(inputs, crs=config.survey.crs, on_error=config.survey.on_error)
@@ -258,8 +258,8 @@ def _run_reference(
     result: SurveyResult, inputs: list[str], folder: Path, config: Config, client: Any
 ) -> tuple[np.ndarray, Any, str] | None:
     """Run the pipeline on the full survey without holes or fills; its raster, or None when it failed."""
-    from ..io.raster import read_raster
-    from ..run import run_survey
+    from ...io.raster import read_raster
+    from ...run import run_survey
 
     reference_config = config.replace("holes", source="fill benchmark", enabled=False)
     try:
@@ -323,8 +323,8 @@ def _run_methods(
     client: Any,
 ) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
     """Run the pipeline on the cut survey once per method: the filled rasters, and the default run's unfilled one."""
-    from ..io.raster import read_raster
-    from ..run import run_survey
+    from ...io.raster import read_raster
+    from ...run import run_survey
 
     resolution_m = result.resolution_m
     deepest_m = max(h.max_distance_px for h in result.holes) * resolution_m
@@ -354,7 +354,7 @@ def _run_methods(
 
 def _check_cut(result: SurveyResult, run: Path, reference: np.ndarray, transform: Any, cut: np.ndarray) -> np.ndarray:
     """The default run's unfilled raster; records (and warns) where it differs from the reference but for the cut."""
-    from ..io.raster import read_raster
+    from ...io.raster import read_raster
 
     raw, raw_transform, _ = read_raster(run / "dsm_unfilled.vrt")
     unfilled = align(raw, raw_transform, transform, reference.shape)
