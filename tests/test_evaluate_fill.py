@@ -325,10 +325,7 @@ def test_fill_benchmark_on_a_real_tile(shared_data, tmp_path, dask_client):
         [[str(shared_data / "ign_crop1.laz")]],
         tmp_path,
         _config(),
-        n_holes=5,
-        seed=1,
-        methods=("default",),
-        alternatives=("tin_linear",),
+        plan=ef.BenchmarkPlan(n_holes=5, seed=1, methods=("default",), alternatives=("tin_linear",)),
         client=dask_client,
     )
     (survey,) = benchmark.surveys

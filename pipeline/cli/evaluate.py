@@ -115,7 +115,7 @@ def _score_against_truth(out: str, truth_path: str, config: Config) -> None:
 
 def _benchmark_fills(paths: tuple[str, ...], config: Config, options: dict[str, Any]) -> None:
     """The second job: the fill benchmark over each survey, a table on stdout and in ``--out``."""
-    from ..evaluate.fill import evaluate_fill, format_table, survey_name
+    from ..evaluate.fill import BenchmarkPlan, evaluate_fill, format_table, survey_name
 
     def names(text: str) -> tuple[str, ...]:
         return tuple(item.strip() for item in text.split(",") if item.strip())
@@ -138,12 +138,14 @@ def _benchmark_fills(paths: tuple[str, ...], config: Config, options: dict[str, 
         surveys,
         out_dir,
         config,
-        n_holes=options["n_holes"],
-        seed=options["seed"],
-        models=("dsm", "dtm") if model == "both" else (model,),
-        methods=names(options["methods"]),
-        alternatives=names(options["alternatives"]),
-        resolution_m=options["resolution_m"],
+        plan=BenchmarkPlan(
+            n_holes=options["n_holes"],
+            seed=options["seed"],
+            models=("dsm", "dtm") if model == "both" else (model,),
+            methods=names(options["methods"]),
+            alternatives=names(options["alternatives"]),
+            resolution_m=options["resolution_m"],
+        ),
         crs=crs,
         scheduler=options["scheduler"],
         on_survey=progress,
