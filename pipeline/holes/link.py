@@ -59,8 +59,8 @@ class HoleCatalog:
     min_area_px : int
         Holes with fewer pixels are small voids.
     settled_small_voids, settled_small_void_px : int
-        Small closed voids the cells settled themselves (``detect_cell_holes(...,
-        min_area_px=...)``): counted here, absent from ``holes`` and ``parts``.
+        Small closed voids the cells settled themselves (``DetectParams.min_area_px``
+        of ``detect_cell_holes``): counted here, absent from ``holes`` and ``parts``.
     """
 
     holes: np.ndarray
