@@ -6,7 +6,7 @@ written (``write_truth``), and the pipeline run on its tiles with the DEFAULT
 configuration -- no AOI, no water polygons: the survey area comes from the tile grid,
 the pixel size and the minimum hole area are "auto" -- exactly what ``holefill run
 TILES --out OUT`` does, on one local cluster shared by the runs. The holes are scored
-with ``pipeline.evaluate.score_holes`` (a detected hole's true cause is the most common
+with ``pipeline.evaluate.truth.score_holes`` (a detected hole's true cause is the most common
 truth cause of its pixels). Prints, per scene and pooled: holes, right/total and accuracy
 per true cause, the confusion (true -> reported), the IoU of hole pixels, and every hole
 whose cause is wrong with the rule that decided and its ring heights.
@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.config import load_config
-from pipeline.evaluate import CAUSE_NAMES, score_holes
+from pipeline.evaluate.truth import CAUSE_NAMES, score_holes
 from pipeline.io.raster import geometry_mask, read_raster
 from pipeline.io.vector import read_layer
 from pipeline.run import run_survey

@@ -2,7 +2,7 @@
 
 Runs holefill with default settings (plus the CRS a file lacks,
 ``compare_outputs.MISSING_CRS``) on each file of ../shared/data and labels every
-listed hole with an independent truth (``pipeline.evaluate_causes``: the
+listed hole with an independent truth (``pipeline.evaluate.causes``: the
 producer's water-class points beside the hole, reference lake polygons, building
 points standing above the ring). Each file with water-class points is run a
 second time with that evidence withheld: a copy of the file with class 9
@@ -74,7 +74,7 @@ def label_run(name: str, run_dir: Path) -> list:
     """The labelled holes of one finished run of the file ``name``."""
     from pyproj import CRS
 
-    from pipeline.evaluate_causes import label_holes
+    from pipeline.evaluate.causes import label_holes
     from pipeline.io.raster import read_raster
     from pipeline.io.vector import read_survey_area
 
@@ -87,7 +87,7 @@ def label_run(name: str, run_dir: Path) -> list:
 
 
 def score_line(label: str, holes: list) -> str:
-    from pipeline.evaluate_causes import TRUTH_CAUSES, score_holes
+    from pipeline.evaluate.causes import TRUTH_CAUSES, score_holes
 
     score = score_holes(holes)
     per_cause = ", ".join(f"{c} {score.right[c]}/{score.total[c]}" for c in TRUTH_CAUSES if score.total[c])
@@ -100,7 +100,7 @@ def score_line(label: str, holes: list) -> str:
 
 
 def hole_line(hole) -> str:
-    from pipeline.evaluate_causes import is_right
+    from pipeline.evaluate.causes import is_right
 
     verdict = "unverified" if hole.truth == "unverified" else ("right" if is_right(hole) else "WRONG")
     return (
@@ -153,7 +153,7 @@ def _check_same_holes(name: str, runs: dict[str, list]) -> None:
 
 def report(labelled: dict[str, dict[str, list]]) -> dict:
     """Print the per-file and pooled scores; return them for --json."""
-    from pipeline.evaluate_causes import is_right
+    from pipeline.evaluate.causes import is_right
 
     result: dict = {"files": {}, "pooled": {}}
     for run in RUNS:
@@ -175,7 +175,7 @@ def report(labelled: dict[str, dict[str, list]]) -> dict:
 
 
 def _score_dict(holes: list) -> dict:
-    from pipeline.evaluate_causes import score_holes
+    from pipeline.evaluate.causes import score_holes
 
     score = score_holes(holes)
     return {

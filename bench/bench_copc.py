@@ -41,7 +41,7 @@ from pipeline.config import load_config
 from pipeline.io.copc import iter_copc_nodes, write_copc
 from pipeline.plan import plan_survey
 from pipeline.run import run_survey
-from pipeline.survey import scan_survey
+from pipeline.survey.scan import scan_survey
 from pipeline.synth import generate_survey, preset
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -48,7 +48,7 @@ def _load_surveys(paths: list[Path]) -> list[dict]:
     """The surveys of the reports, with their errors also in metres (``m``, ``rmse_m``)."""
     import json
 
-    from pipeline.survey import scan_survey
+    from pipeline.survey.scan import scan_survey
 
     surveys = []
     for path in paths:
@@ -173,7 +173,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from pipeline.config import load_config
-    from pipeline.evaluate_fill import evaluate_fill, format_table
+    from pipeline.evaluate.fill import BenchmarkPlan, evaluate_fill, format_table
 
     files = [p for p in sorted(SHARED_DATA.glob("*.la[sz]")) if not args.only or p.name in args.only]
     if not files:
@@ -188,11 +188,13 @@ def main() -> None:
         [[str(p)] for p in files],
         args.out,
         config,
-        n_holes=args.holes,
-        seed=args.seed,
-        models=("dsm", "dtm") if args.model == "both" else (args.model,),
+        plan=BenchmarkPlan(
+            n_holes=args.holes,
+            seed=args.seed,
+            models=("dsm", "dtm") if args.model == "both" else (args.model,),
+            **({"methods": tuple(args.methods.split(","))} if args.methods else {}),
+        ),
         crs=dict(MISSING_CRS),
-        **({"methods": tuple(args.methods.split(","))} if args.methods else {}),
         on_survey=progress,
     )
     table = format_table(benchmark)

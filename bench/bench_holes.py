@@ -16,7 +16,7 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from pipeline.grid import Cell, PixelWindow
-from pipeline.holes import classify_causes, detect_cell_holes
+from pipeline.holes import DetectParams, classify_causes, detect_cell_holes
 from pipeline.parameters import default_cause_rules
 
 
@@ -66,7 +66,7 @@ def main() -> None:
         zmin,
         cell=Cell("warm", 0, 0, small, small.expand(halo)),
         grid_window=small.expand(halo),
-        jump_threshold=2.0,
+        params=DetectParams(jump_threshold=2.0),
     )
     for kind, min_area in (("mixed", 0), ("speckle", 0), ("speckle", 4), ("empty", 0)):
         count, zmax, zmin = scene(kind, size, halo)
@@ -81,8 +81,7 @@ def main() -> None:
                 aoi,
                 cell=cell,
                 grid_window=grid_window,
-                jump_threshold=2.0,
-                min_area_px=min_area,
+                params=DetectParams(jump_threshold=2.0, min_area_px=min_area),
             )
             classify_causes(res.stats, default_cause_rules(pixel_size=1.0, jump_threshold=2.0))
             best = min(best, time.perf_counter() - t0)

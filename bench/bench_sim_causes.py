@@ -10,7 +10,7 @@ density, field of view, height, dark patches (``random_scan_params``). The tiles
 embedded) go through the DEFAULT pipeline, exactly as ``holefill run TILES --out OUT``
 runs it -- no AOI, no water polygons, pixel size and minimum hole area "auto" -- on one
 local cluster shared by the runs. The truth is then made at the run's pixel size
-(``write_truth``), and the holes scored with ``pipeline.evaluate.score_holes``. Prints,
+(``write_truth``), and the holes scored with ``pipeline.evaluate.truth.score_holes``. Prints,
 per terrain and pooled: holes, right/total per true cause, the confusion (true ->
 reported), the IoU of hole pixels, and every hole whose cause is wrong with the rule that
 decided.
@@ -30,7 +30,7 @@ import time
 from bench_causes import Tally, format_tally, wrong_holes
 
 from pipeline.config import load_config
-from pipeline.evaluate import score_holes
+from pipeline.evaluate.truth import score_holes
 from pipeline.run import run_survey
 from pipeline.simulate import TERRAINS, Terrain, load_terrain, random_scan_params, simulate_scan, write_truth
 

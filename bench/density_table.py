@@ -5,7 +5,7 @@ Runs holefill with the default configuration (plus the CRS a file lacks,
 one local cluster, and prints a Markdown table (the one in docs/performance.md,
 "Real surveys with default settings"). The density is the one the run sized its
 pixels with: first returns per m² on the data footprint (the pre-pass of
-``pipeline.footprint_density``) where the headers' per-return counts add up, else
+``pipeline.survey.footprint_density``) where the headers' per-return counts add up, else
 all points (marked *). A failed run is a row with its error.
 
 Usage::

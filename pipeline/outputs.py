@@ -39,7 +39,7 @@ from .stages.merge_cells import CellResult
 from .stages.registry import RunResults
 from .stages.write_rasters import DESCRIPTIONS, WriteResult
 from .staging import Staging
-from .survey import tile_index_records
+from .survey.scan import tile_index_records
 
 #: Products a run moves from the staging folder into OUT (and replaces there).
 PRODUCTS = (
@@ -88,7 +88,7 @@ class RunSummary:
     resumed_tasks: int = 0  # tasks an interrupted run had finished, not run again
     point_files: list[str] = field(default_factory=list)  # points/*.laz (output.points)
     reused_tasks: int = 0  # results of unchanged tiles and cells taken from the previous run (incremental)
-    heights: dict[str, Any] = field(default_factory=dict)  # elevations or above the ground (pipeline.ground_level)
+    heights: dict[str, Any] = field(default_factory=dict)  # elevations or above the ground (survey.ground_level)
     points_outside: int = 0  # points outside their file's header bounds (reprojected or PDAL reads): not used
 
     @property

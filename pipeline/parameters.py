@@ -35,10 +35,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from .config import AUTO, CausesConfig, Config
-from .density import auto_min_area_m2, sampling_gap_width_m
 from .holes.causes import CauseRules
 from .io import pdal_reader
 from .rasterize import PointFilter
+from .survey.density import auto_min_area_m2, sampling_gap_width_m
 
 if TYPE_CHECKING:
     from .fill.by_cause import FillParams

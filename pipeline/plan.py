@@ -21,20 +21,20 @@ from dataclasses import dataclass
 import shapely
 
 from .config import AUTO, Config
-from .density import (
+from .errors import InputDataError
+from .grid import Cell, Grid, PixelWindow
+from .io.vector import read_survey_area
+from .parameters import HoleParams, hole_params
+from .reads import ReadPart, plan_reads
+from .survey.density import (
     Density,
     auto_resolution_m,
     round_cell_size,
     supported_resolution_m,
 )
-from .errors import InputDataError
-from .footprint import block_size_px
-from .grid import Cell, Grid, PixelWindow
-from .io.vector import read_survey_area
-from .parameters import HoleParams, hole_params
-from .reads import ReadPart, plan_reads
-from .survey import Survey
-from .tile_grid import TileGrid, grid_survey_area, infer_tile_grid
+from .survey.footprint import block_size_px
+from .survey.scan import Survey
+from .survey.tile_grid import TileGrid, grid_survey_area, infer_tile_grid
 
 logger = logging.getLogger(__name__)
 
@@ -333,7 +333,7 @@ def _area_squares(area: SurveyArea) -> list[Bounds]:
 
 def needs_density(config: Config) -> bool:
     """Whether the run settles something from the survey's density ("auto" pixel size or minimum hole area),
-    so that it is worth measuring on the data footprint (:func:`pipeline.footprint_density.measure_footprint`)."""
+    so that it is worth measuring on the data footprint (:func:`pipeline.survey.footprint_density.measure_footprint`)."""
     return config.grid.resolution_m == AUTO or (config.holes.enabled and config.holes.min_area_m2 == AUTO)
 
 

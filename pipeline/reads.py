@@ -26,7 +26,7 @@ import numpy as np
 from .grid import Grid
 
 if TYPE_CHECKING:
-    from .survey import Survey, Tile
+    from .survey.scan import Survey, Tile
 
 #: A COPC node as a read task carries it: byte offset, byte size and point count of its chunk.
 Node = tuple[int, int, int]

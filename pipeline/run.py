@@ -33,8 +33,6 @@ from .cluster import ClusterStart, WorkerWatch, dask_client
 from .config import Config, config_key, to_dict
 from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, TaskError
 from .flight_planning import plan_flights
-from .footprint_density import measure_footprint
-from .ground_level import NO_TERRAIN
 from .io.checksums import output_records
 from .io.vector import read_survey_area
 from .output_guard import check_before_run, check_same_survey
@@ -46,7 +44,9 @@ from .report import ReportInputs, read_report_inputs, write_report
 from .stages.registry import STAGES, RunResults, run_results
 from .stages.stage import Dependency, RunState, Stage
 from .staging import PARTIAL_PREFIX, Staging, disk_full, input_fingerprint, run_and_keep
-from .survey import scan_survey
+from .survey.footprint_density import measure_footprint
+from .survey.ground_level import NO_TERRAIN
+from .survey.scan import scan_survey
 
 logger = logging.getLogger(__name__)
 

@@ -131,7 +131,7 @@ def test_evaluate_a_folder_without_a_run(runner, tmp_path):
 
 
 def test_scores_are_valid_json_when_no_hole_is_scored():
-    from pipeline.evaluate import HoleScore
+    from pipeline.evaluate.truth import HoleScore
 
     text = json.dumps(
         HoleScore(iou=1.0, true_hole_px=0, detected_px=0, holes=0, cause_correct=0).as_dict(), allow_nan=False

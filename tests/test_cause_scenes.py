@@ -16,7 +16,7 @@ import math
 import pytest
 
 from pipeline.config import load_config
-from pipeline.evaluate import score_holes
+from pipeline.evaluate.truth import score_holes
 from pipeline.io.vector import read_layer
 from pipeline.run import run_survey
 from pipeline.synth import generate_survey, write_truth

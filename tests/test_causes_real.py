@@ -1,4 +1,4 @@
-"""Hole causes on real surveys against evidence the rules do not see (pipeline.evaluate_causes)."""
+"""Hole causes on real surveys against evidence the rules do not see (pipeline.evaluate.causes)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from pyproj import CRS
 
 from pipeline.config import load_config
-from pipeline.evaluate_causes import (
+from pipeline.evaluate.causes import (
     HoleTruth,
     PointEvidence,
     TruthRules,

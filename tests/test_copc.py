@@ -21,7 +21,7 @@ from pipeline.io.raster import read_raster
 from pipeline.io.vector import list_layers, write_layer
 from pipeline.plan import plan_survey
 from pipeline.run import run_survey
-from pipeline.survey import scan_survey
+from pipeline.survey.scan import scan_survey
 from pipeline.synth import generate_survey, preset
 from tests.test_resume import holefill, same_outputs, wait_for_kept_tiles
 

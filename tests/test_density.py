@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from pipeline.density import (
+from pipeline.survey.density import (
     Density,
     auto_min_area_m2,
     auto_resolution_m,

@@ -12,8 +12,8 @@ import pytest
 from affine import Affine
 from click.testing import CliRunner
 
-from pipeline import evaluate_fill as ef
 from pipeline.cli import main
+from pipeline.evaluate import fill as ef
 
 from .lasfiles import write_points
 
@@ -325,10 +325,7 @@ def test_fill_benchmark_on_a_real_tile(shared_data, tmp_path, dask_client):
         [[str(shared_data / "ign_crop1.laz")]],
         tmp_path,
         _config(),
-        n_holes=5,
-        seed=1,
-        methods=("default",),
-        alternatives=("tin_linear",),
+        plan=ef.BenchmarkPlan(n_holes=5, seed=1, methods=("default",), alternatives=("tin_linear",)),
         client=dask_client,
     )
     (survey,) = benchmark.surveys

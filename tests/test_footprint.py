@@ -1,10 +1,10 @@
-"""Tests of pipeline.footprint: the data footprint that decides the default AOI."""
+"""Tests of pipeline.survey.footprint: the data footprint that decides the default AOI."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from pipeline.footprint import data_footprint
+from pipeline.survey.footprint import data_footprint
 
 
 def test_data_footprint_diagonal_strip():

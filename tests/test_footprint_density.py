@@ -10,12 +10,12 @@ import pytest
 import rasterio
 
 from pipeline.config import load_config
-from pipeline.density import auto_resolution_m, narrow_width
-from pipeline.footprint_density import block_histogram, choose_level, measure_footprint, merge_blocks
 from pipeline.holes import mark_sampling_gaps
 from pipeline.io.vector import read_layer
 from pipeline.run import run_survey
-from pipeline.survey import scan_survey
+from pipeline.survey.density import auto_resolution_m, narrow_width
+from pipeline.survey.footprint_density import block_histogram, choose_level, measure_footprint, merge_blocks
+from pipeline.survey.scan import scan_survey
 
 from .lasfiles import write_points
 
@@ -75,7 +75,7 @@ def test_footprint_density_ignores_empty_header_box_and_tiling(tmp_path):
 
 def test_the_pre_pass_in_processes_counts_what_threads_count(tmp_path, monkeypatch):
     """Large surveys are decoded in processes (forked from the fork server): the same blocks and counts."""
-    import pipeline.footprint_density as footprint_density
+    import pipeline.survey.footprint_density as footprint_density
 
     rng = np.random.default_rng(2)
     x, y = rng.uniform(0, 300, 30_000), rng.uniform(0, 200, 30_000)

@@ -7,8 +7,8 @@ import json
 import numpy as np
 
 from pipeline.config import load_config
-from pipeline.ground_level import MIN_GROUND_POINTS, GroundLevel, count_ground_at_zero
 from pipeline.run import run_survey
+from pipeline.survey.ground_level import MIN_GROUND_POINTS, GroundLevel, count_ground_at_zero
 
 from .lasfiles import write_points
 

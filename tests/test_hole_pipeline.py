@@ -9,7 +9,7 @@ import rasterio
 import shapely
 
 from pipeline.config import load_config
-from pipeline.evaluate import score_holes
+from pipeline.evaluate.truth import score_holes
 from pipeline.io.raster import geometry_mask
 from pipeline.io.vector import list_layers, read_layer
 from pipeline.run import run_survey

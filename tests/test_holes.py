@@ -46,7 +46,8 @@ def detect_all(grid, count, zmax, zmin, aoi=None, **kw):
     out = []
     for cell in grid.cells():
         sl = cell.halo_window.slices_within(grid.window)
-        extra = {k: (v[sl] if isinstance(v, np.ndarray) else v) for k, v in kw.items()}
+        evidence = {k: v[sl] for k, v in kw.items() if isinstance(v, np.ndarray)}
+        thresholds = {k: v for k, v in kw.items() if not isinstance(v, np.ndarray)}
         out.append(
             H.detect_cell_holes(
                 count[sl],
@@ -55,8 +56,8 @@ def detect_all(grid, count, zmax, zmin, aoi=None, **kw):
                 None if aoi is None else aoi[sl],
                 cell=cell,
                 grid_window=grid.window,
-                jump_threshold=JUMP,
-                **extra,
+                params=H.DetectParams(jump_threshold=JUMP, **thresholds),
+                evidence=H.CellEvidence(**evidence),
             )
         )
     return out
@@ -257,13 +258,13 @@ def test_validation_errors():
     z = np.zeros(shape, np.float32)
     count = np.ones(shape, np.uint32)
     with pytest.raises(ValueError, match="halo"):
-        H.detect_cell_holes(count, z, z, cell=cell, grid_window=grid.window, jump_threshold=1.0)
+        H.detect_cell_holes(count, z, z, cell=cell, grid_window=grid.window, params=H.DetectParams(1.0))
     with pytest.raises(ValueError, match="shape"):
-        H.detect_cell_holes(count[1:], z, z, cell=cell, grid_window=grid.window, jump_threshold=1.0, local_radius_px=2)
+        params = H.DetectParams(1.0, local_radius_px=2)
+        H.detect_cell_holes(count[1:], z, z, cell=cell, grid_window=grid.window, params=params)
     with pytest.raises(ValueError, match="connectivity"):
-        H.detect_cell_holes(
-            count, z, z, cell=cell, grid_window=grid.window, jump_threshold=1.0, local_radius_px=2, connectivity=6
-        )
+        params = H.DetectParams(1.0, local_radius_px=2, connectivity=6)
+        H.detect_cell_holes(count, z, z, cell=cell, grid_window=grid.window, params=params)
 
 
 def test_results_pickle():

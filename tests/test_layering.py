@@ -9,11 +9,11 @@ import pytest
 
 KERNELS = [
     "pipeline.grid",
-    "pipeline.density",
-    "pipeline.ground_level",
+    "pipeline.survey.density",
+    "pipeline.survey.ground_level",
     "pipeline.rasterize",
     "pipeline.config",
-    "pipeline.footprint",
+    "pipeline.survey.footprint",
     "pipeline.sensor.sums",
     "pipeline.sensor.trajectory",
     "pipeline.sensor.sight",
@@ -58,9 +58,9 @@ KERNELS = [
 #: fill kernels come after the hole kernels and before the flight-plan kernels, as in a run.
 FLOW = [
     "pipeline.grid",
-    "pipeline.density",
+    "pipeline.survey.density",
     "pipeline.rasterize",
-    "pipeline.footprint",
+    "pipeline.survey.footprint",
     "pipeline.sensor.sums",
     "pipeline.sensor.trajectory",
     "pipeline.sensor.sight",
@@ -168,9 +168,49 @@ def test_every_kernel_module_is_in_the_flow(package):
     assert modules <= set(FLOW), sorted(modules - set(FLOW))
 
 
+#: The root's families and what each may import of holefill: the survey's facts come before
+#: the plan and the stages (only the lattice, the errors, the formats and themselves);
+#: evaluation comes after everything (only the command line imports it).
+FAMILY_IMPORTS = {
+    "pipeline.survey": ("pipeline.errors", "pipeline.grid", "pipeline.io.", "pipeline.survey."),
+}
+EVALUATION_USERS = ("pipeline.evaluate", "pipeline.cli")
+
+
+def _modules_of(package: str) -> list[str]:
+    import pathlib
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    folder = root / package.replace(".", "/")
+    names = []
+    for path in folder.rglob("*.py"):
+        parts = path.relative_to(root).with_suffix("").parts
+        names.append(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+    return sorted(names)
+
+
+@pytest.mark.parametrize("family", sorted(FAMILY_IMPORTS))
+def test_family_imports_nothing_that_runs_after_it(family):
+    allowed = FAMILY_IMPORTS[family]
+    for module in _modules_of(family):
+        later = {m for m in _pipeline_imports(module) if not m.startswith(allowed) and m not in allowed}
+        assert not later, f"{module} imports {sorted(later)}: later than {family}"
+
+
+def test_only_the_command_line_imports_evaluation():
+    """Evaluation reads a run's products: nothing the run needs may import it."""
+    users = []
+    for module in _modules_of("pipeline"):
+        if not module.startswith(EVALUATION_USERS) and any(
+            m.startswith("pipeline.evaluate") for m in _pipeline_imports(module)
+        ):
+            users.append(module)
+    assert not users, users
+
+
 #: Import circles not opened yet: both close only through an import for type checking.
 KNOWN_CIRCLES = {
-    ("pipeline.footprint_density", "pipeline.survey"),
+    ("pipeline.survey.footprint_density", "pipeline.survey.scan"),
     ("pipeline.synth.scene", "pipeline.synth.water_bodies"),
 }
 

@@ -71,7 +71,9 @@ def test_parts_from_cells_merge_into_the_whole_hole():
     parts = []
     for cell in grid.cells():
         sl = cell.halo_window.slices_within(grid.window)
-        res = H.detect_cell_holes(count[sl], z[sl], z[sl], cell=cell, grid_window=grid.window, jump_threshold=2.0)
+        res = H.detect_cell_holes(
+            count[sl], z[sl], z[sl], cell=cell, grid_window=grid.window, params=H.DetectParams(2.0)
+        )
         outlines = O.label_outlines(res.labels, row_off=cell.window.row_off, col_off=cell.window.col_off)
         parts.extend(outlines.values())
     assert len(parts) > 4

@@ -22,7 +22,7 @@ from pipeline.io.pdal_reader import PdalRead, iter_pdal_chunks, load_user_pipeli
 from pipeline.plan import plan_survey
 from pipeline.stages.bin_tiles import rasterize_tile, tile_tasks
 from pipeline.staging import Staging
-from pipeline.survey import scan_survey
+from pipeline.survey.scan import scan_survey
 
 from .lasfiles import random_points, write_points
 

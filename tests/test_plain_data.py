@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from pipeline.grid import PixelWindow
-from pipeline.ground_level import GroundLevel
 from pipeline.io.intermediate import FORMAT_VERSION, load_object, save_object
 from pipeline.stages.bin_tiles import TileResult
+from pipeline.survey.ground_level import GroundLevel
 
 
 @dataclass(frozen=True)
@@ -76,6 +76,8 @@ def planted_tree(path: Path, tree: dict) -> None:
         {"$c": "pipeline.grid:PixelWindow", "v": {"row_off": 1}},  # fields missing
         {"$c": "pipeline.grid:PixelWindow", "v": {"row_off": "1", "col_off": 0, "height": 1, "width": 1}},
         {"$c": "pipeline.staging:Staging.create", "v": {}},  # not a dataclass
+        {"$c": "pipeline.no_such_module:Thing", "v": {}},  # a class this version does not have
+        {"$c": "pipeline.grid:NoSuchClass", "v": {}},
         {"$x": 1},
     ],
 )
@@ -83,6 +85,13 @@ def test_unexpected_content_is_refused(tmp_path, tree):
     planted_tree(tmp_path / "r.npz", tree)
     with pytest.raises(ValueError):
         load_object(tmp_path / "r.npz")
+
+
+def test_a_class_kept_under_its_module_before_a_move_reads_back(tmp_path):
+    """An older run's kept results (``--incremental``) name classes where they were then."""
+    fields = {"points": 5, "at_zero": 0}
+    planted_tree(tmp_path / "r.npz", {"$c": "pipeline.ground_level:GroundLevel", "v": fields})
+    assert load_object(tmp_path / "r.npz") == GroundLevel(5, 0)
 
 
 def test_a_planted_pickle_is_not_run(tmp_path):

@@ -10,7 +10,7 @@ from pipeline.config import load_config
 from pipeline.grid import Grid
 from pipeline.io.las import TileHeader
 from pipeline.plan import _shared_windows, _tiles_by_cell, plan_survey
-from pipeline.survey import Survey, Tile
+from pipeline.survey.scan import Survey, Tile
 
 
 def header(bounds, points, by_return=()):

@@ -12,7 +12,7 @@ from pipeline.config import load_config
 from pipeline.errors import CRSError
 from pipeline.io.vector import list_layers, read_layer
 from pipeline.run import run_survey
-from pipeline.survey import scan_survey
+from pipeline.survey.scan import scan_survey
 
 pytestmark = [pytest.mark.realdata, pytest.mark.slow]
 

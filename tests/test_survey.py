@@ -10,7 +10,7 @@ from pyproj import CRS
 
 from pipeline.errors import CRSError, InputDataError
 from pipeline.io.las import decode_only, read_header
-from pipeline.survey import find_inputs, scan_survey
+from pipeline.survey.scan import find_inputs, scan_survey
 
 from .lasfiles import random_points, write_points
 

@@ -1,4 +1,4 @@
-"""Tile-grid inference (pipeline.tile_grid) on small synthetic layouts and on the real tiles' headers."""
+"""Tile-grid inference (pipeline.survey.tile_grid) on small synthetic layouts and on the real tiles' headers."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import shapely
 from pipeline.config import load_config
 from pipeline.errors import InputDataError
 from pipeline.plan import plan_survey
-from pipeline.survey import scan_survey
-from pipeline.tile_grid import grid_survey_area, infer_tile_grid
+from pipeline.survey.scan import scan_survey
+from pipeline.survey.tile_grid import grid_survey_area, infer_tile_grid
 
 
 def grid_bounds(size, cols, rows, *, x0=700_000.0, y0=6_600_000.0, short=0.0, skip=()):

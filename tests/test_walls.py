@@ -9,7 +9,7 @@ import pytest
 from affine import Affine
 
 from pipeline.holes import height_jumps
-from pipeline.holes.walls import find_walls, fit_wall, wall_segments
+from pipeline.holes.walls import WallParams, find_walls, fit_wall, wall_segments
 
 LOW, HIGH = 10.0, 22.0
 
@@ -60,7 +60,7 @@ def centred_offset(angle_deg, n=40, shift=0.0):
 def test_fit_recovers_a_subpixel_step_on_a_mean_raster(angle, shift):
     offset = centred_offset(angle, shift=shift)
     z = antialiased_step(40, angle, offset)
-    walls = find_walls(z, None, jump_threshold=2.0, pixel_values="centre")
+    walls = find_walls(z, None, jump_threshold=2.0, params=WallParams(pixel_values="centre"))
     assert len(walls) == 1
     wall = walls[0]
     assert distance_to_truth(wall, angle, offset) < 0.2
@@ -89,7 +89,7 @@ def test_shadow_next_to_the_wall_keeps_the_wall_at_the_roof_edge():
     r, c = np.mgrid[:40, :40]
     d = (c + 0.5) * math.cos(a) + (r + 0.5) * math.sin(a) - offset
     zmax[(d < -0.5) & (d > -5.5)] = np.nan  # the ground beside the wall was not seen
-    walls = find_walls(zmax, None, jump_threshold=2.0, pixel_values="centre", support_px=4.0)
+    walls = find_walls(zmax, None, jump_threshold=2.0, params=WallParams(support_px=4.0, pixel_values="centre"))
     assert walls and distance_to_truth(walls[0], angle, offset) < 0.3
 
 
@@ -98,7 +98,7 @@ def test_l_shaped_building_gives_two_perpendicular_walls_in_world_coordinates():
     z = np.full((n, n), LOW)
     z[10:40, 10:45] = HIGH
     transform = Affine(0.5, 0, 1000.0, 0, -0.5, 2000.0)  # 0.5 m pixels
-    walls = find_walls(z, z, jump_threshold=2.0, transform=transform, min_length_px=8)
+    walls = find_walls(z, z, jump_threshold=2.0, transform=transform, params=WallParams(min_length_px=8))
     assert len(walls) == 4
     directions = sorted(round(math.degrees(math.atan2(w.y1 - w.y0, w.x1 - w.x0))) % 180 for w in walls)
     assert directions == [0, 0, 90, 90]

@@ -40,7 +40,7 @@ def demo_command(
 ) -> None:
     """Generate a synthetic survey with known holes and run the pipeline on it."""
     from ..config import load_config
-    from ..evaluate import min_area_px, score_holes
+    from ..evaluate.truth import min_area_px, score_holes
     from ..run import run_survey
     from ..synth import generate_survey, preset, write_truth
 

@@ -1,7 +1,7 @@
 """``holefill evaluate``: its two jobs, scoring a finished run against truth, and the fill benchmark.
 
-- ``holefill evaluate OUT --truth RASTER``: :func:`pipeline.evaluate.score_run`, printed as JSON;
-- ``holefill evaluate --fill SURVEY... --out DIR``: :func:`pipeline.evaluate_fill.evaluate_fill`,
+- ``holefill evaluate OUT --truth RASTER``: :func:`pipeline.evaluate.truth.score_run`, printed as JSON;
+- ``holefill evaluate --fill SURVEY... --out DIR``: :func:`pipeline.evaluate.fill.evaluate_fill`,
   a table on stdout and DIR/fill_eval.json.
 """
 
@@ -107,7 +107,7 @@ def _score_against_truth(out: str, truth_path: str, config: Config) -> None:
     """The first job: the holes of the finished run ``out`` scored against a truth raster, as JSON on stdout."""
     if not Path(out).is_dir():
         raise click.BadParameter(f"{out!r} is not a folder", param_hint="OUT")
-    from ..evaluate import score_run
+    from ..evaluate.truth import score_run
 
     score = score_run(out, truth_path, min_area_m2=config.holes.min_area_m2)
     click.echo(json.dumps(score.as_dict(), indent=2))
@@ -115,7 +115,7 @@ def _score_against_truth(out: str, truth_path: str, config: Config) -> None:
 
 def _benchmark_fills(paths: tuple[str, ...], config: Config, options: dict[str, Any]) -> None:
     """The second job: the fill benchmark over each survey, a table on stdout and in ``--out``."""
-    from ..evaluate_fill import evaluate_fill, format_table, survey_name
+    from ..evaluate.fill import BenchmarkPlan, evaluate_fill, format_table, survey_name
 
     def names(text: str) -> tuple[str, ...]:
         return tuple(item.strip() for item in text.split(",") if item.strip())
@@ -138,12 +138,14 @@ def _benchmark_fills(paths: tuple[str, ...], config: Config, options: dict[str, 
         surveys,
         out_dir,
         config,
-        n_holes=options["n_holes"],
-        seed=options["seed"],
-        models=("dsm", "dtm") if model == "both" else (model,),
-        methods=names(options["methods"]),
-        alternatives=names(options["alternatives"]),
-        resolution_m=options["resolution_m"],
+        plan=BenchmarkPlan(
+            n_holes=options["n_holes"],
+            seed=options["seed"],
+            models=("dsm", "dtm") if model == "both" else (model,),
+            methods=names(options["methods"]),
+            alternatives=names(options["alternatives"]),
+            resolution_m=options["resolution_m"],
+        ),
         crs=crs,
         scheduler=options["scheduler"],
         on_survey=progress,

@@ -63,7 +63,7 @@ Pipeline contract
 from __future__ import annotations
 
 from .causes import CAUSE_DTYPE, CAUSES, CauseRules, classify_causes
-from .detect import PART_DTYPE, SIDE_BITS, SIDES, CellHoles, EdgeStrip, detect_cell_holes
+from .detect import PART_DTYPE, SIDE_BITS, SIDES, CellEvidence, CellHoles, DetectParams, EdgeStrip, detect_cell_holes
 from .link import HoleCatalog, PartRecord, link_holes, mark_sampling_gaps
 from .masks import height_jumps, hole_mask, vertical_holes
 from .stats import STATS_COLUMNS, HoleStats, merge_hole_stats, ring_metrics, shape_metrics
@@ -76,7 +76,9 @@ __all__ = [
     "SIDE_BITS",
     "STATS_COLUMNS",
     "CauseRules",
+    "CellEvidence",
     "CellHoles",
+    "DetectParams",
     "EdgeStrip",
     "HoleCatalog",
     "HoleStats",

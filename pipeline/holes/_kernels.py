@@ -185,7 +185,12 @@ def ring_sums(
     jump_threshold: float,
     low_tolerance: float,
 ) -> RingSums:
-    """The ring pixels of the core (see :func:`_ring_kernel`); ``water_w`` and ``line_w`` may be None."""
+    """The ring pixels of the core (see :func:`_ring_kernel`); ``water_w`` and ``line_w`` may be None.
+
+    The Python face of a numba kernel: it only forwards to :func:`_ring_kernel` (numba
+    takes no records), so its parameters are the kernel's, one each, and it is exempt
+    from the ten-parameter rule.
+    """
     return RingSums(*_ring_kernel(
         labels, hole_w, data_w, zmax_w, zmin_w, row_min,
         np.zeros((1, 1), bool) if water_w is None else water_w,

@@ -10,7 +10,7 @@ gaps between them, are the same for any cell size.
 
 A *coverage gap* is the space between two adjacent, parallel bands that no band
 covers: a missed line or a swath gap. Hole detection labels the hole pixels
-inside a gap apart from the others (``detect_cell_holes(..., coverage_gap=)``),
+inside a gap apart from the others (``CellEvidence.coverage`` of ``detect_cell_holes``),
 so a river crossing a missed strip becomes two holes, each with its own cause.
 See ``docs/holes.md``, "Coverage gaps".
 """
@@ -39,8 +39,8 @@ __all__ = [
     "line_bands",
 ]
 
-#: Coverage classes of a pixel (:meth:`CoverageGaps.classes`, ``detect_cell_holes(coverage=)``).
-#: ``IN_MISSING_TILE``: in the square of a missing tile of the tile grid (:mod:`pipeline.tile_grid`),
+#: Coverage classes of a pixel (:meth:`CoverageGaps.classes`, ``CellEvidence.coverage``).
+#: ``IN_MISSING_TILE``: in the square of a missing tile of the tile grid (:mod:`pipeline.survey.tile_grid`),
 #: a coverage gap of its own kind.
 #: ``OUTSIDE_TILE_EXTENTS``: in the square of a delivered tile but outside every tile's declared
 #: extent (the tile's data stops short of its square): evidence of missed coverage only, it does

@@ -7,7 +7,7 @@ shared ring rows for linking on the client. See ``docs/holes.md``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -19,7 +19,16 @@ from ..sensor.sight import BLOCKED, SEEN
 from ._kernels import _NO_LINE, RingSums, _coo_counts, _perimeter_flat, hole_pixel_sums, ring_sums
 from .stats import HEIGHT_HIST_DTYPE, LINE_HIST_DTYPE, SHARED_RING_DTYPE, HoleStats, _empty_columns
 
-__all__ = ["PART_DTYPE", "SIDE_BITS", "SIDES", "CellHoles", "EdgeStrip", "detect_cell_holes"]
+__all__ = [
+    "PART_DTYPE",
+    "SIDE_BITS",
+    "SIDES",
+    "CellEvidence",
+    "CellHoles",
+    "DetectParams",
+    "EdgeStrip",
+    "detect_cell_holes",
+]
 
 #: Cell sides, in the order of :attr:`CellHoles.edges`, and their bits in ``sides`` masks.
 SIDES: tuple[str, ...] = ("north", "east", "south", "west")
@@ -111,10 +120,62 @@ class CellHoles:
         return replace(self, labels=None)
 
 
-#: The arrays of :func:`detect_cell_holes`, in the order of its parameters.
-_INPUTS = (
-    "count", "zmax", "zmin", "aoi", "water_points", "water_mask", "flight_line", "coverage", "sight", "covered",
-)  # fmt: skip
+@dataclass(frozen=True)
+class DetectParams:
+    """The thresholds of :func:`detect_cell_holes` (see its parameters there).
+
+    Attributes
+    ----------
+    jump_threshold, height_bin : float
+        Height-jump threshold ([UAS] eq. 1) and bin width of the ring-height histogram, in z units.
+    connectivity : {4, 8}
+        Of hole pixels: 4 (default, [UAS] section 3.2) gives outlines whose polygons are always valid.
+    local_radius_px, low_tolerance : int, float
+        A ring pixel is "low" when its ``zmin`` is within ``low_tolerance`` (z units) of the
+        lowest ``zmin`` within ``local_radius_px`` pixels (square window; 0 disables).
+    min_area_px : int
+        Closed parts smaller than this are settled in the cell as small voids; 0 keeps all.
+    """
+
+    jump_threshold: float
+    connectivity: int = 4
+    local_radius_px: int = 8
+    low_tolerance: float = 0.5
+    height_bin: float = 0.25
+    min_area_px: int = 0
+
+
+@dataclass(frozen=True)
+class CellEvidence:
+    """What else is known of each pixel of a cell's halo window, each optional (None: unknown).
+
+    Attributes
+    ----------
+    water_points : ndarray of int
+        Water-class points per pixel (``hole_water_px``, the ring's ``ring_water_px``).
+    water_mask : ndarray of bool
+        True inside known water (``water_mask_px``).
+    flight_line : ndarray of int
+        A flight-line id per pixel, < 0 unknown (the ring's line histogram).
+    coverage : ndarray of int
+        Coverage classes: 2 in a coverage gap, 3 in a missing tile's square, 1 in a swath,
+        0 unknown (``gap_px``, ``missing_tile_px``, ``swath_px``: hole pixels in and out of a
+        gap are labelled apart, a river crossing a missed strip is two holes).
+    sight : ndarray of int
+        The sensor's view, :func:`pipeline.sensor.sight.sight_classes` (``blocked_px``, ``seen_px``).
+    covered : ndarray of bool
+        Points the class filter left out (``covered_px``).
+    """
+
+    water_points: np.ndarray | None = None
+    water_mask: np.ndarray | None = None
+    flight_line: np.ndarray | None = None
+    coverage: np.ndarray | None = None
+    sight: np.ndarray | None = None
+    covered: np.ndarray | None = None
+
+
+_NO_EVIDENCE = CellEvidence()
 
 
 def detect_cell_holes(
@@ -125,18 +186,8 @@ def detect_cell_holes(
     *,
     cell: Cell,
     grid_window: PixelWindow,
-    jump_threshold: float,
-    connectivity: int = 4,
-    local_radius_px: int = 8,
-    low_tolerance: float = 0.5,
-    height_bin: float = 0.25,
-    water_points: np.ndarray | None = None,
-    water_mask: np.ndarray | None = None,
-    flight_line: np.ndarray | None = None,
-    coverage: np.ndarray | None = None,
-    sight: np.ndarray | None = None,
-    covered: np.ndarray | None = None,
-    min_area_px: int = 0,
+    params: DetectParams,
+    evidence: CellEvidence = _NO_EVIDENCE,
 ) -> CellHoles:
     """Find, classify and measure the hole parts of one cell.
 
@@ -155,44 +206,38 @@ def detect_cell_holes(
         The cell; the arrays cover ``cell.halo_window``.
     grid_window : PixelWindow
         The survey grid (``Grid.window``): beyond it is outside the AOI.
-    jump_threshold, height_bin : float
-        Height-jump threshold ([UAS] eq. 1) and bin width of the ring-height histogram, in z units.
-    connectivity : {4, 8}
-        Of hole pixels: 4 (default, [UAS] section 3.2) gives outlines whose polygons are always valid.
-    local_radius_px, low_tolerance : int, float
-        A ring pixel is "low" when its ``zmin`` is within ``low_tolerance`` (z units) of the
-        lowest ``zmin`` within ``local_radius_px`` pixels (square window; 0 disables). The
-        halo must reach this far (and at least 1 pixel) on every side that is not the grid's edge.
-    water_points, water_mask, flight_line, coverage, sight, covered : ndarray, same shape, optional
-        Evidence, each counted per part: water-class points per pixel (``hole_water_px``, the ring's
-        ``ring_water_px``); True inside known water (``water_mask_px``); a flight-line id per pixel
-        (< 0 unknown; the ring's line histogram); coverage classes, 2 in a coverage gap, 3 in a missing
-        tile's square, 1 in a swath, 0 unknown (``gap_px``, ``missing_tile_px``, ``swath_px``: hole pixels
-        in and out of a gap are labelled apart, a river crossing a missed strip is two holes); the
-        sensor's view, :func:`pipeline.sensor.sight.sight_classes` (``blocked_px``, ``seen_px``); points
-        the class filter left out (``covered_px``).
-    min_area_px : int
-        Closed parts (touching neither the core edge nor the AOI boundary) smaller than this are settled
-        here as small voids: counted in ``small_void_count``/``small_void_px``, labelled -1, not listed.
-        Open parts are always kept (their hole's area is only known after linking). 0 (default) keeps all.
+    params : DetectParams
+        The thresholds. The halo must reach ``local_radius_px`` (and at least 1 pixel) on
+        every side that is not the grid's edge. Closed parts (touching neither the core edge
+        nor the AOI boundary) smaller than ``min_area_px`` are settled here as small voids:
+        counted in ``small_void_count``/``small_void_px``, labelled -1, not listed. Open
+        parts are always kept (their hole's area is only known after linking).
+    evidence : CellEvidence, arrays of the same shape
+        Counted per part (see :class:`CellEvidence`); by default none.
 
     Returns a :class:`CellHoles`; raises ``ValueError`` on arrays of the wrong shape, a bad
     parameter, or a halo narrower than needed.
     """
-    inputs = (count, zmax, zmin, aoi, water_points, water_mask, flight_line, coverage, sight, covered)
-    arrays = dict(zip(_INPUTS, inputs))
+    arrays = {"count": count, "zmax": zmax, "zmin": zmin, "aoi": aoi}
+    arrays.update((f.name, getattr(evidence, f.name)) for f in fields(CellEvidence))
+    p = params
     work = _checked_work(
-        arrays, cell, grid_window, connectivity=connectivity, local_radius_px=local_radius_px, height_bin=height_bin
+        arrays,
+        cell,
+        grid_window,
+        connectivity=p.connectivity,
+        local_radius_px=p.local_radius_px,
+        height_bin=p.height_bin,
     )
     return _find_parts(
         work,
         cell,
-        connectivity=connectivity,
-        local_radius_px=local_radius_px,
-        jump_threshold=jump_threshold,
-        low_tolerance=low_tolerance,
-        height_bin=height_bin,
-        min_area_px=min_area_px,
+        connectivity=p.connectivity,
+        local_radius_px=p.local_radius_px,
+        jump_threshold=p.jump_threshold,
+        low_tolerance=p.low_tolerance,
+        height_bin=p.height_bin,
+        min_area_px=p.min_area_px,
     )
 
 

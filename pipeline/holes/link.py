@@ -9,7 +9,7 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
 
-from ..density import void_width
+from ..survey.density import void_width
 from ._kernels import _BIG
 from .detect import SIDES, CellHoles
 from .stats import SHARED_RING_DTYPE, HoleStats, _shared_ring_stats, merge_hole_stats, shape_metrics
@@ -59,8 +59,8 @@ class HoleCatalog:
     min_area_px : int
         Holes with fewer pixels are small voids.
     settled_small_voids, settled_small_void_px : int
-        Small closed voids the cells settled themselves (``detect_cell_holes(...,
-        min_area_px=...)``): counted here, absent from ``holes`` and ``parts``.
+        Small closed voids the cells settled themselves (``DetectParams.min_area_px``
+        of ``detect_cell_holes``): counted here, absent from ``holes`` and ``parts``.
     """
 
     holes: np.ndarray
@@ -186,7 +186,7 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
 def mark_sampling_gaps(catalog: HoleCatalog, gap_px: float | np.ndarray) -> tuple[HoleCatalog, np.ndarray]:
     """Holes no wider across than ``gap_px`` pixels (one value, or one per hole) are sampling gaps: not listed, filled like small voids.
 
-    The width across (:func:`pipeline.density.void_width`, from the area, the edge
+    The width across (:func:`pipeline.survey.density.void_width`, from the area, the edge
     length and the moments) is a strip's width and a compact void's side, so a void
     wider than ``gap_px`` in both directions is never a gap. Merged
     statistics are exact, so the decision does not depend on the cells. Returns the

@@ -46,7 +46,7 @@ from scipy.sparse import csgraph
 
 from .masks import height_jumps
 
-__all__ = ["Wall", "WallSegment", "find_walls", "fit_wall", "wall_segments"]
+__all__ = ["Wall", "WallParams", "WallSegment", "find_walls", "fit_wall", "wall_segments"]
 
 
 @dataclass(frozen=True)
@@ -488,6 +488,28 @@ def _wall(
     )
 
 
+@dataclass(frozen=True)
+class WallParams:
+    """How :func:`find_walls` groups jump pixels into segments and fits them.
+
+    Attributes
+    ----------
+    min_pixels, min_length_px, angle_tolerance_deg
+        See :func:`wall_segments`.
+    support_px, pixel_values
+        See :func:`fit_wall`.
+    """
+
+    min_pixels: int = 6
+    min_length_px: float = 4.0
+    angle_tolerance_deg: float = 20.0
+    support_px: float = 3.0
+    pixel_values: str = "extremes"
+
+
+_DEFAULT_WALLS = WallParams()
+
+
 def find_walls(
     zmax: np.ndarray,
     zmin: np.ndarray | None,
@@ -495,11 +517,7 @@ def find_walls(
     jump_threshold: float,
     count: np.ndarray | None = None,
     transform: Affine | None = None,
-    min_pixels: int = 6,
-    min_length_px: float = 4.0,
-    angle_tolerance_deg: float = 20.0,
-    support_px: float = 3.0,
-    pixel_values: str = "extremes",
+    params: WallParams = _DEFAULT_WALLS,
     region: tuple[slice, slice] | None = None,
     jumps: np.ndarray | None = None,
 ) -> list[Wall]:
@@ -515,10 +533,8 @@ def find_walls(
         Points per pixel (see :func:`fit_wall`).
     transform : Affine, optional
         Pixel-to-world transform of the arrays.
-    min_pixels, min_length_px, angle_tolerance_deg
-        See :func:`wall_segments`.
-    support_px, pixel_values
-        See :func:`fit_wall`.
+    params : WallParams
+        How segments are grouped and fitted (defaults: :class:`WallParams`).
     region : (slice, slice), optional
         Only segments whose centre pixel lies in these rows and columns are
         fitted (a cell's core inside its halo arrays: each wall is fitted once,
@@ -532,7 +548,11 @@ def find_walls(
     if jumps is None:
         jumps = height_jumps(zmax, zmax if zmin is None else zmin, jump_threshold=jump_threshold)
     segments = wall_segments(
-        jumps, zmax, min_pixels=min_pixels, min_length_px=min_length_px, angle_tolerance_deg=angle_tolerance_deg
+        jumps,
+        zmax,
+        min_pixels=params.min_pixels,
+        min_length_px=params.min_length_px,
+        angle_tolerance_deg=params.angle_tolerance_deg,
     )
     walls = []
     for seg in segments:
@@ -547,9 +567,9 @@ def find_walls(
             seg,
             count=count,
             transform=transform,
-            support_px=support_px,
+            support_px=params.support_px,
             min_height=jump_threshold,
-            pixel_values=pixel_values,
+            pixel_values=params.pixel_values,
         )
         if wall is not None:
             walls.append(wall)

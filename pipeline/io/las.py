@@ -286,7 +286,7 @@ def iter_xy(path: str | os.PathLike, chunk_points: int, *, first_only: bool) -> 
 
     Decompresses the coordinate and return layer alone where the point format
     keeps layers apart (LAS 1.4 formats 6-10); the density pre-pass
-    (:mod:`pipeline.footprint_density`) reads nothing else. Errors as
+    (:mod:`pipeline.survey.footprint_density`) reads nothing else. Errors as
     :func:`iter_point_chunks`.
     """
     for records, scales, offsets in _iter_records(path, chunk_points, laspy.DecompressionSelection.base()):

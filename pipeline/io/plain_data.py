@@ -37,6 +37,17 @@ import numpy as np
 #: The only modules whose classes a file may name.
 TRUSTED_PACKAGE = "pipeline"
 
+#: Modules that moved, by their old names: a result an earlier version kept names its
+#: classes there and still reads back (``--incremental`` over an older run's ``work/``).
+MOVED_MODULES = {
+    "pipeline.survey": "pipeline.survey.scan",
+    "pipeline.density": "pipeline.survey.density",
+    "pipeline.footprint": "pipeline.survey.footprint",
+    "pipeline.footprint_density": "pipeline.survey.footprint_density",
+    "pipeline.tile_grid": "pipeline.survey.tile_grid",
+    "pipeline.ground_level": "pipeline.survey.ground_level",
+}
+
 _SIMPLE_TYPES: dict[str, tuple[type, ...]] = {
     "int": (int, np.integer),
     "float": (float, int, np.floating, np.integer),
@@ -170,9 +181,12 @@ def _trusted_class(name: str, *, enum_ok: bool = False) -> type:
         raise ValueError(f"class {name!r} is not one of holefill's")
     if not all(part.isidentifier() for part in (*module_name.split("."), *qualname.split("."))):
         raise ValueError(f"class {name!r} is not a name")
-    target: Any = importlib.import_module(module_name)
-    for part in qualname.split("."):
-        target = getattr(target, part)
+    try:
+        target: Any = importlib.import_module(MOVED_MODULES.get(module_name, module_name))
+        for part in qualname.split("."):
+            target = getattr(target, part)
+    except (ImportError, AttributeError) as e:  # a class this version does not have
+        raise ValueError(f"class {name!r} is not one of holefill's") from e
     if isinstance(target, type) and dataclasses.is_dataclass(target):
         return target
     if enum_ok and isinstance(target, type) and issubclass(target, enum.Enum):

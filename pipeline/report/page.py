@@ -433,7 +433,7 @@ def _survey_section(manifest: dict[str, Any]) -> list[str]:
 
 
 def _heights_text(heights: dict[str, Any]) -> str:
-    """The manifest's ``heights`` in words (:mod:`pipeline.ground_level`)."""
+    """The manifest's ``heights`` in words (:mod:`pipeline.survey.ground_level`)."""
     if heights.get("heights") == "above_ground":
         return (
             f"above the ground: {heights['ground_points_at_zero']:,} of {heights['ground_points']:,} ground "

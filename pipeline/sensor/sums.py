@@ -108,6 +108,10 @@ def trajectory_sums(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The sums of one chunk of points, one row per (line, time bin) present.
 
+    The Python face of the numba kernel :func:`_accumulate`: it finds each point's row
+    and forwards the point columns, one array each (numba takes no records), so it is
+    exempt from the ten-parameter rule.
+
     Parameters
     ----------
     x, y, z : ndarray

@@ -22,7 +22,6 @@ from pyproj import Transformer
 from ..config import Config
 from ..errors import InputDataError
 from ..grid import Grid, PixelWindow
-from ..ground_level import GROUND_CLASS, GroundLevel, count_ground_at_zero
 from ..io import pdal_reader
 from ..io.copc import iter_copc_nodes, load_point_chunk, save_point_chunk
 from ..io.intermediate import save_tile_statistics
@@ -39,7 +38,8 @@ from ..rasterize import (
 from ..reads import Node, cell_of
 from ..sensor.sums import TrajectorySums, trajectory_sums
 from ..staging import Staging, input_fingerprint
-from ..survey import source_crs_for_task
+from ..survey.ground_level import GROUND_CLASS, GroundLevel, count_ground_at_zero
+from ..survey.scan import source_crs_for_task
 from .stage import Dependency, RunState, Stage
 
 #: What a run tells of its tiles as they arrive (skipped, points off their bounds), under the engine's name

@@ -15,9 +15,8 @@ import numpy as np
 import shapely
 
 from ..config import HOLE_CONTEXT_PX, Config
-from ..footprint import BlockMap, aoi_mask
 from ..grid import Cell, Grid, PixelWindow, window_union_mask
-from ..holes import CellHoles, detect_cell_holes, height_jumps, vertical_holes
+from ..holes import CellEvidence, CellHoles, DetectParams, detect_cell_holes, height_jumps, vertical_holes
 from ..holes.coverage import (
     IN_GAP,
     IN_MISSING_TILE,
@@ -29,7 +28,7 @@ from ..holes.coverage import (
 )
 from ..holes.outlines import label_outlines
 from ..holes.vertical import vertical_hole_records
-from ..holes.walls import Wall, find_walls
+from ..holes.walls import Wall, WallParams, find_walls
 from ..io.intermediate import load_cell_statistics, save_labels
 from ..io.raster import geometry_mask
 from ..plan import HoleParams, SurveyPlan
@@ -38,6 +37,7 @@ from ..sensor.sight import OUTSIDE_SWATHS, ground_targets, sight_classes, surfac
 from ..sensor.sums import TrajectorySums
 from ..sensor.trajectory import FlightLine, fit_flight_lines, swath_polygon
 from ..staging import Staging
+from ..survey.footprint import BlockMap, aoi_mask
 from .bin_tiles import BIN_TILES, TileResult
 from .merge_cells import (
     MERGE_CELLS,
@@ -308,7 +308,7 @@ def detect_cell(task: DetectTask) -> DetectResult:
         count=stats.count,
         transform=grid.window_transform(stats.window),
         region=(core_rows, core_cols),
-        min_length_px=params.wall_min_length_px,
+        params=WallParams(min_length_px=params.wall_min_length_px),
         jumps=jumps,
     )
     return DetectResult(
@@ -457,17 +457,23 @@ def _cell_holes(
         aoi,
         cell=task.cell,
         grid_window=task.grid.window,
-        jump_threshold=params.jump_threshold,
-        connectivity=params.connectivity,
-        water_points=stats.water,
-        water_mask=water_mask,
-        flight_line=stats.source.astype(np.int64) - 1,
-        # outside every tile's extent counts as a missing tile's pixel: the delivery stops short there
-        coverage=None if coverage is None else np.where(coverage == OUTSIDE_TILE_EXTENTS, IN_MISSING_TILE, coverage),
-        sight=sight,
-        covered=stats.covered > 0 if stats.covered.size else None,
-        min_area_px=params.min_area_px,
-        local_radius_px=HOLE_CONTEXT_PX,
+        params=DetectParams(
+            jump_threshold=params.jump_threshold,
+            connectivity=params.connectivity,
+            local_radius_px=HOLE_CONTEXT_PX,
+            min_area_px=params.min_area_px,
+        ),
+        evidence=CellEvidence(
+            water_points=stats.water,
+            water_mask=water_mask,
+            flight_line=stats.source.astype(np.int64) - 1,
+            # outside every tile's extent counts as a missing tile's pixel: the delivery stops short there
+            coverage=None
+            if coverage is None
+            else np.where(coverage == OUTSIDE_TILE_EXTENTS, IN_MISSING_TILE, coverage),
+            sight=sight,
+            covered=stats.covered > 0 if stats.covered.size else None,
+        ),
     )
 
 

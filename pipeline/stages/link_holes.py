@@ -14,13 +14,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config
-from ..footprint_density import sampling_gap_px
 from ..holes import HoleCatalog, classify_causes, link_holes, mark_sampling_gaps, ring_metrics
 from ..holes.coverage import line_bands
 from ..holes.flight_lines import line_azimuths, strip_azimuths
 from ..io.intermediate import save_object
 from ..parameters import HoleParams, cause_rules
 from ..plan import SurveyPlan
+from ..survey.footprint_density import sampling_gap_px
 from .detect_holes import COVERAGE, DETECT_HOLES, DetectResult, SensorGeometry, finds_holes
 from .stage import RunState, Stage
 

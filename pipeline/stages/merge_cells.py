@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Config
-from ..footprint import BlockMap, footprint_map, occupied_blocks
 from ..grid import Cell, Grid, PixelWindow
 from ..holes.coverage import CoverageGaps, coverage_gaps, keep_void_gaps
 from ..holes.flight_lines import line_moments, merge_line_moments
@@ -23,6 +22,7 @@ from ..io.intermediate import load_cell_statistics, load_tile_shared_keys, load_
 from ..plan import SurveyPlan
 from ..rasterize import merge_statistics, shared_pixel_mask
 from ..staging import Staging
+from ..survey.footprint import BlockMap, footprint_map, occupied_blocks
 from .bin_tiles import BIN_TILES, READ_TASKS, TileFailure, TileResult, TileTask, result_folder
 from .stage import RunState, Stage, in_plan_order
 

@@ -15,8 +15,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from ..ground_level import GroundLevel
 from ..plan import SurveyPlan
+from ..survey.ground_level import GroundLevel
 from .bin_tiles import BIN_TILES, READ_TASKS, TileResult
 from .checksums import CHECKSUMS
 from .detect_holes import COVERAGE, DETECT_HOLES, GAP_VOIDS, DetectResult

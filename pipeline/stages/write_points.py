@@ -37,7 +37,7 @@ from ..io.las_write import AddedPoints, write_repaired_tile
 from ..io.raster import read_raster
 from ..plan import SurveyPlan
 from ..staging import Staging
-from ..survey import source_crs_for_task
+from ..survey.scan import source_crs_for_task
 from .bin_tiles import BIN_TILES, TileResult
 from .fill_holes import fills_holes
 from .stage import RunState, Stage

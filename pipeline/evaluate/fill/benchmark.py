@@ -15,15 +15,15 @@ import shutil
 import time
 import zlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..cluster import dask_client
-from ..config import Config
-from ..errors import ConfigError, HolefillError
+from ...cluster import dask_client
+from ...config import Config
+from ...errors import ConfigError, HolefillError
 from .alternatives import ALTERNATIVES, AlternativeUnavailable, _hole_windows
 from .cutting import _write_cut_holes, align, cut_points
 from .formatting import write_json
@@ -52,17 +52,35 @@ MODELS: dict[str, dict[str, Any]] = {"dsm": {}, "dtm": {"keep_classes": [2]}}
 
 
 @dataclass(frozen=True)
-class _Plan:
-    """What every survey of one benchmark runs with (the options of :func:`evaluate_fill`)."""
+class BenchmarkPlan:
+    """What every survey of one benchmark runs with (the options of :func:`evaluate_fill`).
 
-    n_holes: int
-    seed: int
-    models: tuple[str, ...]
-    methods: tuple[str, ...]  # ``default`` first
-    alternatives: tuple[str, ...]
-    resolution_m: float | None
-    margin_px: int
-    size_range_m: tuple[float, float]
+    Attributes
+    ----------
+    n_holes, seed : int
+        Holes per survey and model, and the seed they are drawn from (with the
+        survey's name and the model, so a survey gets the same holes in any company).
+    models : tuple of {"dsm", "dtm"}
+    methods : tuple of str
+        Keys of :data:`PIPELINE_RUNS`; ``default`` is always run (first).
+    alternatives : tuple of str
+        Keys of :data:`ALTERNATIVES`.
+    resolution_m : float, optional
+        Pixel size for every survey; default: :func:`choose_resolution` per survey.
+    margin_px : int
+        Measured pixels a hole keeps around it (:func:`place_holes`).
+    size_range_m : (float, float)
+        The holes' smallest and largest size across, in metres.
+    """
+
+    n_holes: int = 20
+    seed: int = 0
+    models: tuple[str, ...] = ("dsm",)
+    methods: tuple[str, ...] = tuple(PIPELINE_RUNS)
+    alternatives: tuple[str, ...] = tuple(ALTERNATIVES)
+    resolution_m: float | None = None
+    margin_px: int = 4
+    size_range_m: tuple[float, float] = (2.0, 50.0)
 
     def settings(self) -> dict[str, Any]:
         """The ``settings`` of ``fill_eval.json``."""
@@ -84,17 +102,9 @@ def evaluate_fill(
     out_dir: str | os.PathLike,
     config: Config,
     *,
+    plan: BenchmarkPlan = BenchmarkPlan(),
     names: list[str] | None = None,
-    n_holes: int = 20,
-    seed: int = 0,
-    models: tuple[str, ...] = ("dsm",),
-    methods: tuple[str, ...] = tuple(PIPELINE_RUNS),
-    alternatives: tuple[str, ...] = tuple(ALTERNATIVES),
-    resolution_m: float | None = None,
     crs: dict[str, str] | None = None,
-    margin_px: int = 4,
-    min_size_m: float = 2.0,
-    max_size_m: float = 50.0,
     client: Any = None,
     scheduler: str | None = None,
     on_survey: Callable[[SurveyResult], None] | None = None,
@@ -111,18 +121,10 @@ def evaluate_fill(
         The base configuration; the benchmark overrides ``grid.resolution_m`` (when
         ``resolution_m`` is given or a survey is sparse), ``filter.keep_classes`` (DTM),
         ``fill.*`` per method, ``output.keep_unfilled`` and ``flightplan.enabled`` (off).
+    plan : BenchmarkPlan
+        The holes, models, methods and alternatives every survey runs with.
     names : list of str, optional
         A name per survey (default: the file or folder name).
-    n_holes, seed : int
-        Holes per survey and model, and the seed they are drawn from (with the
-        survey's name and the model, so a survey gets the same holes in any company).
-    models : tuple of {"dsm", "dtm"}
-    methods : tuple of str
-        Keys of :data:`PIPELINE_RUNS`; ``default`` is always run (first).
-    alternatives : tuple of str
-        Keys of :data:`ALTERNATIVES`.
-    resolution_m : float, optional
-        Pixel size for every survey; default: :func:`choose_resolution` per survey.
     crs : dict, optional
         ``survey.crs`` per survey name (``"*"``: every survey) for files without one.
     client, scheduler
@@ -130,22 +132,21 @@ def evaluate_fill(
     on_survey : callable, optional
         Called with each :class:`SurveyResult` when it is done (progress).
     """
-    _check_choices(methods, alternatives, models, config)
-    methods = ("default", *(m for m in methods if m != "default"))
+    _check_choices(plan.methods, plan.alternatives, plan.models, config)
+    plan = replace(plan, methods=("default", *(m for m in plan.methods if m != "default")))
     names = names or [survey_name(inputs) for inputs in surveys]
     if len(set(names)) != len(names):
         raise ConfigError(f"survey names must be unique, got {names}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    plan = _Plan(n_holes, seed, models, methods, alternatives, resolution_m, margin_px, (min_size_m, max_size_m))
     benchmark = FillBenchmark(settings=plan.settings())
     base = config.replace("flightplan", source="fill benchmark", enabled=False)
     with dask_client(client, scheduler, base) as connect:
         runs_client = connect()
-        for model_index, model in enumerate(models):
+        for model_index, model in enumerate(plan.models):
             for name, inputs in zip(names, surveys):
-                rng = np.random.default_rng([seed, zlib.crc32(name.encode()), model_index])
+                rng = np.random.default_rng([plan.seed, zlib.crc32(name.encode()), model_index])
                 survey_config = _survey_config(base, model, (crs or {}).get(name) or (crs or {}).get("*"))
                 result = _evaluate_survey(
                     name, inputs, out / model / name, survey_config, model=model, rng=rng, plan=plan, client=runs_client
@@ -200,7 +201,7 @@ def _evaluate_survey(
     *,
     model: str,
     rng: np.random.Generator,
-    plan: _Plan,
+    plan: BenchmarkPlan,
     client: Any,
 ) -> SurveyResult:
     """One survey and model: each step records what it found in the result, or why the survey was skipped."""
@@ -233,7 +234,7 @@ def _scan(
 
     None when the survey cannot be read.
     """
-    from ..survey import scan_survey
+    from ...survey.scan import scan_survey
 
     try:
         survey = scan_survey(inputs, crs=config.survey.crs, on_error=config.survey.on_error)
@@ -258,8 +259,8 @@ def _run_reference(
     result: SurveyResult, inputs: list[str], folder: Path, config: Config, client: Any
 ) -> tuple[np.ndarray, Any, str] | None:
     """Run the pipeline on the full survey without holes or fills; its raster, or None when it failed."""
-    from ..io.raster import read_raster
-    from ..run import run_survey
+    from ...io.raster import read_raster
+    from ...run import run_survey
 
     reference_config = config.replace("holes", source="fill benchmark", enabled=False)
     try:
@@ -283,7 +284,7 @@ def _cut_survey(
     crs_wkt: str,
     *,
     rng: np.random.Generator,
-    plan: _Plan,
+    plan: BenchmarkPlan,
 ) -> tuple[np.ndarray, list[str]] | None:
     """Place the holes and write the cut copies of the inputs: the labels and the copies, or None if none fits."""
     resolution_m = result.resolution_m
@@ -323,8 +324,8 @@ def _run_methods(
     client: Any,
 ) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
     """Run the pipeline on the cut survey once per method: the filled rasters, and the default run's unfilled one."""
-    from ..io.raster import read_raster
-    from ..run import run_survey
+    from ...io.raster import read_raster
+    from ...run import run_survey
 
     resolution_m = result.resolution_m
     deepest_m = max(h.max_distance_px for h in result.holes) * resolution_m
@@ -354,7 +355,7 @@ def _run_methods(
 
 def _check_cut(result: SurveyResult, run: Path, reference: np.ndarray, transform: Any, cut: np.ndarray) -> np.ndarray:
     """The default run's unfilled raster; records (and warns) where it differs from the reference but for the cut."""
-    from ..io.raster import read_raster
+    from ...io.raster import read_raster
 
     raw, raw_transform, _ = read_raster(run / "dsm_unfilled.vrt")
     unfilled = align(raw, raw_transform, transform, reference.shape)

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputDataError
-from .io.raster import geometry_mask, raster_lattice, read_raster
-from .io.vector import read_layer
+from ..errors import InputDataError
+from ..io.raster import geometry_mask, raster_lattice, read_raster
+from ..io.vector import read_layer
 
 #: Truth codes -> cause names of the ``holes`` layer.
 CAUSE_NAMES = {1: "occlusion", 2: "water", 3: "missed_coverage", 4: "no_return", 5: "covered"}

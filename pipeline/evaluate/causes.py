@@ -1,6 +1,6 @@
 """Scoring hole causes on real surveys against a truth the cause rules do not see.
 
-A real survey has no truth raster of causes (``pipeline.evaluate`` scores the
+A real survey has no truth raster of causes (``pipeline.evaluate.truth`` scores the
 synthetic ones). What it has is evidence from outside the rules, read here
 straight from the points and from reference files:
 
@@ -39,10 +39,10 @@ import shapely
 from affine import Affine
 from scipy import ndimage
 
-from .io.las import iter_point_chunks
-from .io.raster import geometry_mask, read_raster
-from .io.vector import read_layer
-from .rasterize import WATER_CLASS
+from ..io.las import iter_point_chunks
+from ..io.raster import geometry_mask, read_raster
+from ..io.vector import read_layer
+from ..rasterize import WATER_CLASS
 
 #: ASPRS class of buildings.
 BUILDING_CLASS = 6

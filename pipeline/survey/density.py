@@ -2,7 +2,7 @@
 
 Small pure functions of counts and areas. The survey's density is measured on
 the data footprint by a pre-pass over the points' x, y
-(:mod:`pipeline.footprint_density`); without it (nothing "auto" to settle) it is
+(:mod:`pipeline.survey.footprint_density`); without it (nothing "auto" to settle) it is
 the header counts over the tile bounds, a lower bound.
 
 The rules, in survey terms:
@@ -43,7 +43,7 @@ SAMPLING_GAP_SPACINGS = 4.0
 
 #: Pulses a footprint block holds on average at the block size the footprint is measured
 #: with: a block inside the data is empty by chance with probability e^-8 (0.03 %) for a
-#: random pattern, fewer for a scanner's regular one (:mod:`pipeline.footprint_density`).
+#: random pattern, fewer for a scanner's regular one (:mod:`pipeline.survey.footprint_density`).
 BLOCK_PULSES = 8.0
 
 #: ``holes.min_area_m2 = "auto"`` is never below this (the fixed default it replaces).
@@ -74,7 +74,7 @@ class Density:
     pulses: int
     area_m2: float
     first_returns: bool
-    area_source: str = "tile bounds"  # or "data footprint" (pipeline.footprint_density)
+    area_source: str = "tile bounds"  # or "data footprint" (pipeline.survey.footprint_density)
 
     @property
     def points_per_m2(self) -> float:

@@ -21,9 +21,9 @@ import shapely
 from pyproj import CRS, Transformer
 from pyproj.exceptions import CRSError as ProjCRSError
 
+from ..errors import CRSError, InputDataError
+from ..io.las import TileHeader, read_header
 from .density import Density, pulse_count
-from .errors import CRSError, InputDataError
-from .io.las import TileHeader, read_header
 
 if TYPE_CHECKING:
     from .footprint_density import FootprintDensity
@@ -61,7 +61,7 @@ class Survey:
     horizontal_unit_m: float  # metres per CRS horizontal unit
     vertical_unit_m: float  # metres per z unit
     skipped: list[dict[str, str]] = field(default_factory=list)
-    footprint: FootprintDensity | None = None  # the density measured on the data (pipeline.footprint_density)
+    footprint: FootprintDensity | None = None  # the density measured on the data (pipeline.survey.footprint_density)
 
     @property
     def crs(self) -> CRS:
@@ -80,7 +80,7 @@ class Survey:
 
     @cached_property
     def density(self) -> Density:
-        """The survey's density: on the data footprint when measured (:func:`pipeline.footprint_density.measure_footprint`), else :attr:`header_density`."""
+        """The survey's density: on the data footprint when measured (:func:`pipeline.survey.footprint_density.measure_footprint`), else :attr:`header_density`."""
         return self.footprint.density() if self.footprint is not None else self.header_density
 
     @cached_property
@@ -88,7 +88,7 @@ class Survey:
         """Header counts over the union of the tile bounds (overlaps count once).
 
         First returns only when every tile's header can tell them (see
-        :func:`pipeline.density.pulse_count`). The bounds are an upper bound of the
+        :func:`pipeline.survey.density.pulse_count`). The bounds are an upper bound of the
         data footprint, so the density is a lower bound (``ign_laspy_appendbug``:
         0.04 first returns/m² over its box, 3.85 on its data).
         """

@@ -15,7 +15,7 @@ returns apart) in square blocks on an absolute lattice.
 The blocks are 1 m, coarsened by powers of two only where a survey's tile boxes
 would need more than :data:`MAX_BLOCKS` (16 km² at 1 m: a block map of at most
 a few tens of MB on the client). The counts are then read at the finest power
-of two whose occupied blocks hold on average :data:`pipeline.density.BLOCK_PULSES`
+of two whose occupied blocks hold on average :data:`pipeline.survey.density.BLOCK_PULSES`
 pulses (8: a block inside the footprint is empty by chance with probability
 e^-8 = 0.03 % for a random pattern), and the footprint is the occupied blocks'
 area. Blocks on the data's edge count whole, so the density errs low (towards
@@ -25,7 +25,7 @@ size nor on how the survey is cut into tiles (below the 16 km² of tile boxes
 where the base block doubles).
 
 The same counts give a local density around each hole (:func:`local_pulses_per_m2`),
-from which the sampling-gap width follows (:mod:`pipeline.density`).
+from which the sampling-gap width follows (:mod:`pipeline.survey.density`).
 """
 
 from __future__ import annotations
@@ -43,11 +43,11 @@ import numpy as np
 import shapely
 from pyproj import CRS, Transformer
 
+from ..errors import InputDataError
+from ..grid import Grid
+from ..io.las import iter_xy
 from .density import BLOCK_PULSES, Density, narrow_width, sampling_gap_width_m
-from .errors import InputDataError
-from .grid import Grid
-from .io.las import iter_xy
-from .survey import Survey, source_crs_for_task
+from .scan import Survey, source_crs_for_task
 
 logger = logging.getLogger(__name__)
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.ndimage as ndi
 
-from .grid import Grid, PixelWindow
+from ..grid import Grid, PixelWindow
 
 #: Radius (pixels) of the closing of occupied pixels in border blocks.
 EDGE_CLOSING_PX = 2

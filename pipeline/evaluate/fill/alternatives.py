@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import scipy.ndimage as ndi
 
-from ..errors import HolefillError
+from ...errors import HolefillError
 
 
 class AlternativeUnavailable(HolefillError):

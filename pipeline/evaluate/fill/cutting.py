@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputDataError
+from ...errors import InputDataError
 from .placement import CutHole
 
 
@@ -68,8 +68,8 @@ def align(array: np.ndarray, transform: Any, to_transform: Any, to_shape: tuple[
 def _write_cut_holes(
     path: Path, labels: np.ndarray, transform: Any, crs_wkt: str, holes: list[CutHole], pixel_size_m: float
 ) -> None:
-    from ..holes.outlines import label_polygons
-    from ..io.vector import write_layer
+    from ...holes.outlines import label_polygons
+    from ...io.vector import write_layer
 
     polygons = label_polygons(labels, transform)
     path.unlink(missing_ok=True)

@@ -41,7 +41,7 @@ from .alternatives import (
     grass_tmp_option,
     parse_grass_version,
 )
-from .benchmark import MODELS, PIPELINE_RUNS, evaluate_fill, survey_name
+from .benchmark import MODELS, PIPELINE_RUNS, BenchmarkPlan, evaluate_fill, survey_name
 from .cutting import align, cut_points, pixel_indices
 from .formatting import format_table, write_json
 from .metrics import ErrorStats, fill_errors
@@ -50,6 +50,7 @@ from .results import FillBenchmark, MethodResult, SurveyResult, summarize
 
 __all__ = [
     "ALTERNATIVES",
+    "BenchmarkPlan",
     "MODELS",
     "PIPELINE_RUNS",
     "RESOLUTIONS_M",
