@@ -112,7 +112,7 @@ def hole_params(config: Config, *, pixel_size_m: float, spacing_m: float, vertic
 
     ``spacing_m`` is the survey's nominal point spacing. With ``holes.min_area_m2 =
     "auto"`` it sets the smallest listed area and the width under which a void is a
-    sampling gap (:mod:`pipeline.density`); a number set there is the only rule, as
+    sampling gap (:mod:`pipeline.survey.density`); a number set there is the only rule, as
     it always was (synthetic surveys whose truth counts every one-pixel sliver).
     """
     holes = config.holes
