@@ -36,7 +36,7 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -46,7 +46,8 @@ from pyproj import CRS, Transformer
 from ..errors import InputDataError
 from ..grid import Grid
 from ..io.las import iter_xy
-from .density import BLOCK_PULSES, Density, narrow_width, sampling_gap_width_m
+from .blocks import BlockCounts, FootprintDensity, block_histogram, merge_blocks
+from .density import BLOCK_PULSES, narrow_width, sampling_gap_width_m
 from .scan import Survey, source_crs_for_task
 
 logger = logging.getLogger(__name__)
@@ -71,77 +72,6 @@ MAX_THREADS = 8
 LOCAL_MARGIN_BLOCKS = 4
 #: ... at most this many blocks across (a larger window is centred on the hole).
 LOCAL_WINDOW_BLOCKS = 128
-
-
-@dataclass(frozen=True)
-class BlockCounts:
-    """Pulses counted in square blocks of an absolute lattice (only the occupied blocks).
-
-    Block ``(ix, iy)`` covers ``[ix * block, (ix + 1) * block)`` in x, likewise in y
-    (survey CRS units).
-    """
-
-    block: float
-    ix: np.ndarray  # int64
-    iy: np.ndarray  # int64
-    count: np.ndarray  # int64, > 0
-
-    @property
-    def occupied(self) -> int:
-        return len(self.count)
-
-    def coarsen(self, factor: int) -> BlockCounts:
-        """The same counts in blocks ``factor`` times as wide (floor division keeps the lattice absolute)."""
-        if factor == 1:
-            return self
-        return merge_blocks([(self.ix // factor, self.iy // factor, self.count)], self.block * factor)
-
-
-@dataclass(frozen=True)
-class FootprintDensity:
-    """What the pre-pass measured: the blocks at the level chosen, and the totals."""
-
-    blocks: BlockCounts
-    points: int  # the headers' point count
-    pulses: int  # the points counted (first returns when ``first_returns``)
-    first_returns: bool
-    area_m2: float  # the occupied blocks' area
-    seconds: float  # wall time of the pre-pass
-
-    def density(self) -> Density:
-        return Density(self.points, self.pulses, self.area_m2, self.first_returns, area_source="data footprint")
-
-
-def block_histogram(x: np.ndarray, y: np.ndarray, block: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Occupied blocks of side ``block`` and their point counts (pure).
-
-    >>> block_histogram(np.array([0.5, 0.7, 2.1]), np.array([0.1, 0.2, -0.5]), 1.0)
-    (array([0, 2]), array([ 0, -1]), array([2, 1]))
-    """
-    ix = np.floor(np.asarray(x, np.float64) / block).astype(np.int64)
-    iy = np.floor(np.asarray(y, np.float64) / block).astype(np.int64)
-    return _sum_by_block(ix, iy, np.ones(len(ix), np.int64))
-
-
-def merge_blocks(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], block: float) -> BlockCounts:
-    """Counts of the same lattice added up block by block (tiles that overlap, chunks of a file)."""
-    parts = [p for p in parts if len(p[0])]
-    if not parts:
-        empty = np.zeros(0, np.int64)
-        return BlockCounts(block, empty, empty, empty)
-    ix, iy, count = (np.concatenate([p[k] for p in parts]) for k in range(3))
-    return BlockCounts(block, *_sum_by_block(ix, iy, count))
-
-
-def _sum_by_block(ix: np.ndarray, iy: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    if len(ix) == 0:
-        return ix, iy, count
-    x0, y0 = int(ix.min()), int(iy.min())
-    rows = int(iy.max()) - y0 + 1
-    keys = (ix - x0) * rows + (iy - y0)
-    unique, inverse = np.unique(keys, return_inverse=True)
-    sums = np.bincount(inverse, weights=count, minlength=len(unique)).astype(np.int64)
-    return unique // rows + x0, unique % rows + y0, sums
 
 
 def choose_level(base: BlockCounts, *, min_mean: float = BLOCK_PULSES, max_level: int = MAX_LEVEL) -> BlockCounts:

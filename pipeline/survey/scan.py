@@ -15,7 +15,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import shapely
 from pyproj import CRS, Transformer
@@ -23,10 +22,8 @@ from pyproj.exceptions import CRSError as ProjCRSError
 
 from ..errors import CRSError, InputDataError
 from ..io.las import TileHeader, read_header
+from .blocks import FootprintDensity
 from .density import Density, pulse_count
-
-if TYPE_CHECKING:
-    from .footprint_density import FootprintDensity
 
 logger = logging.getLogger(__name__)
 

@@ -10,14 +10,12 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .spec import RIVER_BANK_HEIGHT_M, RIVER_BANK_WIDTH_M, SurfaceKind
-
-if TYPE_CHECKING:
-    from .water_bodies import Canal, Lakes
+from .shore import blend_to_shore
+from .spec import RIVER_BANK_WIDTH_M, SurfaceKind
+from .water_bodies import Canal, Lakes
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,18 +67,6 @@ class Terrain:
         """Bounds that the terrain can never leave."""
         total = float(np.sum(np.abs(self.amplitudes)))
         return self.base_height - total, self.base_height + total
-
-
-def blend_to_shore(ground: np.ndarray, distance: np.ndarray, level: np.ndarray, bank_width: float) -> np.ndarray:
-    """Ground blended down to ``level + RIVER_BANK_HEIGHT_M`` at a shore ``distance`` metres away.
-
-    A smoothstep over ``bank_width``: the ground is untouched farther out and at the
-    bank top on the shore, so the shore is a contour line just above the water.
-    """
-    t = np.clip(distance / bank_width, 0.0, 1.0)
-    smooth = t * t * (3.0 - 2.0 * t)
-    bank_top = level + RIVER_BANK_HEIGHT_M
-    return bank_top + (ground - bank_top) * smooth
 
 
 @dataclass(frozen=True, eq=False)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .scene import blend_to_shore
+from .shore import blend_to_shore
 from .spec import RIVER_BANK_WIDTH_M
 
 
