@@ -25,7 +25,7 @@ from .by_cause import (
     hole_record,
 )
 from .causes import clamp_to_rim, lower_side_support, rim_level
-from .hydro import RiverFit, river_surfaces
+from .hydro import RiverFit, WaterEdge, river_surfaces
 from .provenance import fill_distance, leave_boundary_out_error
 from .region import FILL_METHODS, choose_methods, fill_region
 from .seams import smooth_seams
@@ -68,5 +68,6 @@ __all__ = [
     "lower_side_support",
     "rim_level",
     "river_surfaces",
+    "WaterEdge",
     "smooth_seams",
 ]
