@@ -370,10 +370,13 @@ class FillConfig:
         True, "Occlusion holes from their lower rim (the ground beside a building); water holes flat."
     )
     max_distance_m: float = _opt(
-        25.0, "Holes with a pixel farther than this (m) from measured data stay nodata (skipped: too large).", gt=0
+        0.0,
+        "Holes with a pixel farther than this (m) from measured data stay nodata (skipped: too large); 0: no limit.",
+        ge=0,
     )
-    max_area_m2: float = _opt(
-        10_000.0, "Holes larger than this (m2) stay nodata (skipped: too large) and go to the flight plan.", gt=0
+    max_area_m2: float = _opt(0.0, "Holes larger than this (m2) stay nodata (skipped: too large); 0: no limit.", ge=0)
+    missed_coverage: bool = _opt(
+        False, "Also fill missed coverage (flagged in fill_note); false leaves it nodata for the re-flight."
     )
     margin_px: int = _opt(8, "Pixels of measured data read around each hole for its support.", ge=1)
     tin_order: int = _opt(

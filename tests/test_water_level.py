@@ -130,3 +130,17 @@ def test_a_river_falls_no_faster_than_water_can(fall_percent):
     if fall_percent <= 2:
         assert out.components[0].method == "river"
         assert np.abs(out.heights[hole] - true[hole]).max() <= 0.03
+
+
+def test_every_void_is_filled_but_missed_coverage_and_water_whatever_the_limits():
+    from pipeline.fill.by_cause import MISSED, TOO_LARGE, unfilled_reason
+
+    default = params(max_distance=float("inf"))  # as fill_params makes it from the default config
+    assert unfilled_reason("unknown", area_m2=1e6, farthest=1e3, params=default) is None  # no limit by default
+    assert unfilled_reason("missed_coverage", area_m2=10.0, farthest=1.0, params=default)[0] == MISSED
+    asked = params(fill_missed_coverage=True)
+    assert unfilled_reason("missed_coverage", area_m2=10.0, farthest=1.0, params=asked) is None
+    limited = params(max_area_m2=1e4, max_distance=25.0)
+    assert unfilled_reason("occlusion", area_m2=2e4, farthest=1.0, params=limited)[0] == TOO_LARGE
+    assert unfilled_reason("no_return", area_m2=10.0, farthest=30.0, params=limited)[0] == TOO_LARGE
+    assert unfilled_reason("water", area_m2=2e5, farthest=250.0, params=limited) is None

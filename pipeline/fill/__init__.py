@@ -13,6 +13,7 @@ is filled by its cause (water, occlusion, the rest) is :mod:`.by_cause`.
 
 from .by_cause import (
     FILLED,
+    MISSED,
     NO_SUPPORT,
     TOO_LARGE,
     UNFILLED,
@@ -41,6 +42,7 @@ from .settings import (
 
 __all__ = [
     "FILLED",
+    "MISSED",
     "FILL_METHODS",
     "METHOD_CODES",
     "METHOD_NAMES",

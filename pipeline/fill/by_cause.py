@@ -26,6 +26,8 @@ from .water_level import NO_LEVEL, EdgeLevel, edge_level, water_edge_heights
 __all__ = [
     "FILLED",
     "LOW_SIDE",
+    "MISSED",
+    "MISSED_NOTE",
     "NO_SUPPORT",
     "OCCLUSION",
     "RIM",
@@ -40,6 +42,7 @@ __all__ = [
     "fill_water",
     "hole_ids_of_labels",
     "hole_record",
+    "unfilled_reason",
 ]
 
 #: The cause a small void is filled as (it is not classified when a cell settles it).
@@ -51,6 +54,9 @@ WATER, LOW_SIDE, RIM = "water", "low", "rim"
 
 #: ``fill_status`` values of the ``holes`` layer.
 FILLED, TOO_LARGE, NO_SUPPORT, UNFILLED = "filled", "skipped: too large", "skipped: no support", "unfilled"
+MISSED = "skipped: missed coverage"
+#: ``fill_note`` of missed coverage filled on request (``fill.missed_coverage = true``).
+MISSED_NOTE = "missed coverage, interpolated"
 
 
 @dataclass(frozen=True)
@@ -69,6 +75,8 @@ class FillParams:
     # the water's edge (z units, pixels): its noise, the share of a ring on it, the steepest fall per pixel
     water_edge: WaterEdge = WaterEdge(tolerance=0.15, min_share=0.1, max_slope=0.02)
     water_reach_px: float = 3.0  # how far from a hole its water returns are looked for
+    max_area_m2: float = math.inf  # fill.max_area_m2; inf: no limit
+    fill_missed_coverage: bool = False  # fill.missed_coverage
 
 
 @dataclass(frozen=True)
@@ -93,6 +101,25 @@ def fill_kind(cause: str, params: FillParams) -> str:
     if cause == "water":
         return WATER
     return LOW_SIDE if cause in (OCCLUSION, SMALL_VOID) else RIM
+
+
+def unfilled_reason(cause: str, *, area_m2: float, farthest: float, params: FillParams) -> tuple[str, str] | None:
+    """Why a hole stays nodata (``fill_status``, ``fill_note``), or None: it is filled.
+
+    Every void inside the survey area is filled but missed coverage, which awaits a
+    re-flight unless ``fill.missed_coverage`` asks for it. Size (``area_m2``) and distance
+    from data (``farthest``, survey units) are limits only where the user set them, and
+    never for water: a water surface is known from its edge whatever its size.
+    """
+    if cause == "missed_coverage" and not params.fill_missed_coverage:
+        return MISSED, "awaiting re-flight (fill.missed_coverage = false)"
+    if cause == WATER:
+        return None
+    if area_m2 > params.max_area_m2:
+        return TOO_LARGE, f"area over fill.max_area_m2 = {params.max_area_m2:g}"
+    if farthest > params.max_distance:
+        return TOO_LARGE, "farther from data than fill.max_distance_m"
+    return None
 
 
 def fill_hole(
