@@ -144,3 +144,20 @@ def test_every_void_is_filled_but_missed_coverage_and_water_whatever_the_limits(
     assert unfilled_reason("occlusion", area_m2=2e4, farthest=1.0, params=limited)[0] == TOO_LARGE
     assert unfilled_reason("no_return", area_m2=10.0, farthest=30.0, params=limited)[0] == TOO_LARGE
     assert unfilled_reason("water", area_m2=2e5, farthest=250.0, params=limited) is None
+
+
+def test_a_pixel_of_water_returns_only_gives_its_mid_range():
+    """Several noisy returns per pixel: the lowest lies below the water by about the noise, the mid-range does not."""
+    rng = np.random.default_rng(2)
+    hole = np.zeros((30, 30), bool)
+    hole[8:22, 8:22] = True
+    returns = -0.46 + rng.normal(0, 0.03, (6, *hole.shape))  # six returns per pixel, 3 cm noise
+    zmin, zmax = returns.min(axis=0), returns.max(axis=0)
+    edge = ~hole & (np.abs(np.indices(hole.shape) - 14.5).max(axis=0) < 10)  # a band of water returns round it
+    zmin, zmax = np.where(hole, np.nan, np.where(edge, zmin, 1.0)), np.where(hole, np.nan, np.where(edge, zmax, 1.0))
+    counts = np.where(hole, 0, 6).astype(np.uint32)
+    water = np.where(edge, 6, 0).astype(np.uint16)
+    labels = hole.astype(np.int32)
+    mid = fill_hole(zmax, zmin, ~hole, labels, WATER, params(), water, counts).heights[hole][0]
+    low = fill_hole(zmax, zmin, ~hole, labels, WATER, params(), water).heights[hole][0]
+    assert abs(mid - (-0.46)) <= 0.01 and low < -0.46 - 0.02

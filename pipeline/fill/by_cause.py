@@ -130,6 +130,7 @@ def fill_hole(
     kind: str,
     params: FillParams,
     water_points: np.ndarray | None = None,
+    counts: np.ndarray | None = None,
 ) -> FillOutcome:
     """Fill labelled holes (each label one hole, 0 elsewhere) one way (pure; docs/filling.md).
 
@@ -142,7 +143,8 @@ def fill_hole(
     heights = np.where(measured, zmax, np.nan)
     region = labels > 0
     if kind == WATER:
-        return fill_water(np.where(measured, zmin, np.nan), labels, params, water_points)
+        water_z = _water_heights(zmin, zmax, measured, water_points, counts)
+        return fill_water(np.where(measured, zmin, np.nan), labels, params, water_points, water_z)
     support = None
     if kind == LOW_SIDE:
         # a small void at a step (a building's edge) is hidden ground like an occlusion; with
@@ -163,8 +165,27 @@ def fill_hole(
     return replace(outcome, heights=np.where(np.isfinite(outcome.heights), clamped, np.nan))
 
 
+def _water_heights(
+    zmin: np.ndarray, zmax: np.ndarray, measured: np.ndarray, water_points: np.ndarray | None, counts: np.ndarray | None
+) -> np.ndarray | None:
+    """The height of the water returns of each pixel: mid-range of a pixel of water returns only, else its lowest.
+
+    The lowest of several noisy returns from one surface lies below it (by about the
+    noise), the highest above; their mid-range does not. A pixel with land returns too
+    keeps its lowest (its highest is the bank).
+    """
+    if water_points is None or counts is None:
+        return None
+    pure = measured & (water_points > 0) & (water_points == counts)
+    return np.where(pure, 0.5 * (zmin + zmax), np.where(measured, zmin, np.nan))
+
+
 def fill_water(
-    zmin: np.ndarray, labels: np.ndarray, params: FillParams, water_points: np.ndarray | None = None
+    zmin: np.ndarray,
+    labels: np.ndarray,
+    params: FillParams,
+    water_points: np.ndarray | None = None,
+    water_z: np.ndarray | None = None,
 ) -> FillOutcome:
     """Water holes at the level of their edge: a lake one level, a river falling along its course.
 
@@ -172,7 +193,8 @@ def fill_water(
     are bridges, walls and crowns over the water, never its level); ``water_points``: water-class returns per pixel. The level of each hole is where
     its water meets the land (:func:`~pipeline.fill.water_level.edge_level`): its water
     returns near the ring when there are some, else the lowest consistent level of its
-    ring's lowest returns. Holes :func:`~pipeline.fill.river_surfaces` judges rivers
+    ring's lowest returns (``water_z``: the height of each pixel's water returns, default
+    ``zmin``). Holes :func:`~pipeline.fill.river_surfaces` judges rivers
     (elongated, falling at least ``river_min_drop``) get their river surface instead,
     method ``river``, never falling faster than the water's steepest slope. The error
     estimate of a hole is the spread of the heights its level was read from.
@@ -183,7 +205,8 @@ def fill_water(
     )
     points = np.zeros(zmin.shape, np.uint16) if water_points is None else water_points
     ring_label, water_label = water_edge_heights(zmin, points, outcome.labels, reach_px=params.water_reach_px)
-    levels = _edge_levels(zmin, ring_label, water_label, params.water_edge)
+    water_z = zmin if water_z is None else water_z
+    levels = _edge_levels(zmin, water_z, ring_label, water_label, params.water_edge)
     heights = outcome.heights.copy()
     lake = (outcome.labels > 0) & np.isfinite(heights)
     heights[lake] = np.array([levels[k].level for k in range(len(levels))])[outcome.labels[lake]]
@@ -197,17 +220,19 @@ def fill_water(
         edge=params.water_edge,
         min_drop=params.river_min_drop,
         min_elongation=params.river_min_elongation,
-        water_heights=np.where(water_label > 0, zmin, np.nan),
+        water_heights=np.where(water_label > 0, water_z, np.nan),
         water_labels=water_label,
     )
     return _as_rivers(outcome, surface, {fit.label: fit for fit in fits if fit.is_river}, params.pixel_size)
 
 
-def _edge_levels(zmin: np.ndarray, ring_label: np.ndarray, water_label: np.ndarray, edge: WaterEdge) -> list[EdgeLevel]:
+def _edge_levels(
+    zmin: np.ndarray, water_z: np.ndarray, ring_label: np.ndarray, water_label: np.ndarray, edge: WaterEdge
+) -> list[EdgeLevel]:
     """The edge level of every label 0..max (entry 0 unused)."""
     n = int(max(ring_label.max(initial=0), water_label.max(initial=0)))
     ring = _by_label(zmin, ring_label, n)
-    water = _by_label(zmin, water_label, n)
+    water = _by_label(water_z, water_label, n)
     return [NO_LEVEL] + [
         edge_level(ring[k], water[k], tolerance=edge.tolerance, min_share=edge.min_share) for k in range(1, n + 1)
     ]

@@ -158,7 +158,7 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
     components independent), so batching changes no height, only the cost.
     """
     window = _union([hole.window for hole in task.holes])
-    zmax, zmin, measured, hole_ids, water = _WindowReader(task.sources).read(window)
+    zmax, zmin, measured, hole_ids, water, counts = _WindowReader(task.sources).read(window)
     params = task.params
     distance = fill_distance(measured, pixel_size=params.pixel_size)
     ids = np.array([hole.hole_id for hole in task.holes], dtype=np.int64)
@@ -176,7 +176,7 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
     filled_ids = np.zeros(window.shape, np.int64)
     for kind, group in groups.items():
         labels = _group_labels(hole_ids, [hole.hole_id for hole in group])
-        outcome = fill_hole(zmax, zmin, measured, labels, kind, params, water)
+        outcome = fill_hole(zmax, zmin, measured, labels, kind, params, water, counts)
         for k, hole in enumerate(group, start=1):
             record = hole_record(hole.hole_id, k, labels, outcome, distance, task.result_path)
             missed = hole.cause == "missed_coverage" and record.status == FILLED  # filled on request: flagged
@@ -221,24 +221,26 @@ class _WindowReader:
             core = load_cell_statistics(source.statistics_path, ("zmax", "zmin", "count", "water")).crop(source.core)
             labels, _ = load_labels(source.labels_path)
             hole_ids = hole_ids_of_labels(labels, source.hole_of_label)
-            self._loaded[source.cell_id] = (core.zmax, core.zmin, core.count > 0, hole_ids, core.water)
+            self._loaded[source.cell_id] = (core.zmax, core.zmin, core.count, hole_ids, core.water)
         return self._loaded[source.cell_id]
 
-    def read(self, window: PixelWindow) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def read(self, window: PixelWindow) -> tuple[np.ndarray, ...]:
         zmax = np.full(window.shape, np.nan, np.float64)
         zmin = np.full(window.shape, np.nan, np.float64)
         measured = np.zeros(window.shape, bool)
         hole_ids = np.zeros(window.shape, np.int64)
         water = np.zeros(window.shape, np.uint16)  # water-class returns: the level of water holes
+        counts = np.zeros(window.shape, np.uint32)
         for source in self._sources:
             overlap = source.core.intersection(window)
             if overlap.is_empty:
                 continue
             inside, within = overlap.slices_within(window), overlap.slices_within(source.core)
-            cell_zmax, cell_zmin, cell_measured, cell_holes, cell_water = self._cell(source)
+            cell_zmax, cell_zmin, cell_counts, cell_holes, cell_water = self._cell(source)
             zmax[inside] = cell_zmax[within]
             zmin[inside] = cell_zmin[within]
-            measured[inside] = cell_measured[within]
+            measured[inside] = cell_counts[within] > 0
+            counts[inside] = cell_counts[within]
             hole_ids[inside] = cell_holes[within]
             water[inside] = cell_water[within]
-        return zmax, zmin, measured, hole_ids, water
+        return zmax, zmin, measured, hole_ids, water, counts
