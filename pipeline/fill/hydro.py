@@ -78,8 +78,9 @@ class RiverFit:
     stations : int
         Stations with a measured bank.
     spread : float
-        Robust scatter of the station levels about the fitted surface (z units, 1.4826 x
-        the median absolute residual): the error of the level.
+        The error of the level (z units): the median spread of the edge heights of a
+        station, combined with the robust scatter of the station levels about the fit
+        (1.4826 x their median absolute residual).
     """
 
     label: int
@@ -204,17 +205,18 @@ def _fit_one(
     rim = _rim(hole) & np.isfinite(heights) & ~has_water
     station_px = max(2.0 * area / max(length, 1.0), 4.0)
     evidence = _Evidence(chainage[rim], heights[rim], chainage[has_water], water[has_water])
-    centres, levels, weights = evidence.stations(station_px, edge, None)
+    centres, levels, weights, _ = evidence.stations(station_px, edge, None)
     if len(levels) < 2:
         return RiverFit(label, False, length, elongation, 0.0, len(levels)), np.empty(0)
     fitted = _monotone(centres, levels, weights, edge)
     # again with the fall within each station taken out, so its level no longer leans to its lower
     # end; a station falling more than the edge tolerance needs a few rounds to settle
     for _ in range(REFITS):
-        centres, levels, weights = evidence.stations(station_px, edge, (centres, fitted))
+        centres, levels, weights, spreads = evidence.stations(station_px, edge, (centres, fitted))
         fitted = _monotone(centres, levels, weights, edge)
     drop = float(abs(fitted[0] - fitted[-1]))
-    spread = 1.4826 * float(np.median(np.abs(levels - fitted)))
+    # the scatter of the edge heights about each station's level, and of the stations about the fit
+    spread = math.hypot(float(np.median(spreads)), 1.4826 * float(np.median(np.abs(levels - fitted))))
     surface = _capped_surface(_interpolate(chainage, centres, fitted), hole, edge.max_slope)
     drop = min(drop, float(np.ptp(surface[hole])))
     fit = RiverFit(label, drop >= min_drop, length, elongation, drop, len(levels), spread)
@@ -380,8 +382,8 @@ class _Evidence:
 
     def stations(
         self, station_px: float, edge: WaterEdge, fitted: tuple[np.ndarray, np.ndarray] | None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per station with evidence: centre chainage, edge level, heights that agree on it.
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per station with evidence: centre chainage, edge level, heights that agree on it, their spread.
 
         With ``fitted`` (station centres and levels), the fitted fall between each
         height and the centre of its station is taken out of it first.
@@ -392,7 +394,7 @@ class _Evidence:
         heights = np.concatenate([self.ring if use_ring else self.ring[:0], self.water])
         is_water = np.arange(len(along)) >= len(along) - len(self.water)
         station = np.floor(along / station_px).astype(np.int64)
-        centres, levels, weights = [], [], []
+        centres, levels, weights, spreads = [], [], [], []
         for k in np.unique(station):
             here = station == k
             h, at = heights[here], along[here]
@@ -404,7 +406,8 @@ class _Evidence:
                 centres.append(float(np.mean(at[water] if found.source == "water returns" else at[~water])))
                 levels.append(found.level)
                 weights.append(float(found.count))
-        return np.array(centres), np.array(levels), np.array(weights)
+                spreads.append(found.spread)
+        return np.array(centres), np.array(levels), np.array(weights), np.array(spreads)
 
 
 def _monotone(centres: np.ndarray, levels: np.ndarray, weights: np.ndarray, edge: WaterEdge) -> np.ndarray:
