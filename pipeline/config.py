@@ -396,10 +396,13 @@ class FillConfig:
         True, "Occlusion holes from their lower rim (the ground beside a building); water holes flat."
     )
     max_distance_m: float = _opt(
-        25.0, "Holes with a pixel farther than this (m) from measured data stay nodata (skipped: too large).", gt=0
+        0.0,
+        "Holes with a pixel farther than this (m) from measured data stay nodata (skipped: too large); 0: no limit.",
+        ge=0,
     )
-    max_area_m2: float = _opt(
-        10_000.0, "Holes larger than this (m2) stay nodata (skipped: too large) and go to the flight plan.", gt=0
+    max_area_m2: float = _opt(0.0, "Holes larger than this (m2) stay nodata (skipped: too large); 0: no limit.", ge=0)
+    missed_coverage: bool = _opt(
+        False, "Also fill missed coverage (flagged in fill_note); false leaves it nodata for the re-flight."
     )
     margin_px: int = _opt(8, "Pixels of measured data read around each hole for its support.", ge=1)
     tin_order: int = _opt(
@@ -408,8 +411,16 @@ class FillConfig:
     clamp_to_rim: bool = _opt(
         True, "Keep interpolated heights within the range of the hole's rim (no overshoot at steps)."
     )
-    water_percentile: float = _opt(
-        10.0, "Water is filled flat at this percentile of its rim heights (the water's edge).", ge=0, le=100
+    water_edge_tolerance_m: float = _opt(
+        0.15,
+        "Heights of one water level agree within this (m): the lidar's vertical noise (0.05-0.10 m, 1 sigma).",
+        gt=0,
+    )
+    water_edge_min_share: float = _opt(
+        0.1, "The water's edge is the lowest level at least this share of a hole's ring agrees on.", gt=0, le=1
+    )
+    water_edge_reach_m: float = _opt(
+        2.0, "Water-class returns within this (m) of a water hole's ring give its level.", ge=0
     )
     river_min_drop_m: float = _opt(
         0.25, "A water hole is a river (surface stepping down its course) when it falls at least this (m).", ge=0

@@ -181,16 +181,25 @@ def fill_params(
     config: Config, holes: HoleParams, *, pixel_size: float, horizontal_unit_m: float, vertical_unit_m: float
 ) -> FillParams:
     """The ``[fill]`` settings in survey units (``pixel_size`` in survey units, as ``grid.resolution``)."""
-    from .fill import FillSettings
+    from .fill import FillSettings, WaterEdge
     from .fill.by_cause import FillParams
 
     fill = config.fill
+    pixel_m = pixel_size * horizontal_unit_m
+    edge = WaterEdge(
+        tolerance=fill.water_edge_tolerance_m / vertical_unit_m,
+        min_share=fill.water_edge_min_share,
+        max_slope=config.causes.water_max_slope * pixel_m / vertical_unit_m,  # z units per pixel of course
+    )
     return FillParams(
         method=fill.method,
         by_cause=fill.by_cause,
         pixel_size=pixel_size,
-        max_distance=fill.max_distance_m / horizontal_unit_m,
-        water_percentile=fill.water_percentile,
+        max_distance=fill.max_distance_m / horizontal_unit_m if fill.max_distance_m > 0 else math.inf,
+        max_area_m2=fill.max_area_m2 if fill.max_area_m2 > 0 else math.inf,
+        fill_missed_coverage=fill.missed_coverage,
+        water_edge=edge,
+        water_reach_px=1.0 + fill.water_edge_reach_m / pixel_m,  # the ring, and the reach beyond it
         jump_threshold=holes.jump_threshold,
         settings=FillSettings(estimate_error=fill.estimate_error, tin_order=fill.tin_order),
         clamp_to_rim=fill.clamp_to_rim,

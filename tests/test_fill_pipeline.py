@@ -113,8 +113,8 @@ def test_run_plans_flights_for_the_missed_strip_only(tmp_path, dask_client):
     holes = read_layer(out / "holes.gpkg", "holes")
     strips = holes[holes["cause"] == "missed_coverage"]
     assert len(strips) >= 1 and (holes["cause"] == "occlusion").any()
-    # the strip is too large to invent: left nodata for the re-flight
-    assert (strips["fill_status"] == "skipped: too large").all()
+    # missed coverage is not invented: left nodata for the re-flight
+    assert (strips["fill_status"] == "skipped: missed coverage").all()
     status = read_layer(out / "flightplan.gpkg", "holes_status")
     planned = set(status.loc[status["planned"], "hole_id"])
     assert planned == set(strips.loc[strips["area_m2"] >= 25, "hole_id"])

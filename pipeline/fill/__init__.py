@@ -13,6 +13,7 @@ is filled by its cause (water, occlusion, the rest) is :mod:`.by_cause`.
 
 from .by_cause import (
     FILLED,
+    MISSED,
     NO_SUPPORT,
     TOO_LARGE,
     UNFILLED,
@@ -25,7 +26,7 @@ from .by_cause import (
     hole_record,
 )
 from .causes import clamp_to_rim, lower_side_support, rim_level
-from .hydro import RiverFit, river_surfaces
+from .hydro import RiverFit, WaterEdge, river_surfaces
 from .provenance import fill_distance, leave_boundary_out_error
 from .region import FILL_METHODS, choose_methods, fill_region
 from .seams import smooth_seams
@@ -41,6 +42,7 @@ from .settings import (
 
 __all__ = [
     "FILLED",
+    "MISSED",
     "FILL_METHODS",
     "METHOD_CODES",
     "METHOD_NAMES",
@@ -68,5 +70,6 @@ __all__ = [
     "lower_side_support",
     "rim_level",
     "river_surfaces",
+    "WaterEdge",
     "smooth_seams",
 ]

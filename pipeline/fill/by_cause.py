@@ -18,13 +18,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .causes import clamp_to_rim, lower_side_support
-from .hydro import river_surfaces
+from .hydro import RiverFit, WaterEdge, river_surfaces
 from .region import fill_region
 from .settings import METHOD_CODES, METHOD_NAMES, ComponentFill, FillOutcome, FillSettings
+from .water_level import NO_LEVEL, EdgeLevel, edge_level, water_edge_heights
 
 __all__ = [
     "FILLED",
     "LOW_SIDE",
+    "MISSED",
+    "MISSED_NOTE",
     "NO_SUPPORT",
     "OCCLUSION",
     "RIM",
@@ -39,6 +42,7 @@ __all__ = [
     "fill_water",
     "hole_ids_of_labels",
     "hole_record",
+    "unfilled_reason",
 ]
 
 #: The cause a small void is filled as (it is not classified when a cell settles it).
@@ -50,6 +54,9 @@ WATER, LOW_SIDE, RIM = "water", "low", "rim"
 
 #: ``fill_status`` values of the ``holes`` layer.
 FILLED, TOO_LARGE, NO_SUPPORT, UNFILLED = "filled", "skipped: too large", "skipped: no support", "unfilled"
+MISSED = "skipped: missed coverage"
+#: ``fill_note`` of missed coverage filled on request (``fill.missed_coverage = true``).
+MISSED_NOTE = "missed coverage, interpolated"
 
 
 @dataclass(frozen=True)
@@ -60,12 +67,16 @@ class FillParams:
     by_cause: bool
     pixel_size: float  # survey units
     max_distance: float  # survey units
-    water_percentile: float
     jump_threshold: float  # z units
     settings: FillSettings
     clamp_to_rim: bool = True
     river_min_drop: float = math.inf  # z units; inf: every water hole one level
     river_min_elongation: float = 4.0
+    # the water's edge (z units, pixels): its noise, the share of a ring on it, the steepest fall per pixel
+    water_edge: WaterEdge = WaterEdge(tolerance=0.15, min_share=0.1, max_slope=0.02)
+    water_reach_px: float = 3.0  # how far from a hole its water returns are looked for
+    max_area_m2: float = math.inf  # fill.max_area_m2; inf: no limit
+    fill_missed_coverage: bool = False  # fill.missed_coverage
 
 
 @dataclass(frozen=True)
@@ -92,6 +103,25 @@ def fill_kind(cause: str, params: FillParams) -> str:
     return LOW_SIDE if cause in (OCCLUSION, SMALL_VOID) else RIM
 
 
+def unfilled_reason(cause: str, *, area_m2: float, farthest: float, params: FillParams) -> tuple[str, str] | None:
+    """Why a hole stays nodata (``fill_status``, ``fill_note``), or None: it is filled.
+
+    Every void inside the survey area is filled but missed coverage, which awaits a
+    re-flight unless ``fill.missed_coverage`` asks for it. Size (``area_m2``) and distance
+    from data (``farthest``, survey units) are limits only where the user set them, and
+    never for water: a water surface is known from its edge whatever its size.
+    """
+    if cause == "missed_coverage" and not params.fill_missed_coverage:
+        return MISSED, "awaiting re-flight (fill.missed_coverage = false)"
+    if cause == WATER:
+        return None
+    if area_m2 > params.max_area_m2:
+        return TOO_LARGE, f"area over fill.max_area_m2 = {params.max_area_m2:g}"
+    if farthest > params.max_distance:
+        return TOO_LARGE, "farther from data than fill.max_distance_m"
+    return None
+
+
 def fill_hole(
     zmax: np.ndarray,
     zmin: np.ndarray,
@@ -99,6 +129,8 @@ def fill_hole(
     labels: np.ndarray,
     kind: str,
     params: FillParams,
+    water_points: np.ndarray | None = None,
+    counts: np.ndarray | None = None,
 ) -> FillOutcome:
     """Fill labelled holes (each label one hole, 0 elsewhere) one way (pure; docs/filling.md).
 
@@ -111,7 +143,8 @@ def fill_hole(
     heights = np.where(measured, zmax, np.nan)
     region = labels > 0
     if kind == WATER:
-        return fill_water(np.where(measured, zmin, np.nan), heights, labels, params)
+        water_z = _water_heights(zmin, zmax, measured, water_points, counts)
+        return fill_water(np.where(measured, zmin, np.nan), labels, params, water_points, water_z)
     support = None
     if kind == LOW_SIDE:
         # a small void at a step (a building's edge) is hidden ground like an occlusion; with
@@ -132,30 +165,100 @@ def fill_hole(
     return replace(outcome, heights=np.where(np.isfinite(outcome.heights), clamped, np.nan))
 
 
-def fill_water(water_rim: np.ndarray, bank_rim: np.ndarray, labels: np.ndarray, params: FillParams) -> FillOutcome:
-    """Water holes: a lake flat at its rim level, a river stepping down along its course (hydro-flattening).
+def _water_heights(
+    zmin: np.ndarray, zmax: np.ndarray, measured: np.ndarray, water_points: np.ndarray | None, counts: np.ndarray | None
+) -> np.ndarray | None:
+    """The height of the water returns of each pixel: mid-range of a pixel of water returns only, else its lowest.
 
-    ``water_rim``: the lowest return of measured pixels, ``bank_rim`` the highest, NaN
-    elsewhere. Every hole is filled flat first, from the lowest returns of its whole rim;
-    those :func:`~pipeline.fill.river_surfaces` judges rivers (elongated, falling at least
-    ``river_min_drop``) get their river surface instead, method ``river``. A river's bank
-    levels come from the highest returns: a rim pixel on the shore may hold a return
-    from under the water's edge, which a whole rim outvotes but a short station does not.
+    The lowest of several noisy returns from one surface lies below it (by about the
+    noise), the highest above; their mid-range does not. A pixel with land returns too
+    keeps its lowest (its highest is the bank).
     """
-    settings = replace(params.settings, flat_percentile=params.water_percentile)
+    if water_points is None or counts is None:
+        return None
+    pure = measured & (water_points > 0) & (water_points == counts)
+    return np.where(pure, 0.5 * (zmin + zmax), np.where(measured, zmin, np.nan))
+
+
+def fill_water(
+    zmin: np.ndarray,
+    labels: np.ndarray,
+    params: FillParams,
+    water_points: np.ndarray | None = None,
+    water_z: np.ndarray | None = None,
+) -> FillOutcome:
+    """Water holes at the level of their edge: a lake one level, a river falling along its course.
+
+    ``zmin``: the lowest return of measured pixels, NaN elsewhere (the highest returns
+    are bridges, walls and crowns over the water, never its level); ``water_points``: water-class returns per pixel. The level of each hole is where
+    its water meets the land (:func:`~pipeline.fill.water_level.edge_level`): its water
+    returns near the ring when there are some, else the lowest consistent level of its
+    ring's lowest returns (``water_z``: the height of each pixel's water returns, default
+    ``zmin``). Holes :func:`~pipeline.fill.river_surfaces` judges rivers
+    (elongated, falling at least ``river_min_drop``) get their river surface instead,
+    method ``river``, never falling faster than the water's steepest slope. The error
+    estimate of a hole is the spread of the heights its level was read from.
+    """
+    settings = replace(params.settings, estimate_error=False)
     outcome = fill_region(
-        water_rim, labels > 0, method="flat", settings=settings, pixel_size=params.pixel_size, labels=labels
+        zmin, labels > 0, method="flat", settings=settings, pixel_size=params.pixel_size, labels=labels
     )
+    points = np.zeros(zmin.shape, np.uint16) if water_points is None else water_points
+    ring_label, water_label = water_edge_heights(zmin, points, outcome.labels, reach_px=params.water_reach_px)
+    water_z = zmin if water_z is None else water_z
+    levels = _edge_levels(zmin, water_z, ring_label, water_label, params.water_edge)
+    heights = outcome.heights.copy()
+    lake = (outcome.labels > 0) & np.isfinite(heights)
+    heights[lake] = np.array([levels[k].level for k in range(len(levels))])[outcome.labels[lake]]
+    components = tuple(_water_component(c, levels[c.label]) for c in outcome.components)
+    outcome = replace(outcome, heights=heights, components=components)
     if not math.isfinite(params.river_min_drop):
         return outcome
     surface, fits = river_surfaces(
-        bank_rim,
+        zmin,
         outcome.labels,
+        edge=params.water_edge,
         min_drop=params.river_min_drop,
         min_elongation=params.river_min_elongation,
-        percentile=params.water_percentile,
+        water_heights=np.where(water_label > 0, water_z, np.nan),
+        water_labels=water_label,
     )
-    rivers = {fit.label: fit for fit in fits if fit.is_river}
+    return _as_rivers(outcome, surface, {fit.label: fit for fit in fits if fit.is_river}, params.pixel_size)
+
+
+def _edge_levels(
+    zmin: np.ndarray, water_z: np.ndarray, ring_label: np.ndarray, water_label: np.ndarray, edge: WaterEdge
+) -> list[EdgeLevel]:
+    """The edge level of every label 0..max (entry 0 unused)."""
+    n = int(max(ring_label.max(initial=0), water_label.max(initial=0)))
+    ring = _by_label(zmin, ring_label, n)
+    water = _by_label(water_z, water_label, n)
+    return [NO_LEVEL] + [
+        edge_level(ring[k], water[k], tolerance=edge.tolerance, min_share=edge.min_share) for k in range(1, n + 1)
+    ]
+
+
+def _by_label(values: np.ndarray, labels: np.ndarray, n: int) -> list[np.ndarray]:
+    """The values of each label 0..n (one sort, no pass per label)."""
+    flat = labels.ravel()
+    order = np.argsort(flat, kind="stable")
+    bounds = np.searchsorted(flat[order], np.arange(n + 2))
+    picked = values.ravel()[order]
+    return [picked[bounds[k] : bounds[k + 1]] for k in range(n + 1)]
+
+
+def _water_component(component: ComponentFill, found: EdgeLevel) -> ComponentFill:
+    """A flat water component at its edge level; its error the spread of the edge heights."""
+    if not component.filled:
+        return component
+    note = f"water level {found.level:.2f} from {found.count} {found.source} pixels"
+    return replace(component, level=found.level, error_estimate=found.spread, detail=note)
+
+
+def _as_rivers(
+    outcome: FillOutcome, surface: np.ndarray, rivers: dict[int, RiverFit], pixel_size: float
+) -> FillOutcome:
+    """The outcome with the holes judged rivers on their river surface (method ``river``)."""
     if not rivers:
         return outcome
     river = np.isin(outcome.labels, list(rivers)) & np.isfinite(surface)
@@ -164,8 +267,8 @@ def fill_water(water_rim: np.ndarray, bank_rim: np.ndarray, labels: np.ndarray, 
             c,
             method="river",
             level=math.nan,
-            error_estimate=math.nan,
-            detail=f"river: falls {rivers[c.label].drop:.2f} along {rivers[c.label].length_px * params.pixel_size:.0f}",
+            error_estimate=rivers[c.label].spread,
+            detail=f"river: falls {rivers[c.label].drop:.2f} along {rivers[c.label].length_px * pixel_size:.0f}",
         )
         if c.label in rivers
         else c

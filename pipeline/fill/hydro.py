@@ -43,17 +43,21 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.ndimage as ndi
-from scipy.optimize import isotonic_regression
+from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-__all__ = ["RiverFit", "river_surfaces"]
+from .water_level import MIN_WATER_PX, edge_level
+
+__all__ = ["RiverFit", "WaterEdge", "river_surfaces"]
 
 #: 8-neighbour steps (half of them: the graph is undirected) and their lengths in pixels.
 _STEPS = ((0, 1, 1.0), (1, 0, 1.0), (1, 1, math.sqrt(2.0)), (1, -1, math.sqrt(2.0)))
 #: Holes with fewer pixels are never rivers (too small to have a course).
 MIN_RIVER_PX = 16
+#: Rounds of re-measuring the stations with the fitted fall within each taken out.
+REFITS = 3
 
 
 @dataclass(frozen=True)
@@ -73,6 +77,10 @@ class RiverFit:
         Fitted level at the upstream end minus the downstream end (z units, >= 0).
     stations : int
         Stations with a measured bank.
+    spread : float
+        The error of the level (z units): the median spread of the edge heights of a
+        station, combined with the robust scatter of the station levels about the fit
+        (1.4826 x their median absolute residual).
     """
 
     label: int
@@ -81,30 +89,56 @@ class RiverFit:
     elongation: float
     drop: float
     stations: int
+    spread: float = math.nan
+
+
+@dataclass(frozen=True)
+class WaterEdge:
+    """How a water hole's level is read from its edge (:mod:`pipeline.fill.water_level`), in pixels and z units.
+
+    Attributes
+    ----------
+    tolerance : float
+        Heights of one level agree within this (z units): the lidar's vertical noise.
+    min_share : float
+        Share of a ring (or a station's ring) the level needs.
+    max_slope : float
+        Steepest fall of a water surface along its course (z units per pixel).
+    """
+
+    tolerance: float
+    min_share: float
+    max_slope: float
 
 
 def river_surfaces(
-    rim_heights: np.ndarray,
+    ring_heights: np.ndarray,
     labels: np.ndarray,
     *,
+    edge: WaterEdge,
     min_drop: float,
     min_elongation: float = 4.0,
-    percentile: float = 10.0,
+    water_heights: np.ndarray | None = None,
+    water_labels: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[RiverFit]]:
     """Fit a river surface to every labelled water hole.
 
     Parameters
     ----------
-    rim_heights : ndarray (M, N)
-        Heights of measured pixels (the lowest return per pixel suits water), NaN elsewhere.
+    ring_heights : ndarray (M, N)
+        Heights of measured pixels (the lowest return per pixel: the water's edge), NaN elsewhere.
     labels : ndarray of int (M, N)
         One label > 0 per water hole, 0 elsewhere.
+    edge : WaterEdge
+        How a station's level is read from its edge, and the steepest fall allowed.
     min_drop : float
         Smallest fall from one end to the other (z units) for a river.
     min_elongation : float
         Smallest ``length**2 / area`` for a river.
-    percentile : float
-        Percentile of a station's rim heights taken as its bank level.
+    water_heights, water_labels : ndarray (M, N), optional
+        The lowest return of pixels holding water returns, and the hole each belongs to
+        (:func:`~pipeline.fill.water_level.water_edge_heights`); where a station has
+        enough of them they give its level.
 
     Returns
     -------
@@ -113,62 +147,113 @@ def river_surfaces(
     fits : list of RiverFit
         One per label present, in label order.
     """
-    heights = np.asarray(rim_heights, np.float64)
+    heights = np.asarray(ring_heights, np.float64)
     labels = np.asarray(labels)
+    if water_heights is None or water_labels is None:
+        water_heights, water_labels = np.full(heights.shape, np.nan), np.zeros(labels.shape, np.int64)
     surface = np.full(heights.shape, np.nan)
     fits = []
+    reach = np.nonzero(np.asarray(water_labels) > 0)
     for index, box in enumerate(ndi.find_objects(labels.astype(np.int64)), start=1):
         if box is None:
             continue
-        # one pixel of margin: the rim
-        grown = tuple(slice(max(s.start - 1, 0), min(s.stop + 1, n)) for s, n in zip(box, labels.shape))
-        fit, local = _fit_one(heights[grown], labels[grown] == index, index, min_drop, min_elongation, percentile)
+        grown = _grown_box(box, labels.shape, reach, np.asarray(water_labels) == index)
+        hole = labels[grown] == index
+        water = np.where(water_labels[grown] == index, water_heights[grown], np.nan)
+        fit, local = _fit_one(heights[grown], water, hole, index, edge, min_drop, min_elongation)
         fits.append(fit)
         if fit.is_river:
             view = surface[grown]
-            inside = labels[grown] == index
-            view[inside] = local[inside]
+            view[hole] = local[hole]
     return surface, fits
 
 
+def _grown_box(
+    box: tuple[slice, slice], shape: tuple[int, ...], reach: tuple[np.ndarray, ...], mine: np.ndarray
+) -> tuple[slice, slice]:
+    """The hole's box with one pixel of margin (the rim), grown to hold its water-return pixels."""
+    r0, r1 = box[0].start - 1, box[0].stop + 1
+    c0, c1 = box[1].start - 1, box[1].stop + 1
+    rows, cols = reach
+    if len(rows):
+        own = mine[rows, cols]
+        if own.any():
+            r0, r1 = min(r0, int(rows[own].min())), max(r1, int(rows[own].max()) + 1)
+            c0, c1 = min(c0, int(cols[own].min())), max(c1, int(cols[own].max()) + 1)
+    return slice(max(r0, 0), min(r1, shape[0])), slice(max(c0, 0), min(c1, shape[1]))
+
+
 def _fit_one(
-    heights: np.ndarray, hole: np.ndarray, label: int, min_drop: float, min_elongation: float, percentile: float
+    heights: np.ndarray,
+    water: np.ndarray,
+    hole: np.ndarray,
+    label: int,
+    edge: WaterEdge,
+    min_drop: float,
+    min_elongation: float,
 ) -> tuple[RiverFit, np.ndarray]:
-    """The river fit of one hole in its box (rim included); the surface over the box."""
+    """The river fit of one hole in its box (rim and water returns included); the surface over the box."""
     area = int(hole.sum())
     none = RiverFit(label, False, 0.0, 0.0, 0.0, 0)
     if area < MIN_RIVER_PX:
         return none, np.empty(0)
-    chainage, length = _chainage(hole)
+    has_water = np.isfinite(water)
+    chainage, length = _chainage(hole, has_water)
     elongation = length**2 / area
     if elongation < min_elongation:
         return RiverFit(label, False, length, elongation, 0.0, 0), np.empty(0)
-    rim = _rim(hole) & np.isfinite(heights)
+    rim = _rim(hole) & np.isfinite(heights) & ~has_water
     station_px = max(2.0 * area / max(length, 1.0), 4.0)
-    centres, levels, weights = _station_levels(chainage[rim], heights[rim], station_px, percentile)
+    evidence = _Evidence(chainage[rim], heights[rim], chainage[has_water], water[has_water])
+    centres, levels, weights, _ = evidence.stations(station_px, edge, None)
     if len(levels) < 2:
         return RiverFit(label, False, length, elongation, 0.0, len(levels)), np.empty(0)
-    fitted = _monotone(levels, weights)
-    # again with the fall within each station taken out: its percentile no longer leans to its lower end
-    along = chainage[rim]
-    _, station = np.unique(np.floor(along / station_px), return_inverse=True)
-    fall = _interpolate(along, centres, fitted) - fitted[station]
-    _, levels, _ = _station_levels(along, heights[rim] - fall, station_px, percentile)
-    fitted = _monotone(levels, weights)
+    fitted = _monotone(centres, levels, weights, edge)
+    # again with the fall within each station taken out, so its level no longer leans to its lower
+    # end; a station falling more than the edge tolerance needs a few rounds to settle
+    for _ in range(REFITS):
+        centres, levels, weights, spreads = evidence.stations(station_px, edge, (centres, fitted))
+        fitted = _monotone(centres, levels, weights, edge)
     drop = float(abs(fitted[0] - fitted[-1]))
-    fit = RiverFit(label, drop >= min_drop, length, elongation, drop, len(levels))
-    return fit, _interpolate(chainage, centres, fitted)
+    # the scatter of the edge heights about each station's level, and of the stations about the fit
+    spread = math.hypot(float(np.median(spreads)), 1.4826 * float(np.median(np.abs(levels - fitted))))
+    surface = _capped_surface(_interpolate(chainage, centres, fitted), hole, edge.max_slope)
+    drop = min(drop, float(np.ptp(surface[hole])))
+    fit = RiverFit(label, drop >= min_drop, length, elongation, drop, len(levels), spread)
+    return fit, surface
+
+
+def _capped_surface(surface: np.ndarray, hole: np.ndarray, max_slope: float) -> np.ndarray:
+    """The surface with its fall scaled down about its mean where a step between neighbours exceeds the cap.
+
+    The fit caps the fall per unit of chainage; the chainage of a pixel path is a little
+    longer than the straight run (its smoothing leaves wiggles), so the fall between two
+    neighbouring pixels can exceed the cap by a few per cent.
+    """
+    steepest = 0.0
+    for axis in (0, 1):
+        step = np.abs(np.diff(np.where(hole, surface, np.nan), axis=axis))
+        if np.isfinite(step).any():
+            steepest = max(steepest, float(np.nanmax(step)))
+    if steepest <= max_slope:
+        return surface
+    mean = float(np.mean(surface[hole]))
+    return mean + (surface - mean) * (max_slope / steepest)
 
 
 def _interpolate(chainage: np.ndarray, centres: np.ndarray, levels: np.ndarray) -> np.ndarray:
-    """Levels between station centres, linear; beyond the end stations along the end segments' slopes.
+    """Levels between station centres, linear; beyond the end stations along the mean slope of the end reach.
 
-    The rim of the last half station and of an open end is sparse; continuing the end
-    slope keeps the surface monotone and follows the water there.
+    The rim of the last half station and of an open end is sparse, so one end station
+    is a weak guide to the slope there; the slope over the last stations covering a
+    quarter of the course (at least two) keeps the surface monotone and follows the water.
     """
     surface = np.interp(chainage, centres, levels)
-    for outside, a, b in ((chainage < centres[0], 0, 1), (chainage > centres[-1], -1, -2)):
-        slope = (levels[b] - levels[a]) / (centres[b] - centres[a])
+    if len(centres) < 2:
+        return surface
+    span = max(2, len(centres) // 4)
+    for outside, a, b in ((chainage < centres[0], 0, span - 1), (chainage > centres[-1], -1, -span)):
+        slope = (levels[b] - levels[a]) / (centres[b] - centres[a]) if centres[b] != centres[a] else 0.0
         surface[outside] = levels[a] + slope * (chainage[outside] - centres[a])
     return surface
 
@@ -178,7 +263,7 @@ def _rim(hole: np.ndarray) -> np.ndarray:
     return ndi.binary_dilation(hole, structure=ndi.generate_binary_structure(2, 1)) & ~hole
 
 
-def _chainage(hole: np.ndarray) -> tuple[np.ndarray, float]:
+def _chainage(hole: np.ndarray, also: np.ndarray) -> tuple[np.ndarray, float]:
     """Arc length along the course of the nearest course pixel, for every pixel of the box; the course length."""
     rows, cols = np.nonzero(hole)
     node = np.full(hole.shape, -1, np.int64)
@@ -207,7 +292,7 @@ def _chainage(hole: np.ndarray) -> tuple[np.ndarray, float]:
     sigma = max(0.5 * width, 2.0)
     pr = ndi.gaussian_filter1d(rows[path].astype(np.float64), sigma, mode="nearest")
     pc = ndi.gaussian_filter1d(cols[path].astype(np.float64), sigma, mode="nearest")
-    near = _rim(hole) | hole
+    near = _rim(hole) | hole | also
     chainage = np.zeros(hole.shape)
     chainage[near] = _project(np.column_stack([pr, pc]), np.column_stack(np.nonzero(near)), trim=sigma, back=sigma)
     return chainage, float(np.sum(np.hypot(np.diff(pr), np.diff(pc))))
@@ -286,24 +371,79 @@ def _edges(hole: np.ndarray, node: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     return np.concatenate(src), np.concatenate(dst), np.concatenate(step)
 
 
-def _station_levels(
-    chainage: np.ndarray, heights: np.ndarray, station_px: float, percentile: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per station with rim pixels: centre chainage, bank level (percentile), rim pixel count."""
-    station = np.floor(chainage / station_px).astype(np.int64)
-    centres, levels, weights = [], [], []
-    for k in np.unique(station):
-        here = station == k
-        centres.append(float(np.mean(chainage[here])))
-        levels.append(float(np.percentile(heights[here], percentile)))
-        weights.append(float(here.sum()))
-    return np.array(centres), np.array(levels), np.array(weights)
+@dataclass(frozen=True)
+class _Evidence:
+    """A river's edge heights by chainage: its ring's lowest returns, and its water returns."""
+
+    ring_along: np.ndarray
+    ring: np.ndarray
+    water_along: np.ndarray
+    water: np.ndarray
+
+    def stations(
+        self, station_px: float, edge: WaterEdge, fitted: tuple[np.ndarray, np.ndarray] | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per station with evidence: centre chainage, edge level, heights that agree on it, their spread.
+
+        With ``fitted`` (station centres and levels), the fitted fall between each
+        height and the centre of its station is taken out of it first.
+        """
+        # the water's own returns are its level; the ring of a walled channel is the quay top
+        use_ring = len(self.water) < MIN_WATER_PX
+        along = np.concatenate([self.ring_along if use_ring else self.ring_along[:0], self.water_along])
+        heights = np.concatenate([self.ring if use_ring else self.ring[:0], self.water])
+        is_water = np.arange(len(along)) >= len(along) - len(self.water)
+        station = np.floor(along / station_px).astype(np.int64)
+        centres, levels, weights, spreads = [], [], [], []
+        for k in np.unique(station):
+            here = station == k
+            h, at = heights[here], along[here]
+            if fitted is not None:
+                h = h - (_interpolate(at, *fitted) - _interpolate(np.array([at.mean()]), *fitted))
+            water = is_water[here]
+            found = edge_level(h[~water], h[water], tolerance=edge.tolerance, min_share=edge.min_share)
+            if math.isfinite(found.level):
+                centres.append(float(np.mean(at[water] if found.source == "water returns" else at[~water])))
+                levels.append(found.level)
+                weights.append(float(found.count))
+                spreads.append(found.spread)
+        return np.array(centres), np.array(levels), np.array(weights), np.array(spreads)
 
 
-def _monotone(levels: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """The better of the non-increasing and non-decreasing weighted least-squares fits."""
-    down = isotonic_regression(levels, weights=weights, increasing=False).x
-    up = isotonic_regression(levels, weights=weights, increasing=True).x
-    cost_down = float(np.sum(weights * (levels - down) ** 2))
-    cost_up = float(np.sum(weights * (levels - up) ** 2))
-    return down if cost_down <= cost_up else up
+def _monotone(centres: np.ndarray, levels: np.ndarray, weights: np.ndarray, edge: WaterEdge) -> np.ndarray:
+    """The better of the falling and rising fits, each monotone with its slope capped at ``edge.max_slope``.
+
+    A robust (soft L1, scale ``edge.tolerance``) weighted least-squares fit of the
+    station levels under ``0 <= fall between stations <= max_slope * distance``: a
+    station whose edge is a bridge or a quay top stands out and pulls little.
+    """
+    best, best_cost = levels, math.inf
+    for sign in (1.0, -1.0):
+        fit, cost = _capped_fit(centres, sign * levels, weights, edge)
+        if cost < best_cost:
+            best, best_cost = sign * fit, cost
+    return best
+
+
+def _capped_fit(
+    centres: np.ndarray, levels: np.ndarray, weights: np.ndarray, edge: WaterEdge
+) -> tuple[np.ndarray, float]:
+    """Non-increasing levels, falling at most ``max_slope`` per pixel of chainage; the fit and its cost."""
+    n = len(levels)
+    gaps = np.diff(centres) * edge.max_slope
+    # unknowns: the first level and the n - 1 falls; level i = first - sum of the falls before it
+    design = np.zeros((n, n))
+    design[:, 0] = 1.0
+    design[1:, 1:] = -np.tril(np.ones((n - 1, n - 1)))
+    root = np.sqrt(weights / weights.max())
+    start = np.concatenate([[float(np.max(levels))], np.zeros(n - 1)])
+    lower = np.concatenate([[-np.inf], np.zeros(n - 1)])
+    upper = np.concatenate([[np.inf], gaps + 1e-12])
+    found = least_squares(
+        lambda x: root * (design @ x - levels),
+        np.clip(start, lower, upper),
+        bounds=(lower, upper),
+        loss="soft_l1",
+        f_scale=max(edge.tolerance, 1e-6),
+    )
+    return design @ found.x, float(found.cost)

@@ -9,15 +9,15 @@ they cover. Filling a hole whole, never cell by cell, makes the fill independent
 the cell size: the same hole gives the same heights with 64-pixel or 1000-pixel
 cells (docs/filling.md, "Cells and layers").
 
-Holes are chosen for filling on the client: larger than ``fill.max_area_m2`` or
-farther than ``fill.max_distance_m`` from measured data, a hole is not invented;
-it stays nodata, marked ``skipped: too large``.
+Holes are chosen for filling on the client (:func:`~pipeline.fill.by_cause.unfilled_reason`):
+every void is filled but missed coverage (unless ``fill.missed_coverage``), and holes over the
+limits a user set (``fill.max_area_m2``, ``fill.max_distance_m``; water never).
 """
 
 from __future__ import annotations
 
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.ndimage as ndi
@@ -25,6 +25,8 @@ import scipy.ndimage as ndi
 from ..config import Config
 from ..fill import fill_distance
 from ..fill.by_cause import (
+    FILLED,
+    MISSED_NOTE,
     SMALL_VOID,
     TOO_LARGE,
     FillParams,
@@ -33,6 +35,7 @@ from ..fill.by_cause import (
     fill_kind,
     hole_ids_of_labels,
     hole_record,
+    unfilled_reason,
 )
 from ..grid import Grid, PixelWindow
 from ..io.intermediate import load_cell_statistics, load_labels, save_task_fill
@@ -118,10 +121,11 @@ def fill_tasks(
     skipped = []
     for i, hole in enumerate(catalog.holes):
         hole_id = int(hole["hole_id"])
-        if float(hole["area_px"]) * plan.pixel_area_m2 > config.fill.max_area_m2:
-            skipped.append(
-                HoleFill(hole_id, TOO_LARGE, detail=f"area over fill.max_area_m2 = {config.fill.max_area_m2:g}")
-            )
+        # a small void is filled alike whether a cell settled it or it crossed cells
+        cause = SMALL_VOID if hole["is_small"] else str(holes.causes["cause"][i])
+        reason = unfilled_reason(cause, area_m2=float(hole["area_px"]) * plan.pixel_area_m2, farthest=0, params=params)
+        if reason:
+            skipped.append(HoleFill(hole_id, reason[0], detail=reason[1]))
             continue
         row0, col0 = int(stats["row_min"][i]), int(stats["col_min"][i])
         box = PixelWindow(row0, col0, int(stats["row_max"][i]) - row0 + 1, int(stats["col_max"][i]) - col0 + 1)
@@ -132,8 +136,7 @@ def fill_tasks(
         owned[owner].append(
             HoleToFill(
                 hole_id=hole_id,
-                # a small void is filled alike whether a cell settled it or it crossed cells
-                cause=SMALL_VOID if hole["is_small"] else str(holes.causes["cause"][i]),
+                cause=cause,
                 window=box.expand(margin).intersection(grid.window),
             )
         )
@@ -158,7 +161,7 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
     components independent), so batching changes no height, only the cost.
     """
     window = _union([hole.window for hole in task.holes])
-    zmax, zmin, measured, hole_ids = _WindowReader(task.sources).read(window)
+    zmax, zmin, measured, hole_ids, water, counts = _WindowReader(task.sources).read(window)
     params = task.params
     distance = fill_distance(measured, pixel_size=params.pixel_size)
     ids = np.array([hole.hole_id for hole in task.holes], dtype=np.int64)
@@ -166,9 +169,9 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
     results: dict[int, HoleFill] = {}
     groups: dict[str, list[HoleToFill]] = defaultdict(list)
     for hole, far in zip(task.holes, farthest):
-        if far > params.max_distance:
-            detail = "farther from data than fill.max_distance_m"
-            results[hole.hole_id] = HoleFill(hole.hole_id, TOO_LARGE, max_distance=float(far), detail=detail)
+        reason = unfilled_reason(hole.cause, area_m2=0.0, farthest=float(far), params=params)
+        if reason:
+            results[hole.hole_id] = HoleFill(hole.hole_id, *reason, max_distance=float(far))
         else:
             groups[fill_kind(hole.cause, params)].append(hole)
     heights = np.full(window.shape, np.nan)
@@ -176,9 +179,11 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
     filled_ids = np.zeros(window.shape, np.int64)
     for kind, group in groups.items():
         labels = _group_labels(hole_ids, [hole.hole_id for hole in group])
-        outcome = fill_hole(zmax, zmin, measured, labels, kind, params)
+        outcome = fill_hole(zmax, zmin, measured, labels, kind, params, water, counts)
         for k, hole in enumerate(group, start=1):
-            results[hole.hole_id] = hole_record(hole.hole_id, k, labels, outcome, distance, task.result_path)
+            record = hole_record(hole.hole_id, k, labels, outcome, distance, task.result_path)
+            missed = hole.cause == "missed_coverage" and record.status == FILLED  # filled on request: flagged
+            results[hole.hole_id] = replace(record, detail=MISSED_NOTE) if missed else record
         done = (labels > 0) & np.isfinite(outcome.heights)
         heights[done], codes[done] = outcome.heights[done], outcome.method_code[done]
         filled_ids[done] = hole_ids[done]
@@ -216,28 +221,32 @@ class _WindowReader:
 
     def _cell(self, source: CellSource) -> tuple:
         if source.cell_id not in self._loaded:
-            core = load_cell_statistics(source.statistics_path, ("zmax", "zmin", "count")).crop(source.core)
+            core = load_cell_statistics(source.statistics_path, ("zmax", "zmin", "count", "water")).crop(source.core)
             labels, _ = load_labels(source.labels_path)
             hole_ids = hole_ids_of_labels(labels, source.hole_of_label)
-            self._loaded[source.cell_id] = (core.zmax, core.zmin, core.count > 0, hole_ids)
+            self._loaded[source.cell_id] = (core.zmax, core.zmin, core.count, hole_ids, core.water)
         return self._loaded[source.cell_id]
 
-    def read(self, window: PixelWindow) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def read(self, window: PixelWindow) -> tuple[np.ndarray, ...]:
         zmax = np.full(window.shape, np.nan, np.float64)
         zmin = np.full(window.shape, np.nan, np.float64)
         measured = np.zeros(window.shape, bool)
         hole_ids = np.zeros(window.shape, np.int64)
+        water = np.zeros(window.shape, np.uint16)  # water-class returns: the level of water holes
+        counts = np.zeros(window.shape, np.uint32)
         for source in self._sources:
             overlap = source.core.intersection(window)
             if overlap.is_empty:
                 continue
             inside, within = overlap.slices_within(window), overlap.slices_within(source.core)
-            cell_zmax, cell_zmin, cell_measured, cell_holes = self._cell(source)
+            cell_zmax, cell_zmin, cell_counts, cell_holes, cell_water = self._cell(source)
             zmax[inside] = cell_zmax[within]
             zmin[inside] = cell_zmin[within]
-            measured[inside] = cell_measured[within]
+            measured[inside] = cell_counts[within] > 0
+            counts[inside] = cell_counts[within]
             hole_ids[inside] = cell_holes[within]
-        return zmax, zmin, measured, hole_ids
+            water[inside] = cell_water[within]
+        return zmax, zmin, measured, hole_ids, water, counts
 
 
 # -- the stage's records ---------------------------------------------------------------------

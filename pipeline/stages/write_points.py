@@ -122,7 +122,8 @@ def ownership_reach(plan: SurveyPlan, config: Config) -> float:
     """How far (survey units) a filled pixel's centre can lie from the bounds of every tile."""
     pixel = plan.grid.resolution
     small_void = math.sqrt(plan.hole_params.min_area_px / math.pi) * pixel
-    return max(config.fill.max_distance_m / plan.survey.horizontal_unit_m, small_void) + 2 * pixel
+    limit = config.fill.max_distance_m / plan.survey.horizontal_unit_m or math.hypot(*plan.grid.window.shape) * pixel
+    return max(limit, small_void) + 2 * pixel  # no limit (0): a filled pixel may be anywhere in the grid
 
 
 def output_names(paths: list[str]) -> list[str]:
