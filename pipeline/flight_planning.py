@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import pyproj
 import shapely
+from affine import Affine
 
 from .config import Config
 from .errors import CRSError, InputDataError
@@ -83,8 +84,14 @@ def plan_flights(
         point_files = run_point_files(holes_gpkg)
     ground = None
     if point_files:
-        height, water = read_ground(list(point_files), transform, dsm.shape)
-        ground = GroundGrid(height, water) if np.isfinite(height).any() else None
+        inputs = list(point_files)
+
+        def read_box(box: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+            r0, c0, r1, c1 = box
+            corner = transform * Affine.translation(c0, r0)
+            return read_ground(inputs, corner, (r1 - r0, c1 - c0))
+
+        ground = GroundGrid(np.full(dsm.shape, np.nan), np.zeros(dsm.shape), reader=read_box)
     to_ellipsoid = None
     if params.altitude_reference == "ellipsoid":
         probe = home or _centre(holes)

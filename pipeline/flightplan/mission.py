@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pyproj
+import scipy.ndimage as ndi
 import shapely
 
 from .altitude import AffineLike, height_at, lane_with_turns, max_height_along, nearest_data_point
@@ -68,12 +69,58 @@ class FlightParams:
     ground_step_m: float = 2.5
 
 
+#: Where the take-off is sought first: the ground points within this distance of the flattest clear
+#: place the DSM shows near the holes (a pilot walks there; the survey's points are not all decoded).
+TAKEOFF_SEARCH_M = 150.0
+
+
+@dataclass
+class _Grid:
+    """A north-up pixel grid's transform (the attributes of an affine transform the kernels read)."""
+
+    a: float
+    c: float
+    e: float
+    f: float
+    b: float = 0.0
+    d: float = 0.0
+
+
 @dataclass(frozen=True)
 class GroundGrid:
-    """Ground-class points on the DSM's grid: mean height per pixel (NaN: none), water points per pixel."""
+    """Ground-class points on the DSM's grid: mean height per pixel (NaN: none), water points per pixel.
+
+    With a ``reader`` the grids start empty and :meth:`load` reads the points of a pixel box on
+    request (rows ``r0:r1``, columns ``c0:c1``): the caller's I/O, handed in, so the kernels stay pure.
+    """
 
     height: np.ndarray
     water: np.ndarray | None = None
+    reader: Callable[[tuple[int, int, int, int]], tuple[np.ndarray, np.ndarray]] | None = None
+
+    def load(self, box: tuple[int, int, int, int]) -> None:
+        """Read the ground points of ``box`` (clipped to the grid) into the grids, where a reader is set."""
+        if self.reader is None:
+            return
+        rows, cols = self.height.shape
+        r0, c0, r1, c1 = max(box[0], 0), max(box[1], 0), min(box[2], rows), min(box[3], cols)
+        if r1 <= r0 or c1 <= c0:
+            return
+        height, water = self.reader((r0, c0, r1, c1))
+        self.height[r0:r1, c0:c1] = height
+        if self.water is not None:
+            self.water[r0:r1, c0:c1] = water
+
+    def load_around(self, xy: Point2, transform: AffineLike, radius_m: float) -> tuple[int, int, int, int] | None:
+        """Read the ground points within ``radius_m`` of ``xy``; the box read (clipped; None: off the grid)."""
+        col, row = (xy[0] - transform.c) / transform.a, (xy[1] - transform.f) / transform.e  # north-up (read_dsm)
+        r = int(math.ceil(radius_m / max(abs(transform.a), 1e-9)))
+        rows, cols = self.height.shape
+        box = (max(int(row) - r, 0), max(int(col) - r, 0), min(int(row) + r + 1, rows), min(int(col) + r + 1, cols))
+        if box[2] <= box[0] or box[3] <= box[1]:
+            return None
+        self.load(box)
+        return box
 
 
 @dataclass(frozen=True)
@@ -382,6 +429,42 @@ def _placed_patterns(
     return placed, shares
 
 
+def _nearest_open_ground(
+    dsm: np.ndarray, transform: AffineLike, targets: np.ndarray, ground: GroundGrid, params: TakeoffParams
+) -> Takeoff | None:
+    """:func:`.takeoff.choose_takeoff` over ground points read where they can matter.
+
+    A grid read on request is read first within ``TAKEOFF_SEARCH_M`` of the place the DSM alone
+    shows flat and clear nearest to the holes (open ground is flat and clear in the DSM too, so
+    the DSM's choice is at least as near), and judged there alone (no ground point lies
+    elsewhere yet); then whole if that finds none.
+    """
+    if ground.reader is None:
+        return choose_takeoff(dsm, ground.height, ground.water, transform, targets, params=params)
+    guess = choose_takeoff(dsm, dsm, None, transform, targets, params=params)
+    if guess is not None:
+        box = ground.load_around(guess.xy, transform, TAKEOFF_SEARCH_M)
+        if box is not None:
+            r0, c0, r1, c1 = box
+            window = _Grid(transform.a, transform.c + c0 * transform.a, transform.e, transform.f + r0 * transform.e)
+            water = None if ground.water is None else ground.water[r0:r1, c0:c1]
+            rows, cols = np.nonzero(targets)
+            found = choose_takeoff(
+                dsm[r0:r1, c0:c1],
+                ground.height[r0:r1, c0:c1],
+                water,
+                window,
+                targets[r0:r1, c0:c1],
+                params=params,
+                distance=ndi.distance_transform_edt(~targets)[r0:r1, c0:c1],
+                centre=(float(rows.mean()) - r0, float(cols.mean()) - c0),
+            )
+            if found is not None:
+                return found
+    ground.load((0, 0, *dsm.shape))
+    return choose_takeoff(dsm, ground.height, ground.water, transform, targets, params=params)
+
+
 def _choose_home(
     home: Point2 | None,
     patterns: list[CoveragePattern],
@@ -395,10 +478,11 @@ def _choose_home(
 ) -> Takeoff:
     """The take-off point and its ground height (the module docstring of :mod:`.takeoff`)."""
     if home is not None and ground is not None:
+        ground.load_around(home, transform, 2 * params.takeoff.clear_radius_m)
         return check_home(dsm, ground.height, transform, home, params=params.takeoff)
     if home is None and ground is not None and patterns:
         targets = _rasterize_areas([p.area for p in patterns], dsm.shape, transform)
-        found = choose_takeoff(dsm, ground.height, ground.water, transform, targets, params=params.takeoff)
+        found = _nearest_open_ground(dsm, transform, targets, ground, params.takeoff)
         if found is not None:
             return found
     warning = "" if ground is None else "no open ground with ground points near the holes"

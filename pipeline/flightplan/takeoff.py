@@ -123,18 +123,25 @@ def choose_takeoff(
     targets: np.ndarray,
     *,
     params: TakeoffParams,
+    distance: np.ndarray | None = None,
+    centre: tuple[float, float] | None = None,
 ) -> Takeoff | None:
     """The open-ground pixel nearest to the ``targets`` (True: a planned hole); None if there is none.
 
-    Ties (pixels equally near the holes) go to the one nearest the targets' centre.
+    Ties (pixels equally near the holes) go to the one nearest the targets' centre. A window of a
+    larger grid passes the larger grid's ``distance`` to the targets (pixels, cropped) and their
+    ``centre`` (row, column in the window's pixels): the targets may lie outside the window.
     """
     fit = open_ground(dsm, ground, water, transform, params=params)
-    if not fit.any() or not targets.any():
+    if not fit.any():
         return None
-    distance = ndi.distance_transform_edt(~targets)
-    rows, cols = np.nonzero(targets)
-    centre = np.hypot(np.arange(dsm.shape[0])[:, None] - rows.mean(), np.arange(dsm.shape[1])[None, :] - cols.mean())
-    score = np.where(fit, np.round(distance) * (1 + dsm.size) + centre / (1 + centre.max()), np.inf)
+    if distance is None or centre is None:
+        if not targets.any():
+            return None
+        rows, cols = np.nonzero(targets)
+        distance, centre = ndi.distance_transform_edt(~targets), (float(rows.mean()), float(cols.mean()))
+    offset = np.hypot(np.arange(dsm.shape[0])[:, None] - centre[0], np.arange(dsm.shape[1])[None, :] - centre[1])
+    score = np.where(fit, np.round(distance) * (1 + dsm.size) + offset / (1 + offset.max()), np.inf)
     r, c = np.unravel_index(int(np.argmin(score)), score.shape)
     t = transform
     xy = (t.a * (c + 0.5) + t.b * (r + 0.5) + t.c, t.d * (c + 0.5) + t.e * (r + 0.5) + t.f)
