@@ -335,8 +335,8 @@ def _write_products(
 ) -> RunSummary:
     """The mosaic, the layers, the manifest and the report, from the stages' kept results."""
     started, timer = clock
-    t0 = time.perf_counter()
     hole_summary = write_layers(staging, plan, config, results)
+    timer.lap("outputs")  # the mosaics and the layers; the flight plan and the report lap on their own
     flight_summary = _plan_flights(staging, plan, config, results, hole_summary, timer)
     summary = run_summary(
         results,
@@ -347,7 +347,6 @@ def _write_products(
         seconds=time.perf_counter() - started,
         stage_seconds=timer.seconds,  # the same dict: the laps after this one are in the manifest's summary too
     )
-    timer.seconds["outputs"] = time.perf_counter() - t0
     products = [name for name in PRODUCTS if name not in ("manifest.json", "report.html")]
     products += [os.path.basename(f) for f in flight_summary.get("files", [])]
     manifest = write_manifest(
