@@ -88,7 +88,7 @@ def plan_flights(
 
         def read_box(box: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
             r0, c0, r1, c1 = box
-            corner = transform * Affine.translation(c0, r0)
+            corner = transform @ Affine.translation(c0, r0)
             return read_ground(inputs, corner, (r1 - r0, c1 - c0))
 
         ground = GroundGrid(np.full(dsm.shape, np.nan), np.zeros(dsm.shape), reader=read_box)
