@@ -46,12 +46,18 @@ __all__ = [
 class AffineLike(Protocol):
     """An affine pixel-to-world transform (``affine.Affine``): x = a col + b row + c, y = d col + e row + f."""
 
-    a: float
-    b: float
-    c: float
-    d: float
-    e: float
-    f: float
+    @property
+    def a(self) -> float: ...
+    @property
+    def b(self) -> float: ...
+    @property
+    def c(self) -> float: ...
+    @property
+    def d(self) -> float: ...
+    @property
+    def e(self) -> float: ...
+    @property
+    def f(self) -> float: ...
 
 
 @dataclass(frozen=True)

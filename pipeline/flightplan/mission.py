@@ -23,6 +23,7 @@ import numpy as np
 import pyproj
 import scipy.ndimage as ndi
 import shapely
+from affine import Affine
 
 from .altitude import AffineLike, height_at, lane_with_turns, max_height_along, nearest_data_point
 from .clearance import flight_time_s, leg_clearance
@@ -72,18 +73,6 @@ class FlightParams:
 #: Where the take-off is sought first: the ground points within this distance of the flattest clear
 #: place the DSM shows near the holes (a pilot walks there; the survey's points are not all decoded).
 TAKEOFF_SEARCH_M = 150.0
-
-
-@dataclass
-class _Grid:
-    """A north-up pixel grid's transform (the attributes of an affine transform the kernels read)."""
-
-    a: float
-    c: float
-    e: float
-    f: float
-    b: float = 0.0
-    d: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -446,7 +435,14 @@ def _nearest_open_ground(
         box = ground.load_around(guess.xy, transform, TAKEOFF_SEARCH_M)
         if box is not None:
             r0, c0, r1, c1 = box
-            window = _Grid(transform.a, transform.c + c0 * transform.a, transform.e, transform.f + r0 * transform.e)
+            window = Affine(
+                transform.a,
+                transform.b,
+                transform.c + c0 * transform.a,
+                transform.d,
+                transform.e,
+                transform.f + r0 * transform.e,
+            )
             water = None if ground.water is None else ground.water[r0:r1, c0:c1]
             rows, cols = np.nonzero(targets)
             found = choose_takeoff(

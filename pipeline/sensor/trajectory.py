@@ -253,19 +253,17 @@ def _fit_pass(
     across = np.einsum("kvd,d->kv", hulls - track[:, None, :], left)
     cropped = _cropped_sides(values, hulls, across, boundary)
     own_half_width, bin_widths = None, None
-    half_left = _side_median(across.max(axis=1), cropped[:, 0])
-    half_right = _side_median(-across.min(axis=1), cropped[:, 1])
     if evidence.sum() < 2:
         track, own_half_width, bin_widths = _track_from_edges(
             times, track, left, across, _edge_heights(values, across), cropped,
             ground_z=middle[:, 2], tan_nominal=math.tan(math.radians(nominal_fov_deg) / 2.0), half_width=half_width,
         )  # fmt: skip
         across = np.einsum("kvd,d->kv", hulls - track[:, None, :], left)
-        width = own_half_width if half_width is None else half_width
-        half_left = _side_median(across.max(axis=1), cropped[:, 0])
-        half_right = _side_median(-across.min(axis=1), cropped[:, 1])
-        if width is not None and cropped.all():
-            half_left = half_right = width
+    half_left = _side_median(across.max(axis=1), cropped[:, 0])
+    half_right = _side_median(-across.min(axis=1), cropped[:, 1])
+    width = own_half_width if half_width is None else half_width
+    if evidence.sum() < 2 and width is not None and cropped.all():
+        half_left = half_right = width
     # a side the survey's edge cuts everywhere reaches as far as the other (a symmetric scanner)
     if cropped[:, 0].all() and not cropped[:, 1].all():
         half_left = half_right
