@@ -1,7 +1,7 @@
 """Hole causes on lidar scans simulated over real terrain (``pipeline.simulate``).
 
 Run: ``python bench/bench_sim_causes.py [--scans 30] [--terrains delft,bcts,topography]
-[--seeds 0,1,2,...] [--json out.json] [--work folder]``.
+[--seeds 0,1,2,...] [--json out.json] [--work folder] [--set KEY=VALUE ...]``.
 
 Scan ``k`` flies over terrain ``k mod len(terrains)`` with the parameters drawn from seed
 ``seeds[k]`` (default ``k``): heading, lines with ids in arbitrary order, a dropped line
@@ -37,14 +37,14 @@ from pipeline.simulate import TERRAINS, Terrain, load_terrain, random_scan_param
 DEFAULT_DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
-def run_scan(terrain: Terrain, seed: int, folder: pathlib.Path, client) -> dict:
+def run_scan(terrain: Terrain, seed: int, folder: pathlib.Path, client, overrides: tuple[str, ...] = ()) -> dict:
     """Simulate one scan, run the default pipeline on its tiles and score its holes."""
     params = random_scan_params(seed, terrain)
     started = time.perf_counter()
     scan = simulate_scan(terrain, params, folder / "scan")
     simulated = time.perf_counter() - started
     out = folder / "out"
-    run_survey([str(folder / "scan" / "tiles")], out, load_config(), client=client)
+    run_survey([str(folder / "scan" / "tiles")], out, load_config(overrides=overrides), client=client)
     seconds = time.perf_counter() - started - simulated
     manifest = json.loads((out / "manifest.json").read_text())
     resolution = float(manifest["grid"]["resolution"])
@@ -99,6 +99,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--work", type=pathlib.Path, help="keep the scans and runs here (default: a temporary folder)")
     parser.add_argument("--json", type=pathlib.Path, help="write the results as JSON here")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a setting for every run (as holefill run --set)",
+    )
     args = parser.parse_args(argv)
     terrains = [name.strip() for name in args.terrains.split(",") if name.strip()]
     unknown = sorted(set(terrains) - set(TERRAINS))
@@ -122,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         work = args.work or pathlib.Path(scratch)
         for k in range(args.scans):
             name, seed = terrains[k % len(terrains)], seeds[k]
-            result = run_scan(loaded[name], seed, work / f"{name}-{seed}", client)
+            result = run_scan(loaded[name], seed, work / f"{name}-{seed}", client, tuple(args.set))
             score = result["score"]
             print(
                 f"{name:12s} {result['params']}\n{'':12s} -> {result['points']:,} points, {result['resolution']} m "

@@ -180,3 +180,37 @@ def test_a_swath_cut_by_the_survey_s_edge_keeps_its_track_and_width(pairs):
         # without the extent the cut side is taken for the swath's edge: the track at the returns' middle
         blind = {line.line: line for line in _fit([points, other])}[7]
         assert np.median(np.abs(blind.sensor[:, 1] - track_y)) > 30.0
+
+
+def test_a_side_cut_at_a_slant_counts_as_cut():
+    """A bin of a line flying 249 degrees over the survey's south edge (y = 0), seen in a simulated
+    scan over Delft: the cut runs at 21 degrees to the track, so the left side's farthest return
+    across the track lies 2 m inside the edge (six spacings), while the cut's own vertices lie on it."""
+    from pipeline.sensor.trajectory import _INDEX, _cropped_sides
+
+    hull = np.array(
+        [[306.5, 2.1], [285.9, 57.3], [281.6, 67.0], [278.9, 68.8], [278.9, 68.8], [278.9, 68.8], [258.2, 59.0],
+         [258.2, 59.0], [258.2, 59.0], [280.1, 0.2], [280.1, 0.2], [280.1, 0.2], [289.6, 0.0], [306.5, 2.1],
+         [306.5, 2.1], [306.5, 2.1]]
+    )[None]  # fmt: skip
+    values = np.zeros((1, len(_INDEX)))
+    values[0, _INDEX["n"]] = 15_324
+    heading = np.radians(249.0)
+    left = np.array([-math.cos(heading), math.sin(heading)])  # 90 degrees left of the heading (x east, y north)
+    track = np.array([282.0, 32.9])
+    across = np.einsum("kvd,d->kv", hull - track, left)
+    boundary = shapely.boundary(shapely.box(-1000.0, 0.0, 1000.0, 1000.0))
+    assert across[0].argmax() == 0  # the farthest return left of the track: 2.1 m inside the edge
+    assert _cropped_sides(values, hull, across, boundary)[0].tolist() == [True, False]
+
+
+def test_the_survey_extent_closes_the_seams_between_tiles():
+    """Header boxes end at their outermost points: neighbours 0.01 m apart are one extent, a real gap stays."""
+    from pipeline.stages.detect_holes import survey_extent
+
+    tiles = [(0.0, 0.0, 99.99, 99.99), (100.0, 0.0, 199.99, 99.99), (0.0, 100.0, 99.99, 199.99)]
+    extent = survey_extent(tiles, 1.0)
+    assert extent.geom_type == "Polygon" and len(extent.interiors) == 0
+    assert extent.area == pytest.approx(3 * 99.99 * 99.99, rel=1e-3)
+    apart = survey_extent([(0.0, 0.0, 100.0, 100.0), (110.0, 0.0, 200.0, 100.0)], 1.0)
+    assert apart.geom_type == "MultiPolygon"

@@ -63,6 +63,10 @@ PASS_BREAK_SHARE = 0.5
 #: of its hull's area per return) of the data's boundary marks that side as cut off by the
 #: survey's edge: returns are dense enough that the edge return of a cut swath lies on the boundary.
 CROPPED_SPACINGS = 3.0
+#: ... and so does any hull vertex of that side lying there, out to at least this share of the side's
+#: extent: a boundary crossing the swath obliquely cuts the side along a slant whose farthest point
+#: across the track lies off the boundary (seen: 2 m inside it, with the cut's own vertices on it).
+CROPPED_OUTER_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -321,7 +325,8 @@ def _positions(
 def _cropped_sides(
     values: np.ndarray, hulls: np.ndarray, across: np.ndarray, boundary: shapely.Geometry | None
 ) -> np.ndarray:
-    """Per bin, whether its left and right edges (columns 0, 1) lie on the data's boundary (cut off by the survey's edge)."""
+    """Per bin, whether its left and right sides (columns 0, 1) are cut off by the survey's edge: a vertex of the
+    bin's hull on that side's outer half lies on the data's boundary."""
     out = np.zeros((len(values), 2), bool)
     if boundary is None:
         return out
@@ -329,10 +334,10 @@ def _cropped_sides(
     x, y = local[..., 0], local[..., 1]
     area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))  # shoelace
     spacing = np.sqrt(np.maximum(area, 0.0) / np.maximum(values[:, _INDEX["n"]], 1.0))
-    rows = np.arange(len(values))
-    for column, vertex in enumerate((across.argmax(axis=1), across.argmin(axis=1))):
-        points = shapely.points(hulls[rows, vertex])
-        out[:, column] = shapely.distance(points, boundary) <= CROPPED_SPACINGS * spacing
+    on_boundary = shapely.distance(shapely.points(hulls), boundary) <= CROPPED_SPACINGS * spacing[:, None]
+    for column, side in enumerate((across, -across)):
+        outer = side >= CROPPED_OUTER_SHARE * side.max(axis=1, keepdims=True)
+        out[:, column] = (on_boundary & outer & (side > 0)).any(axis=1)
     return out
 
 

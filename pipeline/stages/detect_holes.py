@@ -140,6 +140,19 @@ LINES_MIN_POINT_SHARE = 0.95
 TIMED_MIN_POINT_SHARE = 0.9
 
 
+def survey_extent(boxes: list[tuple[float, float, float, float]], seam: float) -> shapely.Geometry:
+    """Where the survey holds data: the union of the tiles' boxes, with the seams between neighbours closed.
+
+    A header's box ends at its outermost point, so neighbouring tiles leave a gap of up to a
+    point spacing between their boxes (0.01 m on a survey cut at whole metres); left open, every
+    tile border would be a boundary of the data and cut the swaths crossing it. Gaps narrower
+    than ``2 * seam`` (a pixel: it holds several returns, so a gap under it is no edge of the data)
+    are closed.
+    """
+    union = shapely.union_all([shapely.box(*box) for box in boxes])
+    return union.buffer(seam, join_style="mitre").buffer(-seam, join_style="mitre")
+
+
 def sensor_geometry(tiles: list[TileResult], plan: SurveyPlan, config: Config) -> SensorGeometry:
     """Gather: the flight lines' trajectories and swaths from the sums of every tile."""
     sums = TrajectorySums.merged([t.trajectory for t in tiles])
@@ -150,7 +163,7 @@ def sensor_geometry(tiles: list[TileResult], plan: SurveyPlan, config: Config) -
         sums.values,
         origin=(grid.x_left, grid.y_top, 0.0),
         nominal_fov_deg=config.sensor.nominal_fov_deg,
-        extent=shapely.union_all([shapely.box(*tile.bounds) for tile in plan.survey.tiles]),
+        extent=survey_extent([tile.bounds for tile in plan.survey.tiles], grid.resolution),
     )
     return SensorGeometry(
         lines=tuple(lines),
