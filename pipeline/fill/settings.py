@@ -140,6 +140,17 @@ class FillSettings:
         Components smaller than this are filled by ``tin`` without a contest: a rim of a
         few pixels withholds one or two, too few to rank methods, and every method is
         within the noise there. Default 4.
+    auto_folds : int
+        Cross-validation folds of the contest: each withholds the error estimate's
+        sectors, rotated by ``holdout_every / auto_folds`` sectors (two folds: two
+        perpendicular pairs of arcs, half the rim in all), so that a feature crossing the
+        hole (a ridge, a break line) is withheld in one of them. Default 2.
+    auto_z : float
+        The first candidate (the reference, ``tin``) fills a component unless another
+        predicts its withheld rim better by more than ``auto_z`` standard errors of the
+        paired difference of squared errors (:func:`~pipeline.fill.region.pick`); 2 is
+        the usual 95 % one. On a rim of tree crowns every method misses by metres and the
+        ranking is noise; the reference never overshoots the rim. Default 2.
     spline_tension, spline_smoothing : float
         Regularized spline with tension (``spline``, :mod:`.scattered`): tension for
         coordinates normalised by the support's extent, and smoothing (the diagonal
@@ -181,6 +192,8 @@ class FillSettings:
     auto_mls_min_roundness: float = 0.5
     auto_candidates: tuple[str, ...] = ("tin", "spline", "mls", "linear")
     auto_contest_min_px: int = 4
+    auto_folds: int = 2
+    auto_z: float = 2.0
     spline_tension: float = 40.0
     spline_smoothing: float = 0.1
     spline_max_points: int = 400
@@ -203,6 +216,7 @@ class FillSettings:
             "holdout_sectors",
             "holdout_every",
             "auto_contest_min_px",
+            "auto_folds",
             "spline_max_points",
         )
         unknown = [m for m in self.auto_candidates if m not in _CANDIDATES]
@@ -216,7 +230,7 @@ class FillSettings:
         _choice(self, "tin_order", (1, 2))
         _choice(self, "mls_weight", _WEIGHTS)
         _choice(self, "mls_frame", _FRAMES)
-        for name in ("mls_radius_factor", "mls_min_radius_px", "idw_power", "spline_tension", "mls_band_fraction", "mls_drop_tolerance"):
+        for name in ("mls_radius_factor", "mls_min_radius_px", "idw_power", "spline_tension", "auto_z", "mls_band_fraction", "mls_drop_tolerance"):
             if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
                 raise ValueError(f"FillSettings.{name} must be a finite number > 0, got {getattr(self, name)!r}")
         for name in ("mls_dense_band_px", "seam_width_px", "tin_band_px", "tin_direct_max_px", "auto_mls_min_px"):
