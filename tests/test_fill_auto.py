@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from pipeline.fill import METHOD_CODES, FillSettings, fill_region
+from pipeline.fill._problem import build_problem
 from pipeline.fill.by_cause import RIM, FillParams, fill_hole, fill_kind
 from pipeline.fill.region import contest, pick
-from pipeline.fill._problem import build_problem
 from pipeline.fill.scattered import rst_basis, rst_fit
 
 YY, XX = np.mgrid[0:80, 0:80].astype(np.float64)
@@ -51,7 +51,9 @@ def test_rst_reproduces_planes_even_with_smoothing():
     pts = rng.random((40, 2)) * 50
     plane = lambda p: 3.0 + 0.4 * p[:, 0] - 0.7 * p[:, 1]  # noqa: E731
     queries = rng.random((20, 2)) * 50
-    np.testing.assert_allclose(rst_fit(pts, plane(pts), queries, tension=40.0, smoothing=0.1), plane(queries), atol=1e-9)
+    np.testing.assert_allclose(
+        rst_fit(pts, plane(pts), queries, tension=40.0, smoothing=0.1), plane(queries), atol=1e-9
+    )
 
 
 def test_rst_with_too_few_points_is_nan():
@@ -104,9 +106,7 @@ def test_auto_records_the_winners_cross_validation_error_and_every_score():
     assert math.isfinite(rec.error_estimate) and 0 < rec.error_estimate < 0.5
     for name in ("tin", "spline", "mls", "linear"):
         assert name in rec.detail
-    problem = build_problem(
-        np.where(region, np.nan, noisy), region, pixel_size=1.0, settings=HARMONIC, support=None
-    )
+    problem = build_problem(np.where(region, np.nan, noisy), region, pixel_size=1.0, settings=HARMONIC, support=None)
     scores = contest(problem, np.array([1]), ("tin", "spline", "mls", "linear"))[1]
     assert set(scores) == {"tin", "spline", "mls", "linear"}
     # the winner is the reference (tin) or predicts the rim better than it
@@ -149,7 +149,9 @@ def test_a_covered_dtm_void_is_filled_from_its_whole_rim_by_the_contest_never_fl
     assert fill_kind("covered", _params()) == RIM
     measured = ~region
     labels = region.astype(np.int32)
-    out = fill_hole(np.where(measured, ground, np.nan), np.where(measured, ground, np.nan), measured, labels, RIM, _params())
+    out = fill_hole(
+        np.where(measured, ground, np.nan), np.where(measured, ground, np.nan), measured, labels, RIM, _params()
+    )
     assert np.ptp(out.heights[region]) > 5.0  # follows the ground, not one level
     assert _rmse(out, ground, region) < 0.01
     assert out.components[0].method == "mls"  # a quadratic: MLS is exact

@@ -111,9 +111,9 @@ def fill_region(
     code = lut[problem.labels]
     if settings.estimate_error and records:
         others = {k: m for k, m in chosen.items() if not scores.get(k)}
-        errors = _holdout_errors(problem, others, records) if others else {}
+        holdout = _holdout_errors(problem, others, records) if others else {}
         records = {
-            k: r if scores.get(k) else replace(r, error_estimate=errors.get(k, math.nan)) for k, r in records.items()
+            k: r if scores.get(k) else replace(r, error_estimate=holdout.get(k, math.nan)) for k, r in records.items()
         }
     region_b = np.asarray(region, bool)
     if barriers is not None:

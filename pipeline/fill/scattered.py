@@ -49,9 +49,7 @@ def rst_basis(r: np.ndarray, tension: float) -> np.ndarray:
     return out
 
 
-def rst_fit(
-    points: np.ndarray, z: np.ndarray, queries: np.ndarray, *, tension: float, smoothing: float
-) -> np.ndarray:
+def rst_fit(points: np.ndarray, z: np.ndarray, queries: np.ndarray, *, tension: float, smoothing: float) -> np.ndarray:
     """Heights at ``queries`` of the regularized spline with tension through ``points`` (N x 2) with heights ``z``.
 
     Coordinates are normalised by ``dnorm`` (square root of the points' box area, at

@@ -225,12 +225,22 @@ class FillSettings:
                 f"FillSettings.auto_candidates must be distinct methods of {list(_CANDIDATES)}, got {self.auto_candidates!r}"
             )
         if not (self.spline_smoothing >= 0 and math.isfinite(self.spline_smoothing)):
-            raise ValueError(f"FillSettings.spline_smoothing must be a finite number >= 0, got {self.spline_smoothing!r}")
+            raise ValueError(
+                f"FillSettings.spline_smoothing must be a finite number >= 0, got {self.spline_smoothing!r}"
+            )
         _choice(self, "mls_order", (0, 1, 2))
         _choice(self, "tin_order", (1, 2))
         _choice(self, "mls_weight", _WEIGHTS)
         _choice(self, "mls_frame", _FRAMES)
-        for name in ("mls_radius_factor", "mls_min_radius_px", "idw_power", "spline_tension", "auto_z", "mls_band_fraction", "mls_drop_tolerance"):
+        for name in (
+            "mls_radius_factor",
+            "mls_min_radius_px",
+            "idw_power",
+            "spline_tension",
+            "auto_z",
+            "mls_band_fraction",
+            "mls_drop_tolerance",
+        ):
             if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
                 raise ValueError(f"FillSettings.{name} must be a finite number > 0, got {getattr(self, name)!r}")
         for name in ("mls_dense_band_px", "seam_width_px", "tin_band_px", "tin_direct_max_px", "auto_mls_min_px"):
