@@ -395,8 +395,9 @@ class FillConfig:
         choices=("auto", "tin", "spline", "mls", "linear", "idw", "nearest"),
     )
     auto_candidates: list[str] = _opt(
-        ["tin", "spline", "mls", "linear"],
-        "Methods auto chooses among per hole, by the RMSE of each on the hole's withheld rim sectors.",
+        ["tin", "linear"],
+        "Methods auto chooses among per hole, by the RMSE of each on the hole's withheld rim sectors"
+        " (tin, spline, mls, linear, idw, nearest).",
         item_choices=("tin", "spline", "mls", "linear", "idw", "nearest"),
     )
     by_cause: bool = _opt(

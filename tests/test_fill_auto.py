@@ -25,7 +25,7 @@ BOWL = 0.01 * (XX - 40) ** 2 + 0.02 * (YY - 30) ** 2
 RIDGE = np.maximum(0.0, 10 - 0.5 * np.abs(XX - 40)) + 0.1 * YY
 STEP = np.where(XX > 40, 10.0, 0.0)
 #: The pipeline's fairing (fill.tin_order = 1); biharmonic tin would be exact on the bowl too.
-HARMONIC = FillSettings(tin_order=1)
+HARMONIC = FillSettings(tin_order=1, auto_candidates=("tin", "spline", "mls", "linear"))
 
 
 def _hole() -> np.ndarray:
@@ -122,6 +122,7 @@ def test_tiny_voids_get_no_contest_and_candidates_can_be_restricted():
     methods = {c.n_pixels: c.method for c in out.components}
     assert methods[3] == "tin" and methods[25 * 27] != "tin"
     only = FillSettings(tin_order=1, auto_candidates=("tin", "spline"))
+    assert FillSettings().auto_candidates == ("tin", "linear")  # the default: methods bounded by their rim
     out = fill_region(np.where(region, np.nan, RIDGE), region, method="auto", settings=only)
     assert {c.method for c in out.components} <= {"tin", "spline"}
 
@@ -155,6 +156,17 @@ def test_a_covered_dtm_void_is_filled_from_its_whole_rim_by_the_contest_never_fl
     assert np.ptp(out.heights[region]) > 5.0  # follows the ground, not one level
     assert _rmse(out, ground, region) < 0.01
     assert out.components[0].method == "mls"  # a quadratic: MLS is exact
+
+
+def test_the_configured_candidates_reach_the_kernels():
+    from pipeline.config import load_config
+    from pipeline.parameters import fill_params, hole_params
+
+    config = load_config(overrides=['fill.auto_candidates=["tin", "mls"]'])
+    holes = hole_params(config, pixel_size_m=1.0, spacing_m=0.5, vertical_unit_m=1.0)
+    params = fill_params(config, holes, pixel_size=1.0, horizontal_unit_m=1.0, vertical_unit_m=1.0)
+    assert params.settings.auto_candidates == ("tin", "mls")
+    assert load_config().fill.auto_candidates == ["tin", "linear"]
 
 
 def _params() -> FillParams:

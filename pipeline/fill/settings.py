@@ -134,7 +134,9 @@ class FillSettings:
         ``auto``: the methods that compete for each component of at least
         ``auto_contest_min_px`` pixels; the one with the lowest cross-validation error on
         the component's own rim (withheld rim sectors, as ``estimate_error``) fills it and
-        that error is its ``error_estimate``. Default ``("tin", "spline", "mls", "linear")``.
+        that error is its ``error_estimate``. Default ``("tin", "linear")``: with ``spline``
+        and ``mls`` too the real-survey benchmark got worse (they predict the rim well and
+        overshoot inside; docs/performance.md).
         Empty: no contest (``tin``, or ``mls`` by ``auto_mls_min_px``, as before).
     auto_contest_min_px : int
         Components smaller than this are filled by ``tin`` without a contest: a rim of a
@@ -190,7 +192,7 @@ class FillSettings:
     flat_level: float | None = None
     auto_mls_min_px: int = 0
     auto_mls_min_roundness: float = 0.5
-    auto_candidates: tuple[str, ...] = ("tin", "spline", "mls", "linear")
+    auto_candidates: tuple[str, ...] = ("tin", "linear")
     auto_contest_min_px: int = 4
     auto_folds: int = 2
     auto_z: float = 2.0
