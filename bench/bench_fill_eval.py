@@ -18,7 +18,7 @@ from pathlib import Path
 
 from compare_outputs import MISSING_CRS, SHARED_DATA
 
-ALTERNATIVE_COLUMNS = ("gdal_fillnodata", "tin_linear", "nni", "laplace")
+ALTERNATIVE_COLUMNS = ("gdal_fillnodata", "nearest_alt", "tin_linear", "nni", "laplace", "grass_fillnulls")
 
 
 def _median(values: list[float]) -> str:

@@ -389,8 +389,16 @@ class FillConfig:
     enabled: bool = _opt(True, "Fill the holes of the DSM (needs holes.enabled); false keeps nodata in them.")
     method: str = _opt(
         "auto",
-        "Interpolation of holes that are not water: auto, tin (Laplacian fairing), mls, idw or nearest.",
-        choices=("auto", "tin", "mls", "idw", "nearest"),
+        "Interpolation of holes that are not water: auto (per hole, by cross-validation on its rim among"
+        " fill.auto_candidates), tin (Laplacian fairing), spline (regularized spline with tension), mls,"
+        " linear (linear TIN), idw or nearest.",
+        choices=("auto", "tin", "spline", "mls", "linear", "idw", "nearest"),
+    )
+    auto_candidates: list[str] = _opt(
+        ["tin", "linear"],
+        "Methods auto chooses among per hole, by the RMSE of each on the hole's withheld rim sectors"
+        " (tin, spline, mls, linear, idw, nearest).",
+        item_choices=("tin", "spline", "mls", "linear", "idw", "nearest"),
     )
     by_cause: bool = _opt(
         True, "Occlusion holes from their lower rim (the ground beside a building); water holes flat."

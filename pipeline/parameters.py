@@ -201,7 +201,11 @@ def fill_params(
         water_edge=edge,
         water_reach_px=1.0 + fill.water_edge_reach_m / pixel_m,  # the ring, and the reach beyond it
         jump_threshold=holes.jump_threshold,
-        settings=FillSettings(estimate_error=fill.estimate_error, tin_order=fill.tin_order),
+        settings=FillSettings(
+            estimate_error=fill.estimate_error,
+            tin_order=fill.tin_order,
+            auto_candidates=tuple(dict.fromkeys(fill.auto_candidates)),
+        ),
         clamp_to_rim=fill.clamp_to_rim,
         river_min_drop=fill.river_min_drop_m / vertical_unit_m,
         river_min_elongation=fill.river_min_elongation,

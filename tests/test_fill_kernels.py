@@ -265,8 +265,12 @@ def test_auto_chooses_per_component_and_codes_match():
     region[10:12, 10:12] = True
     region[40:100, 40:100] = True  # compact, large
     region[5:8, 30:118] = True  # a long strip
-    assert {c.method for c in fill_region(np.where(region, np.nan, z), region).components} == {"tin"}
-    settings = FillSettings(auto_mls_min_px=100)
+    # without a contest (no candidates) auto is the shape rule: tin, mls for large round holes on request
+    no_contest = FillSettings(auto_candidates=())
+    assert {c.method for c in fill_region(np.where(region, np.nan, z), region, settings=no_contest).components} == {
+        "tin"
+    }
+    settings = FillSettings(auto_mls_min_px=100, auto_candidates=())
     out = fill_region(np.where(region, np.nan, z), region, method="auto", settings=settings)
     used = {c.label: c.method for c in out.components}
     assert sorted(used.values()) == ["mls", "tin", "tin"]

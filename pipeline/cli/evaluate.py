@@ -54,7 +54,7 @@ if TYPE_CHECKING:
 )
 @click.option(
     "--alternatives",
-    default="gdal_fillnodata,tin_linear,nni,laplace,grass_fillnulls",
+    default="gdal_fillnodata,nearest_alt,tin_linear,nni,laplace,grass_fillnulls",
     show_default=True,
     help="Alternatives, comma-separated; empty for none.",
 )

@@ -13,9 +13,10 @@ from ._problem import Problem, build_problem, rim_pairs
 from .baselines import fill_flat, fill_idw, fill_nearest
 from .laplace import fill_tin
 from .mls import fill_mls
+from .scattered import fill_linear, fill_spline
 from .settings import METHOD_CODES, NOT_FILLED, ComponentFill, FillOutcome, FillSettings
 
-__all__ = ["FILL_METHODS", "choose_methods", "fill_region"]
+__all__ = ["FILL_METHODS", "choose_methods", "contest", "fill_region", "pick"]
 
 Kernel = Callable[[Problem, np.ndarray, np.ndarray], list[ComponentFill]]
 
@@ -25,6 +26,8 @@ FILL_METHODS: dict[str, Kernel] = {
     "mls": fill_mls,
     "tin": fill_tin,
     "flat": fill_flat,
+    "spline": fill_spline,
+    "linear": fill_linear,
 }
 """Every kernel has the signature ``kernel(problem, labels, out) -> list[ComponentFill]``:
 it fills the components ``labels`` of ``problem`` into the float64 raster ``out``."""
@@ -49,8 +52,10 @@ def fill_region(
         Heights (any real dtype); NaN = unknown. Row 0 is north. Not modified.
     region : ndarray of bool, shape (M, N)
         Pixels to fill (True). Their input heights are ignored, even finite ones.
-    method : {"auto", "tin", "mls", "idw", "nearest", "flat"}
-        Fill method; ``auto`` chooses per component (:func:`choose_methods`).
+    method : {"auto", "tin", "spline", "mls", "linear", "idw", "nearest", "flat"}
+        Fill method; ``auto`` chooses per component: by cross-validation on its own rim
+        among ``settings.auto_candidates`` (:func:`contest`) for components of at least
+        ``auto_contest_min_px`` pixels, :func:`choose_methods` for the others.
     pixel_size : float
         Pixel size in survey units (the MLS fit uses metric coordinates).
     settings : FillSettings, optional
@@ -84,19 +89,32 @@ def fill_region(
     problem = build_problem(
         heights, region, pixel_size=pixel_size, settings=settings, support=support, barriers=barriers, labels=labels
     )
-    present = np.nonzero(problem.sizes()[1:])[0] + 1
-    chosen = (
-        choose_methods(problem.labels, present, settings) if method == "auto" else {int(k): method for k in present}
-    )
+    sizes = problem.sizes()
+    present = np.nonzero(sizes[1:])[0] + 1
+    scores: dict[int, dict[str, float]] = {}
+    if method == "auto":
+        chosen = choose_methods(problem.labels, present, settings)
+        entrants = present[sizes[present] >= settings.auto_contest_min_px] if settings.auto_candidates else present[:0]
+        errors = _contest_errors(problem, entrants, settings.auto_candidates)
+        for k, by_method in errors.items():
+            if by_method:
+                chosen[k] = pick(by_method, settings.auto_candidates, settings.auto_z)
+                scores[k] = {m: v[0] for m, v in by_method.items()}
+    else:
+        chosen = {int(k): method for k in present}
     out = problem.heights.copy()
     records = _run(problem, chosen, out)
+    records = {k: _with_scores(r, scores.get(k)) for k, r in records.items()}
     lut = np.zeros(problem.n_labels + 1, np.uint8)
     for rec in records.values():
         lut[rec.label] = METHOD_CODES[rec.method] if rec.filled else NOT_FILLED
     code = lut[problem.labels]
     if settings.estimate_error and records:
-        errors = _holdout_errors(problem, chosen, records)
-        records = {k: replace(r, error_estimate=errors.get(k, math.nan)) for k, r in records.items()}
+        others = {k: m for k, m in chosen.items() if not scores.get(k)}
+        holdout = _holdout_errors(problem, others, records) if others else {}
+        records = {
+            k: r if scores.get(k) else replace(r, error_estimate=holdout.get(k, math.nan)) for k, r in records.items()
+        }
     region_b = np.asarray(region, bool)
     if barriers is not None:
         _fill_barrier_pixels(out, code, region_b & np.asarray(barriers, bool))
@@ -164,14 +182,17 @@ def _fill_barrier_pixels(out: np.ndarray, code: np.ndarray, todo: np.ndarray) ->
         todo &= ~take
 
 
-def _holdout_errors(problem: Problem, chosen: dict[int, str], records: dict[int, ComponentFill]) -> dict[int, float]:
-    """Leave-boundary-out RMSE per component: withhold every ``holdout_every``-th of
-    ``holdout_sectors`` angular sectors of the rim, refill with the same method and
-    compare the refilled rim heights with the measured ones."""
+def _withhold(problem: Problem, offset: int = 0) -> tuple[Problem, np.ndarray, np.ndarray]:
+    """The problem with part of every component's rim withheld (made part of the component).
+
+    The rim is cut into ``holdout_sectors`` angular sectors around each component's
+    centroid and every ``holdout_every``-th one is withheld, starting at sector ``offset``;
+    a rim pixel shared by two components never is. Returns the new problem and the (label, flat index) pairs of
+    the withheld pixels.
+    """
     st = problem.settings
     rim_l, rim_i = rim_pairs(problem)
-    h, w = problem.labels.shape
-    # a rim pixel shared by two components is never withheld
+    w = problem.labels.shape[1]
     uniq, counts = np.unique(rim_i, return_counts=True)
     shared = np.isin(rim_i, uniq[counts > 1])
     rr, rc = np.divmod(rim_i, w)
@@ -179,21 +200,121 @@ def _holdout_errors(problem: Problem, chosen: dict[int, str], records: dict[int,
     cen = np.asarray(cen, float).reshape(-1, 2)
     ang = np.arctan2(rr - cen[rim_l - 1, 0], rc - cen[rim_l - 1, 1])
     sector = np.floor((ang + np.pi) / (2 * np.pi) * st.holdout_sectors).astype(np.int64) % st.holdout_sectors
-    held = (sector % st.holdout_every == 0) & ~shared
+    held = (sector % st.holdout_every == offset % st.holdout_every) & ~shared
     labels2 = problem.labels.copy()
     labels2.ravel()[rim_i[held]] = rim_l[held]
     support2 = problem.support.copy()
     support2.ravel()[rim_i[held]] = False
     heights2 = problem.heights.copy()
     heights2.ravel()[rim_i[held]] = np.nan
-    p2 = replace(problem, heights=heights2, labels=labels2, support=support2)
-    out2 = heights2.copy()
+    return replace(problem, heights=heights2, labels=labels2, support=support2), rim_l[held], rim_i[held]
+
+
+def contest(problem: Problem, entrants: np.ndarray, candidates: tuple[str, ...]) -> dict[int, dict[str, float]]:
+    """Cross-validation RMSE of every candidate method on every entrant component's rim.
+
+    In each of ``auto_folds`` folds, part of every component's rim is withheld
+    (:func:`_withhold`: the error estimate's split, fold ``f`` starting at sector
+    ``f * holdout_every // auto_folds``, so two folds withhold two perpendicular pairs of
+    arcs) and each candidate refills the components; its heights at the withheld pixels,
+    kept within the range of the rim left in (as ``fill.clamp_to_rim`` keeps a fill), are
+    compared with the measured ones. Returns ``{label: {method: RMSE over every fold}}``
+    (the winner is :func:`pick`'s). A method that could not fill all of a component's
+    withheld pixels is left out, and a component none could (no rim pixel withheld)
+    maps to ``{}``.
+    """
+    return {k: {m: v[0] for m, v in by.items()} for k, by in _contest_errors(problem, entrants, candidates).items()}
+
+
+def _contest_errors(
+    problem: Problem, entrants: np.ndarray, candidates: tuple[str, ...]
+) -> dict[int, dict[str, tuple[float, np.ndarray]]]:
+    """``{label: {method: (RMSE, squared errors at the withheld pixels)}}`` (see :func:`contest`)."""
+    if len(entrants) == 0 or not candidates:
+        return {}
+    st = problem.settings
+    n = problem.n_labels + 1
+    labs = np.asarray(entrants, np.int64)
+    errors: dict[str, list[np.ndarray]] = {name: [] for name in candidates}
+    held_labels = []
+    for fold in range(st.auto_folds):
+        p2, held_l, held_i = _withhold(problem, fold * st.holdout_every // st.auto_folds)
+        keep = np.isin(held_l, labs)
+        held_l, held_i = held_l[keep], held_i[keep]
+        held_labels.append(held_l)
+        truth = problem.heights.ravel()[held_i]
+        # the rim left in: its range per component, the clamp a fill gets
+        rim_l, rim_i = rim_pairs(p2)
+        lo, hi = np.full(n, np.inf), np.full(n, -np.inf)
+        np.minimum.at(lo, rim_l, problem.heights.ravel()[rim_i])
+        np.maximum.at(hi, rim_l, problem.heights.ravel()[rim_i])
+        todo = labs[np.bincount(held_l, minlength=n)[labs] > 0]
+        for name in candidates:
+            out2 = p2.heights.copy()
+            if len(todo):
+                FILL_METHODS[name](p2, todo, out2)
+            errors[name].append((np.clip(out2.ravel()[held_i], lo[held_l], hi[held_l]) - truth) ** 2)
+    all_l = np.concatenate(held_labels)
+    order = np.argsort(all_l, kind="stable")
+    bounds = np.searchsorted(all_l[order], np.arange(n + 1))
+    result: dict[int, dict[str, tuple[float, np.ndarray]]] = {int(k): {} for k in labs}
+    for name in candidates:
+        d2 = np.concatenate(errors[name])[order]
+        for k in labs:
+            mine = d2[bounds[k] : bounds[k + 1]]
+            if len(mine) and np.isfinite(mine).all():
+                result[int(k)][name] = (float(np.sqrt(mine.mean())), mine)
+    return result
+
+
+def pick(by_method: dict[str, tuple[float, np.ndarray]], candidates: tuple[str, ...], z: float) -> str:
+    """The contest's winner: the first candidate (the reference), unless others predict the
+    withheld rim significantly better, then the best of those.
+
+    Better means a lower mean squared error by more than ``z`` standard errors of the
+    paired difference (the same withheld pixels): on a rough rim (tree crowns, roofs)
+    every method misses by metres and the ranking is noise, so the reference stays.
+    """
+    ref = next((m for m in candidates if m in by_method), None)
+    if ref is None:
+        return ""
+    _, ref_d2 = by_method[ref]
+    best, best_rmse = ref, by_method[ref][0]
+    for name, (rmse, d2) in by_method.items():
+        if name == ref or rmse >= best_rmse:
+            continue
+        diff = ref_d2 - d2
+        se = diff.std(ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else math.inf
+        if diff.mean() > z * se:
+            best, best_rmse = name, rmse
+    return best
+
+
+def _with_scores(record: ComponentFill, by_method: dict[str, float] | None) -> ComponentFill:
+    """A contest winner's record: its cross-validation RMSE as the error estimate, every score in ``detail``."""
+    if not by_method or not record.filled or record.method not in by_method:
+        return record
+    scores = ", ".join(f"{m} {e:.3g}" for m, e in sorted(by_method.items(), key=lambda item: item[1]))
+    detail = f"auto: {record.method} by rim cross-validation (RMSE {scores})"
+    return replace(
+        record,
+        error_estimate=by_method[record.method],
+        detail=f"{record.detail}; {detail}" if record.detail else detail,
+    )
+
+
+def _holdout_errors(problem: Problem, chosen: dict[int, str], records: dict[int, ComponentFill]) -> dict[int, float]:
+    """Leave-boundary-out RMSE per component: withhold every ``holdout_every``-th of
+    ``holdout_sectors`` angular sectors of the rim (:func:`_withhold`), refill with the
+    same method and compare the refilled rim heights with the measured ones."""
+    p2, held_l, held_i = _withhold(problem)
+    out2 = p2.heights.copy()
     _run(p2, {k: m for k, m in chosen.items() if records[k].filled}, out2)
     errs = {}
-    truth = problem.heights.ravel()[rim_i[held]]
-    got = out2.ravel()[rim_i[held]]
-    for k in np.unique(rim_l[held]):
-        sel = rim_l[held] == k
+    truth = problem.heights.ravel()[held_i]
+    got = out2.ravel()[held_i]
+    for k in np.unique(held_l):
+        sel = held_l == k
         d = got[sel] - truth[sel]
         if np.all(np.isfinite(d)):
             errs[int(k)] = float(np.sqrt(np.mean(d * d)))

@@ -35,6 +35,8 @@ METHOD_CODES: dict[str, int] = {
     "flat": 5,
     "barrier": 6,
     "river": 7,
+    "spline": 8,
+    "linear": 9,
 }
 """``method_code`` per method. ``barrier`` marks region pixels lying on a barrier
 (a wall line): they take the highest adjacent filled or measured height, since a
@@ -48,6 +50,8 @@ METHOD_NAMES: dict[int, str] = {v: k for k, v in METHOD_CODES.items()} | {
 
 _WEIGHTS = ("wendland", "cubic", "gaussian")
 _FRAMES = ("horizontal", "tilted")
+#: Methods ``auto`` can choose among (``flat`` is for water only, ``barrier`` not a method).
+_CANDIDATES = ("tin", "spline", "mls", "linear", "idw", "nearest")
 
 
 @dataclass(frozen=True)
@@ -126,6 +130,36 @@ class FillSettings:
     auto_mls_min_roundness : float
         Roundness = pixels / area of the circle whose diameter is the longer side of
         the bounding box (disc 1, square 1.27, strip 3x90 0.04). Default 0.5.
+    auto_candidates : tuple of str
+        ``auto``: the methods that compete for each component of at least
+        ``auto_contest_min_px`` pixels; the one with the lowest cross-validation error on
+        the component's own rim (withheld rim sectors, as ``estimate_error``) fills it and
+        that error is its ``error_estimate``. Default ``("tin", "linear")``: with ``spline``
+        and ``mls`` too the real-survey benchmark got worse (they predict the rim well and
+        overshoot inside; docs/performance.md).
+        Empty: no contest (``tin``, or ``mls`` by ``auto_mls_min_px``, as before).
+    auto_contest_min_px : int
+        Components smaller than this are filled by ``tin`` without a contest: a rim of a
+        few pixels withholds one or two, too few to rank methods, and every method is
+        within the noise there. Default 4.
+    auto_folds : int
+        Cross-validation folds of the contest: each withholds the error estimate's
+        sectors, rotated by ``holdout_every / auto_folds`` sectors (two folds: two
+        perpendicular pairs of arcs, half the rim in all), so that a feature crossing the
+        hole (a ridge, a break line) is withheld in one of them. Default 2.
+    auto_z : float
+        The first candidate (the reference, ``tin``) fills a component unless another
+        predicts its withheld rim better by more than ``auto_z`` standard errors of the
+        paired difference of squared errors (:func:`~pipeline.fill.region.pick`); 2 is
+        the usual 95 % one. On a rim of tree crowns every method misses by metres and the
+        ranking is noise; the reference never overshoots the rim. Default 2.
+    spline_tension, spline_smoothing : float
+        Regularized spline with tension (``spline``, :mod:`.scattered`): tension for
+        coordinates normalised by the support's extent, and smoothing (the diagonal
+        added to the kernel matrix). Defaults 40 and 0.1, those of GRASS ``v.surf.rst``.
+    spline_max_points : int
+        The spline's support is thinned on a lattice to at most this many points (a
+        dense solve, cubic in the points). Default 400.
     seam_gamma, seam_iterations, seam_width_px
         Defaults of :func:`smooth_seams` ([OPEN] 3.4 eq. 5): 0.5, 10, 3.
     estimate_error : bool
@@ -158,6 +192,13 @@ class FillSettings:
     flat_level: float | None = None
     auto_mls_min_px: int = 0
     auto_mls_min_roundness: float = 0.5
+    auto_candidates: tuple[str, ...] = ("tin", "linear")
+    auto_contest_min_px: int = 4
+    auto_folds: int = 2
+    auto_z: float = 2.0
+    spline_tension: float = 40.0
+    spline_smoothing: float = 0.1
+    spline_max_points: int = 400
     seam_gamma: float = 0.5
     seam_iterations: int = 10
     seam_width_px: float = 3.0
@@ -176,12 +217,32 @@ class FillSettings:
             "seam_iterations",
             "holdout_sectors",
             "holdout_every",
+            "auto_contest_min_px",
+            "auto_folds",
+            "spline_max_points",
         )
+        unknown = [m for m in self.auto_candidates if m not in _CANDIDATES]
+        if unknown or len(set(self.auto_candidates)) != len(self.auto_candidates):
+            raise ValueError(
+                f"FillSettings.auto_candidates must be distinct methods of {list(_CANDIDATES)}, got {self.auto_candidates!r}"
+            )
+        if not (self.spline_smoothing >= 0 and math.isfinite(self.spline_smoothing)):
+            raise ValueError(
+                f"FillSettings.spline_smoothing must be a finite number >= 0, got {self.spline_smoothing!r}"
+            )
         _choice(self, "mls_order", (0, 1, 2))
         _choice(self, "tin_order", (1, 2))
         _choice(self, "mls_weight", _WEIGHTS)
         _choice(self, "mls_frame", _FRAMES)
-        for name in ("mls_radius_factor", "mls_min_radius_px", "idw_power", "mls_band_fraction", "mls_drop_tolerance"):
+        for name in (
+            "mls_radius_factor",
+            "mls_min_radius_px",
+            "idw_power",
+            "spline_tension",
+            "auto_z",
+            "mls_band_fraction",
+            "mls_drop_tolerance",
+        ):
             if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
                 raise ValueError(f"FillSettings.{name} must be a finite number > 0, got {getattr(self, name)!r}")
         for name in ("mls_dense_band_px", "seam_width_px", "tin_band_px", "tin_direct_max_px", "auto_mls_min_px"):

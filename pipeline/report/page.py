@@ -323,12 +323,14 @@ def _fill_section(fill: dict[str, Any], inputs: ReportInputs | None) -> list[str
     by_status: dict[str, list[float]] = collections.defaultdict(list)
     by_method: dict[str, list[float]] = collections.defaultdict(list)
     errors = []
+    errors_by_cause: dict[str, list[float]] = collections.defaultdict(list)
     for h in inputs.holes if inputs else ():
         by_status[h.fill_status].append(h.area_m2)
         if h.fill_method:
             by_method[h.fill_method].append(h.area_m2)
         if h.fill_error_m is not None and math.isfinite(h.fill_error_m):
             errors.append(h.fill_error_m)
+            errors_by_cause[h.cause].append(h.fill_error_m)
 
     def rows(counts: dict[str, int], areas: dict[str, list[float]]) -> list[list[Any]]:
         listed = [[f"{len(areas.get(k, [])):,}", f"{sum(areas.get(k, [])):,.0f}"] for k in counts] if inputs else []
@@ -348,10 +350,28 @@ def _fill_section(fill: dict[str, Any], inputs: ReportInputs | None) -> list[str
     if errors:
         e = np.asarray(errors)
         parts.append(
-            "<p>Estimated fill error (leave-rim-out RMSE, "
+            "<p>Estimated fill error (water: spread of its edge level; others: leave-rim-out RMSE, "
             f"{len(e):,} holes): median {np.median(e):.2f}, 90th percentile {np.percentile(e, 90):.2f}, "
             f"largest {e.max():.2f} (height units).</p>"
         )
+        # water: the spread of the heights its edge level came from; the rest: the rim cross-validation
+        parts += [
+            "<h3>Estimated fill error by cause</h3>",
+            _table(
+                ["cause", "holes", "median", "90th percentile", "largest", "from"],
+                [
+                    [
+                        cause,
+                        f"{len(v):,}",
+                        f"{np.median(v):.2f}",
+                        f"{np.percentile(v, 90):.2f}",
+                        f"{max(v):.2f}",
+                        "spread of its edge level" if cause == "water" else "withheld-rim cross-validation",
+                    ]
+                    for cause, v in sorted(errors_by_cause.items())
+                ],
+            ),
+        ]
     return parts
 
 

@@ -1,6 +1,6 @@
 """The usual alternatives the fills are compared with (:data:`ALTERNATIVES`).
 
-GDAL fillnodata, a linear TIN (scipy), startinpy's natural-neighbour and Laplace
+GDAL fillnodata, nearest neighbour, a linear TIN (scipy), startinpy's natural-neighbour and Laplace
 interpolation, and GRASS ``r.fillnulls``: each takes the unfilled raster and the hole
 labels and returns a filled raster. GRASS runs in a temporary folder through rasterio
 files; the others work on arrays.
@@ -83,6 +83,15 @@ def fill_gdal(heights: np.ndarray, labels: np.ndarray, *, max_search_px: float =
     # fillnodata leaves a pixel it cannot reach as it was (0 here)
     reached = ndi.distance_transform_edt(~known) <= max(max_search_px, depth + 2)
     return np.where(known | reached, filled, np.nan)
+
+
+def fill_nearest(heights: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """Each hole pixel takes the height of the nearest measured pixel (``distance_transform_edt`` indices)."""
+    known = np.isfinite(heights)
+    if not known.any():
+        return np.full(heights.shape, np.nan)
+    rows, cols = ndi.distance_transform_edt(~known, return_distances=False, return_indices=True)
+    return np.where(labels > 0, heights[rows, cols], np.nan)
 
 
 def fill_tin_linear(heights: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -200,6 +209,7 @@ def fill_grass(heights: np.ndarray, labels: np.ndarray, *, timeout_s: float = 60
 #: Alternatives scored on the same holes: name -> fill(heights, labels) -> heights.
 ALTERNATIVES: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
     "gdal_fillnodata": fill_gdal,
+    "nearest_alt": fill_nearest,
     "tin_linear": fill_tin_linear,
     "nni": fill_nni,
     "laplace": fill_laplace,

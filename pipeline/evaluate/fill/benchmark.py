@@ -42,6 +42,8 @@ PIPELINE_RUNS: dict[str, dict[str, Any]] = {
     "mls": {"method": "mls"},
     "idw": {"method": "idw"},
     "nearest": {"method": "nearest"},
+    # auto's contest among the methods bounded by their rim only (no MLS, no spline: they extrapolate)
+    "auto-bounded": {"auto_candidates": ["tin", "linear"]},
     # the interpolators alone, every hole filled as ground would be (no flat water, no lower side)
     "mls-nocause": {"method": "mls", "by_cause": False},
     "idw-nocause": {"method": "idw", "by_cause": False},
