@@ -51,13 +51,10 @@ def lower_side_support(
 ) -> np.ndarray:
     """Rim pixels on the low side of a height step: the support for an occlusion hole.
 
-    For each component of ``region`` the rim heights (rim = finite pixels 4-adjacent to
-    it) are sorted; from the ``quantile`` of them up (a low quantile rather than the
-    minimum, so that one stray low point does not exclude the ground), the first gap of
-    more than ``jump_threshold`` between consecutive heights is the step: rim pixels
-    above it (roof, wall top) are dropped. A rim without such a gap (open ground, a
-    slope however steep, a rim rising gradually) keeps every pixel: a slope is no step,
-    and dropping its upper side would fill the hole at the foot of the slope.
+    For each component of ``region`` the low rim level is the ``quantile`` of its rim
+    heights (rim = finite pixels 4-adjacent to it; a low quantile rather than the
+    minimum, so that one stray low point does not exclude the ground); rim pixels
+    higher than that level plus ``jump_threshold`` (roof, wall top) are dropped.
 
     Parameters
     ----------
@@ -89,23 +86,15 @@ def lower_side_support(
         return out
     pl, pi = _rim_pairs(heights, lab)
     z = heights.ravel()[pi]
-    top = np.full(n + 1, np.nan)
+    low = np.full(n + 1, np.nan)
     bounds = np.searchsorted(pl, np.arange(n + 2))
     for k in np.unique(pl):
-        top[k] = _below_first_step(z[bounds[k] : bounds[k + 1]], jump_threshold, quantile)
-    keep = z <= top[pl]
+        low[k] = np.quantile(z[bounds[k] : bounds[k + 1]], quantile)
+    keep = z <= low[pl] + jump_threshold
     out.ravel()[pi[keep]] = True
     # a pixel judged high for any neighbouring hole is not support
     out.ravel()[pi[~keep]] = False
     return out
-
-
-def _below_first_step(z: np.ndarray, jump: float, quantile: float) -> float:
-    """The highest rim height below the first gap wider than ``jump`` above the ``quantile`` (all: inf)."""
-    zs = np.sort(z)
-    start = int(np.floor(quantile * (len(zs) - 1)))
-    gaps = np.nonzero(np.diff(zs[start:]) > jump)[0]
-    return float(zs[start + gaps[0]]) if len(gaps) else np.inf
 
 
 def rim_level(

@@ -151,13 +151,15 @@ def fill_linear(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[C
             recs.append(_none(k, size))
             continue
         sr, sc = np.divmod(pts, w)
-        xy = np.column_stack([sr, sc]).astype(np.float64)
-        zs = problem.heights[sr, sc]
-        queries = np.column_stack([pr, pc]).astype(np.float64)
+        corner = np.array([sr.min(), sc.min()], np.float64)
+        xy = np.column_stack([sr, sc]).astype(np.float64) - corner  # the component's own frame: the same
+        zs = problem.heights[sr, sc]  # triangulation wherever the window around it starts (the cell size)
+        queries = np.column_stack([pr, pc]).astype(np.float64) - corner
         values = np.full(len(pr), np.nan)
         if len(pts) >= 3 and np.linalg.matrix_rank(xy - xy.mean(axis=0)) == 2:
             # pixel centres are co-circular by the thousand: qhull's point location then walks
-            # for ever (0.5 s for a 700-pixel hole); a fixed 1e-6 px jitter breaks the ties
+            # for ever (0.5 s for a 700-pixel hole); a fixed 1e-6 px jitter, in the points'
+            # row-major order, breaks the ties
             jitter = np.random.default_rng(0).uniform(-1e-6, 1e-6, xy.shape)
             values = LinearNDInterpolator(Delaunay(xy + jitter), zs)(queries)
         outside = ~np.isfinite(values)
