@@ -199,9 +199,28 @@ def test_a_side_cut_at_a_slant_counts_as_cut():
     left = np.array([-math.cos(heading), math.sin(heading)])  # 90 degrees left of the heading (x east, y north)
     track = np.array([282.0, 32.9])
     across = np.einsum("kvd,d->kv", hull - track, left)
+    along = np.einsum("kvd,d->kv", hull - track, np.array([math.sin(heading), math.cos(heading)]))
     boundary = shapely.boundary(shapely.box(-1000.0, 0.0, 1000.0, 1000.0))
     assert across[0].argmax() == 0  # the farthest return left of the track: 2.1 m inside the edge
-    assert _cropped_sides(values, hull, across, boundary)[0].tolist() == [True, False]
+    assert _cropped_sides(values, hull, across, along, boundary)[0].tolist() == [True, False]
+
+
+def test_a_side_beside_a_boundary_near_the_track_is_not_cut():
+    """A line flown just outside the survey: the boundary runs along it, 20 m right of the track. The
+    left side lies wholly beyond it (cut); the right side's returns reach 90 m, and the boundary
+    touches that side's inner end only: not cut."""
+    from pipeline.sensor.trajectory import _INDEX, _cropped_sides
+
+    angles = np.linspace(0.0, 2.0 * np.pi, 16, endpoint=False)
+    # the bin's returns: x 0..30 along the track (east), y from -20 (the boundary) to -90 (the edge)
+    hull = np.column_stack([15.0 + 15.0 * np.cos(angles), -55.0 + 35.0 * np.sin(angles)])[None]
+    values = np.zeros((1, len(_INDEX)))
+    values[0, _INDEX["n"]] = 5_000
+    left = np.array([0.0, 1.0])
+    across = np.einsum("kvd,d->kv", hull, left)
+    along = np.einsum("kvd,d->kv", hull, np.array([1.0, 0.0]))
+    boundary = shapely.boundary(shapely.box(-1000.0, -1000.0, 1000.0, -20.0))
+    assert _cropped_sides(values, hull, across, along, boundary)[0].tolist() == [True, False]
 
 
 def test_the_survey_extent_closes_the_seams_between_tiles():
@@ -214,3 +233,14 @@ def test_the_survey_extent_closes_the_seams_between_tiles():
     assert extent.area == pytest.approx(3 * 99.99 * 99.99, rel=1e-3)
     apart = survey_extent([(0.0, 0.0, 100.0, 100.0), (110.0, 0.0, 200.0, 100.0)], 1.0)
     assert apart.geom_type == "MultiPolygon"
+
+
+def test_a_recorded_angle_the_returns_exceed_is_not_the_scanner_s():
+    """IGN's lidar-prod extract records 0-4 degrees over a swath 110 m wide: the returns' own edges win."""
+    from pipeline.sensor.trajectory import _largest_angle
+
+    assert _largest_angle(4.002, 20.0) == 20.0
+    assert _largest_angle(20.0, 20.3) == 20.3  # a whole-degree rank refined within its half degree
+    assert _largest_angle(20.0, 15.0) == 20.0  # a cropped swath measures low: the record stands
+    assert _largest_angle(20.5, 21.5) == 20.5  # within the slack: the record stands
+    assert math.isnan(_largest_angle(math.nan, math.nan))

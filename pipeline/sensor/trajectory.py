@@ -63,10 +63,10 @@ PASS_BREAK_SHARE = 0.5
 #: of its hull's area per return) of the data's boundary marks that side as cut off by the
 #: survey's edge: returns are dense enough that the edge return of a cut swath lies on the boundary.
 CROPPED_SPACINGS = 3.0
-#: ... and so does any hull vertex of that side lying there, out to at least this share of the side's
-#: extent: a boundary crossing the swath obliquely cuts the side along a slant whose farthest point
-#: across the track lies off the boundary (seen: 2 m inside it, with the cut's own vertices on it).
-CROPPED_OUTER_SHARE = 0.5
+#: The edges' measured angle may exceed a recorded largest angle by this much (degrees: a whole-degree
+#: rank's half degree, and the spread of the edges' angle over a line's bins) before the recorded
+#: one is taken for something other than the scan angle.
+RECORDED_ANGLE_SLACK_DEG = 2.0
 
 
 @dataclass(frozen=True)
@@ -255,7 +255,8 @@ def _fit_pass(
     heading = _heading(track)
     left = np.array([-heading[1], heading[0]])
     across = np.einsum("kvd,d->kv", hulls - track[:, None, :], left)
-    cropped = _cropped_sides(values, hulls, across, boundary)
+    along = np.einsum("kvd,d->kv", hulls - track[:, None, :], heading)
+    cropped = _cropped_sides(values, hulls, across, along, boundary)
     own_half_width, bin_widths = None, None
     if evidence.sum() < 2:
         track, own_half_width, bin_widths = _track_from_edges(
@@ -323,10 +324,17 @@ def _positions(
 
 
 def _cropped_sides(
-    values: np.ndarray, hulls: np.ndarray, across: np.ndarray, boundary: shapely.Geometry | None
+    values: np.ndarray, hulls: np.ndarray, across: np.ndarray, along: np.ndarray, boundary: shapely.Geometry | None
 ) -> np.ndarray:
-    """Per bin, whether its left and right sides (columns 0, 1) are cut off by the survey's edge: a vertex of the
-    bin's hull on that side's outer half lies on the data's boundary."""
+    """Per bin, whether its left and right sides (columns 0, 1) are cut off by the survey's edge.
+
+    A side is cut where a vertex of the bin's hull at its outer end lies on the data's boundary
+    (within ``CROPPED_SPACINGS`` point spacings): the farthest vertex across the track, or one
+    within the bin's length along the track of it. A boundary crossing the swath at a slant cuts
+    the side along a line that drifts across the track by up to the bin's length; its farthest
+    point across lies off the boundary (2 m, six spacings, in a simulated Delft scan) while the
+    cut's own vertices lie on it.
+    """
     out = np.zeros((len(values), 2), bool)
     if boundary is None:
         return out
@@ -335,9 +343,10 @@ def _cropped_sides(
     area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))  # shoelace
     spacing = np.sqrt(np.maximum(area, 0.0) / np.maximum(values[:, _INDEX["n"]], 1.0))
     on_boundary = shapely.distance(shapely.points(hulls), boundary) <= CROPPED_SPACINGS * spacing[:, None]
+    length = (along.max(axis=1) - along.min(axis=1))[:, None]
     for column, side in enumerate((across, -across)):
-        outer = side >= CROPPED_OUTER_SHARE * side.max(axis=1, keepdims=True)
-        out[:, column] = (on_boundary & outer & (side > 0)).any(axis=1)
+        outer = side >= side.max(axis=1, keepdims=True) - length
+        out[:, column] = (on_boundary & outer).any(axis=1)
     return out
 
 
@@ -449,9 +458,17 @@ def _largest_angle(recorded: float, measured: float) -> float:
     of the largest rank, where the edge's geometry places it when it falls there (a swath cropped
     by the survey's edge measures low: the rank then stands). Without recorded angles, the edge's
     geometry alone; NaN where neither is known.
+
+    A recorded angle that the line's own returns exceed by more than ``RECORDED_ANGLE_SLACK_DEG``
+    is not the scanner's: its swath would leave out the returns it scanned. Seen in an IGN LiDAR
+    HD extract (`ign_lidarprod_870000_6618000`: five values 0-4.0 degrees, none negative, over a
+    swath 110 m wide), where it made every cut void beyond 10 m of the track a coverage gap.
+    The edges' angle is taken instead.
     """
     if math.isnan(recorded):
         return measured
+    if not math.isnan(measured) and measured > recorded + RECORDED_ANGLE_SLACK_DEG:
+        return measured  # the returns lie beyond the recorded angle: the field holds something else
     if float(recorded).is_integer() and not math.isnan(measured) and abs(measured - recorded) <= 0.5:
         return measured
     return recorded  # a measurement the rank contradicts (a swath cropped by the survey's edge) is no refinement
