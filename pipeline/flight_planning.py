@@ -27,7 +27,7 @@ from affine import Affine
 from .config import Config
 from .errors import CRSError, InputDataError
 from .flightplan.altitude import ellipsoid_transformer, vertical_crs_for
-from .flightplan.mission import FlightPlan, GroundGrid, HoleInput, plan_mission
+from .flightplan.mission import TAKEOFF_MAX_M, FlightPlan, GroundGrid, HoleInput, plan_mission
 from .io.flightplan_files import read_dsm, read_ground, read_holes, write_flightplan
 from .parameters import flight_params
 
@@ -69,7 +69,7 @@ def plan_flights(
     if home is None and config.flightplan.home:
         home_x, home_y = config.flightplan.home  # the configuration checked: [] or [x, y]
         home = (home_x, home_y)
-    reach = params.coverage.swath_m + params.coverage.margin_m + params.coverage.run_in_m + 500.0
+    reach = params.coverage.swath_m + params.coverage.margin_m + params.coverage.run_in_m + TAKEOFF_MAX_M
     extent = [h.geometry.bounds for h in holes if h.geometry is not None and not h.geometry.is_empty]
     if home is not None:
         extent.append((home[0], home[1], home[0], home[1]))

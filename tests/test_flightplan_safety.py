@@ -76,6 +76,48 @@ def test_home_in_a_forest_is_the_clearing_at_the_ground_points_height():
         assert w.altitude_m == pytest.approx(w.height_m - plan.home_ground_m)
 
 
+def test_open_ground_farther_than_a_pilot_walks_from_the_holes_is_not_sought():
+    """The clearing lies 1 km from the hole: beyond ``TAKEOFF_MAX_M`` the search does not go (it
+    reads windows around the holes, not the survey's span); the home comes from the DSM, with a warning."""
+    from pipeline.flightplan.mission import TAKEOFF_MAX_M
+
+    dsm, ground, _ = _forest()
+    hole = shapely.box(1100, 100, 1150, 140)
+    dsm[int(SIZE - 140) : int(SIZE - 100), 1100:1150] = np.nan
+    assert hole.distance(shapely.Point(250.0, 900.0)) > 2 * TAKEOFF_MAX_M
+    plan = plan_mission(
+        [HoleInput(1, hole, "missed_coverage", hole.area)],
+        dsm,
+        TRANSFORM,
+        crs_wkt=CRS_2154,
+        params=FlightParams(coverage=PARAMS, min_area_m2=0.0),
+        ground=GroundGrid(ground),
+        snap_home=True,
+    )
+    assert plan.home_source == "DSM (no ground points)"
+    assert "no open ground" in plan.home_warning
+
+
+def test_of_two_clusters_of_holes_the_take_off_is_the_open_ground_nearest_to_either():
+    """Holes near the clearing and holes 1 km away: two search windows, the clearing wins."""
+    dsm, ground, clearing = _forest()
+    near, far = shapely.box(330, 880, 360, 900), shapely.box(1100, 100, 1150, 140)
+    for box in (near, far):
+        x0, y0, x1, y1 = (int(v) for v in box.bounds)
+        dsm[SIZE - y1 : SIZE - y0, x0:x1] = np.nan
+    plan = plan_mission(
+        [HoleInput(1, near, "missed_coverage", near.area), HoleInput(2, far, "missed_coverage", far.area)],
+        dsm,
+        TRANSFORM,
+        crs_wkt=CRS_2154,
+        params=FlightParams(coverage=PARAMS, min_area_m2=0.0),
+        ground=GroundGrid(ground),
+    )
+    hx, hy = plan.home
+    assert math.hypot(hx - 250.0, hy - 900.0) < 40.0
+    assert plan.home_source == "ground points"
+
+
 def test_open_ground_excludes_obstacles_water_slopes_and_voids():
     dsm = np.full((100, 100), 10.0)
     ground = np.full((100, 100), 10.0)

@@ -73,6 +73,9 @@ class FlightParams:
 #: Where the take-off is sought first: the ground points within this distance of the flattest clear
 #: place the DSM shows near the holes (a pilot walks there; the survey's points are not all decoded).
 TAKEOFF_SEARCH_M = 150.0
+#: The farthest from the planned holes a take-off is sought (a pilot keeps the drone in sight: a few
+#: hundred metres); the DSM is read this far around them too (:func:`pipeline.flight_planning.plan_flights`).
+TAKEOFF_MAX_M = 500.0
 
 
 @dataclass(frozen=True)
@@ -421,44 +424,112 @@ def _placed_patterns(
 def _nearest_open_ground(
     dsm: np.ndarray, transform: AffineLike, targets: np.ndarray, ground: GroundGrid, params: TakeoffParams
 ) -> Takeoff | None:
-    """:func:`.takeoff.choose_takeoff` over ground points read where they can matter.
+    """:func:`.takeoff.choose_takeoff` within ``TAKEOFF_MAX_M`` of the planned holes, over ground points read where they can matter.
 
-    A grid read on request is read first within ``TAKEOFF_SEARCH_M`` of the place the DSM alone
-    shows flat and clear nearest to the holes (open ground is flat and clear in the DSM too, so
-    the DSM's choice is at least as near), and judged there alone (no ground point lies
-    elsewhere yet); then whole if that finds none.
+    The search runs window by window, one per cluster of holes (their pixels grown by
+    ``TAKEOFF_MAX_M``, overlapping windows merged), so that its cost follows the holes and not the
+    span of the survey (three clusters 10 km apart are three small windows, not one 20 km grid).
+    In each window a grid read on request is read first within ``TAKEOFF_SEARCH_M`` of the place
+    the DSM alone shows flat and clear nearest to the holes (open ground is flat and clear in the
+    DSM too, so the DSM's choice is at least as near), and judged there alone; then the whole
+    window. Of the windows' choices the one nearest to its holes wins (ties: nearest to the
+    centre of all of them), as one search over the whole grid would choose.
     """
-    if ground.reader is None:
-        return choose_takeoff(dsm, ground.height, ground.water, transform, targets, params=params)
-    guess = choose_takeoff(dsm, dsm, None, transform, targets, params=params)
-    if guess is not None:
-        box = ground.load_around(guess.xy, transform, TAKEOFF_SEARCH_M)
-        if box is not None:
-            r0, c0, r1, c1 = box
-            window = Affine(
-                transform.a,
-                transform.b,
-                transform.c + c0 * transform.a,
-                transform.d,
-                transform.e,
-                transform.f + r0 * transform.e,
-            )
-            water = None if ground.water is None else ground.water[r0:r1, c0:c1]
-            rows, cols = np.nonzero(targets)
-            found = choose_takeoff(
-                dsm[r0:r1, c0:c1],
-                ground.height[r0:r1, c0:c1],
-                water,
-                window,
-                targets[r0:r1, c0:c1],
-                params=params,
-                distance=ndi.distance_transform_edt(~targets)[r0:r1, c0:c1],
-                centre=(float(rows.mean()) - r0, float(cols.mean()) - c0),
-            )
-            if found is not None:
-                return found
-    ground.load((0, 0, *dsm.shape))
-    return choose_takeoff(dsm, ground.height, ground.water, transform, targets, params=params)
+    rows, cols = np.nonzero(targets)
+    if len(rows) == 0:
+        return None
+    centre = (float(rows.mean()), float(cols.mean()))
+    reach = int(math.ceil(TAKEOFF_MAX_M / max(abs(transform.a), 1e-9)))
+    best: tuple[tuple[float, float], Takeoff] | None = None
+    for r0, c0, r1, c1 in _target_windows(targets, reach):
+        window = _affine(transform) @ Affine.translation(c0, r0)
+        local = (slice(r0, r1), slice(c0, c1))
+        distance = ndi.distance_transform_edt(~targets[local])
+        found = _open_ground_in(dsm[local], transform, targets[local], ground, (r0, c0), params, distance, centre)
+        if found is None:
+            continue
+        col, row = ~window * found.xy
+        r, c = int(row), int(col)
+        score = (float(np.round(distance[r, c])), math.hypot(r + r0 - centre[0], c + c0 - centre[1]))
+        if best is None or score < best[0]:
+            best = (score, found)
+    return None if best is None else best[1]
+
+
+def _open_ground_in(
+    dsm: np.ndarray,
+    transform: AffineLike,
+    targets: np.ndarray,
+    ground: GroundGrid,
+    corner: tuple[int, int],
+    params: TakeoffParams,
+    distance: np.ndarray,
+    centre: tuple[float, float],
+) -> Takeoff | None:
+    """:func:`.takeoff.choose_takeoff` in one window of the grid (``corner``: its first row and column;
+    ``transform``: the whole grid's)."""
+    r0, c0 = corner
+    window = _affine(transform) @ Affine.translation(c0, r0)
+    shape = dsm.shape
+    local_centre = (centre[0] - r0, centre[1] - c0)
+
+    def judged(box: tuple[int, int, int, int]) -> Takeoff | None:
+        """Judged on the ground points of ``box`` (window pixels) alone."""
+        b0, d0, b1, d1 = box
+        sub = (slice(b0, b1), slice(d0, d1))
+        height = ground.height[r0 + b0 : r0 + b1, c0 + d0 : c0 + d1]
+        water = None if ground.water is None else ground.water[r0 + b0 : r0 + b1, c0 + d0 : c0 + d1]
+        return choose_takeoff(
+            dsm[sub], height, water, window @ Affine.translation(d0, b0), targets[sub], params=params,
+            distance=distance[sub], centre=(local_centre[0] - b0, local_centre[1] - d0),
+        )  # fmt: skip
+
+    if ground.reader is not None:
+        guess = choose_takeoff(dsm, dsm, None, window, targets, params=params, distance=distance, centre=local_centre)
+        if guess is not None:
+            box = ground.load_around(guess.xy, transform, TAKEOFF_SEARCH_M)
+            if box is not None:
+                b0, d0, b1, d1 = box
+                inner = (max(b0 - r0, 0), max(d0 - c0, 0), min(b1 - r0, shape[0]), min(d1 - c0, shape[1]))
+                if inner[2] > inner[0] and inner[3] > inner[1]:
+                    found = judged(inner)
+                    if found is not None:
+                        return found
+        ground.load((r0, c0, r0 + shape[0], c0 + shape[1]))
+    return judged((0, 0, *shape))
+
+
+def _affine(transform: AffineLike) -> Affine:
+    return Affine(transform.a, transform.b, transform.c, transform.d, transform.e, transform.f)
+
+
+def _target_windows(targets: np.ndarray, reach: int) -> list[tuple[int, int, int, int]]:
+    """Boxes ``(r0, c0, r1, c1)`` around the clusters of ``targets``, grown by ``reach`` pixels, overlapping ones merged."""
+    labels, n = ndi.label(targets)
+    boxes = [
+        [max(sl[0].start - reach, 0), max(sl[1].start - reach, 0),
+         min(sl[0].stop + reach, targets.shape[0]), min(sl[1].stop + reach, targets.shape[1])]
+        for sl in ndi.find_objects(labels) if sl is not None
+    ]  # fmt: skip
+    merged = True
+    while merged:
+        merged = False
+        out: list[list[int]] = []
+        for box in boxes:
+            for other in out:
+                if box[0] < other[2] and other[0] < box[2] and box[1] < other[3] and other[1] < box[3]:
+                    other[:] = [
+                        min(box[0], other[0]),
+                        min(box[1], other[1]),
+                        max(box[2], other[2]),
+                        max(box[3], other[3]),
+                    ]
+                    merged = True
+                    break
+            else:
+                out.append(box)
+        boxes = out
+    return [(b[0], b[1], b[2], b[3]) for b in boxes]
 
 
 def _choose_home(
