@@ -88,6 +88,7 @@ def test_rule_order_is_one_table():
         "water_mask",
         "covered",
         "missing_tile",
+        "water_ring",
         "coverage_gap",
         "water_points",
         "line_of_sight",

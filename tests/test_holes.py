@@ -463,6 +463,11 @@ def test_cause_water_points_and_water_mask():
     z = z + 0.02 * np.arange(96)[None, :] * 40  # a tilted rim: geometry alone says no water
     water = ((ndi.binary_dilation(count == 0, iterations=2)) & (count > 0)).astype(np.uint16)
     cause, _ = classify(count, z, zmin=zmin, water_points=water)
+    assert cause["cause"] == "water" and cause["rule"] == "water_ring"  # water all round: before any gap
+    some = water.copy()
+    some[:, 48:] = 0  # water returns on the western half of the ring only
+    some[:, :40] = 0
+    cause, _ = classify(count, z, zmin=zmin, water_points=some)
     assert cause["cause"] == "water" and cause["rule"] == "water_points"
     cause, _ = classify(count, z, zmin=zmin, water_mask=count == 0)
     assert cause["cause"] == "water" and cause["rule"] == "water_mask"

@@ -45,7 +45,7 @@ def test_voids_cut_into_a_real_survey_are_not_water(name, crs, shared_data, tmp_
     lines = read_layer(out / "holes.gpkg", "flight_lines")
     assert lines["judged"].all() and len(lines) >= 3
     water = holes[holes["cause"] == "water"]
-    assert set(water["cause_rule"]) <= {"water_points", "water_edge"}, water[["area_m2", "cause_rule"]]
+    assert set(water["cause_rule"]) <= {"water_ring", "water_points", "water_edge"}, water[["area_m2", "cause_rule"]]
     squares = holes[(holes["area_m2"] > 300) & (holes["area_m2"] <= 400)]  # a 20 m square less its rim's pixels
     assert len(squares) == 4, holes[["area_m2", "cause", "cause_rule"]]
     assert set(squares["cause"]) == {"no_return"}
