@@ -448,8 +448,8 @@ def _nearest_open_ground(
         found = _open_ground_in(dsm[local], transform, targets[local], ground, (r0, c0), params, distance, centre)
         if found is None:
             continue
-        col, row = ~window * found.xy
-        r, c = int(row), int(col)
+        r = int((found.xy[1] - window.f) / window.e)  # north-up (read_dsm refuses rotated rasters)
+        c = int((found.xy[0] - window.c) / window.a)
         score = (float(np.round(distance[r, c])), math.hypot(r + r0 - centre[0], c + c0 - centre[1]))
         if best is None or score < best[0]:
             best = (score, found)
