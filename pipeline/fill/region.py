@@ -89,19 +89,7 @@ def fill_region(
     problem = build_problem(
         heights, region, pixel_size=pixel_size, settings=settings, support=support, barriers=barriers, labels=labels
     )
-    sizes = problem.sizes()
-    present = np.nonzero(sizes[1:])[0] + 1
-    scores: dict[int, dict[str, float]] = {}
-    if method == "auto":
-        chosen = choose_methods(problem.labels, present, settings)
-        entrants = present[sizes[present] >= settings.auto_contest_min_px] if settings.auto_candidates else present[:0]
-        errors = _contest_errors(problem, entrants, settings.auto_candidates)
-        for k, by_method in errors.items():
-            if by_method:
-                chosen[k] = pick(by_method, settings.auto_candidates, settings.auto_z)
-                scores[k] = {m: v[0] for m, v in by_method.items()}
-    else:
-        chosen = {int(k): method for k in present}
+    chosen, scores = _choose(problem, method, settings)
     out = problem.heights.copy()
     records = _run(problem, chosen, out)
     records = {k: _with_scores(r, scores.get(k)) for k, r in records.items()}
@@ -110,11 +98,7 @@ def fill_region(
         lut[rec.label] = METHOD_CODES[rec.method] if rec.filled else NOT_FILLED
     code = lut[problem.labels]
     if settings.estimate_error and records:
-        others = {k: m for k, m in chosen.items() if not scores.get(k)}
-        holdout = _holdout_errors(problem, others, records) if others else {}
-        records = {
-            k: r if scores.get(k) else replace(r, error_estimate=holdout.get(k, math.nan)) for k, r in records.items()
-        }
+        records = _with_holdout_errors(problem, chosen, records, scores)
     region_b = np.asarray(region, bool)
     if barriers is not None:
         _fill_barrier_pixels(out, code, region_b & np.asarray(barriers, bool))
@@ -128,6 +112,37 @@ def fill_region(
         labels=problem.labels,
         components=tuple(records[k] for k in sorted(records)),
     )
+
+
+def _choose(
+    problem: Problem, method: str, settings: FillSettings
+) -> tuple[dict[int, str], dict[int, dict[str, float]]]:
+    """A method per component label, and the rim cross-validation RMSE of each candidate where ``auto`` held a contest."""
+    sizes = problem.sizes()
+    present = np.nonzero(sizes[1:])[0] + 1
+    if method != "auto":
+        return {int(k): method for k in present}, {}
+    chosen = choose_methods(problem.labels, present, settings)
+    scores: dict[int, dict[str, float]] = {}
+    entrants = present[sizes[present] >= settings.auto_contest_min_px] if settings.auto_candidates else present[:0]
+    for k, by_method in _contest_errors(problem, entrants, settings.auto_candidates).items():
+        if by_method:
+            chosen[k] = pick(by_method, settings.auto_candidates, settings.auto_z)
+            scores[k] = {m: v[0] for m, v in by_method.items()}
+    return chosen, scores
+
+
+def _with_holdout_errors(
+    problem: Problem,
+    chosen: dict[int, str],
+    records: dict[int, ComponentFill],
+    scores: dict[int, dict[str, float]],
+) -> dict[int, ComponentFill]:
+    """Each record with its error estimate: the contest's winner keeps its cross-validation RMSE,
+    the others get the leave-boundary-out RMSE (:func:`_holdout_errors`)."""
+    others = {k: m for k, m in chosen.items() if not scores.get(k)}
+    holdout = _holdout_errors(problem, others, records) if others else {}
+    return {k: r if scores.get(k) else replace(r, error_estimate=holdout.get(k, math.nan)) for k, r in records.items()}
 
 
 def _run(problem: Problem, chosen: dict[int, str], out: np.ndarray) -> dict[int, ComponentFill]:
