@@ -9,12 +9,13 @@ import zipfile
 import laspy
 import numpy as np
 import pytest
+import scipy.ndimage as ndi
 import shapely
 from affine import Affine
 
 from pipeline.flightplan import CoverageParams, FlightParams, HoleInput, plan_mission
 from pipeline.flightplan.mission import GroundGrid
-from pipeline.flightplan.takeoff import TakeoffParams, check_home, open_ground
+from pipeline.flightplan.takeoff import TakeoffParams, check_home, choose_takeoff, open_ground
 from pipeline.io.vector import read_layer
 
 PARAMS = CoverageParams(
@@ -136,6 +137,39 @@ def test_open_ground_excludes_obstacles_water_slopes_and_voids():
     assert not open_ground(void, ground, water, transform, params=params)[50, 50]
     steep = 10.0 + 0.2 * np.arange(100)[None, :] + np.zeros((100, 1))  # 11 degrees
     assert not open_ground(steep, steep, water, transform, params=params)[50, 50]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_take_off_searched_in_growing_boxes_is_the_whole_grid_search(seed):
+    """choose_takeoff's growing boxes pick the pixel one search over the whole grid picks: the
+    open-ground pixel nearest the holes, ties to the nearest to their centre (obstacles, water
+    and voids scattered at random; open ground near, far or nowhere)."""
+    rng = np.random.default_rng(seed)
+    shape = (420, 380)
+    ground = 50.0 + rng.normal(0, 0.02, shape)
+    dsm = ground.copy()
+    crowded = [0.0, 0.02, 0.2, 0.6, 0.9, 1.0][seed]  # share of pixels under a 5 m obstacle
+    dsm[rng.random(shape) < crowded / 30] += 5.0  # one obstacle pixel blocks a 10 m disc
+    dsm[rng.random(shape) < 0.001] = np.nan
+    water = (rng.random(shape) < 0.0005).astype(np.int32)
+    targets = np.zeros(shape, bool)
+    r, c = rng.integers(100, 300, 2)
+    targets[r : r + 15, c : c + 40] = True
+    transform = Affine(0.5, 0, 1000, 0, -0.5, 2000)
+    params = TakeoffParams()
+    found = choose_takeoff(dsm, ground, water, transform, targets, params=params)
+    fit = open_ground(dsm, ground, water, transform, params=params)
+    if not fit.any():
+        assert found is None
+        return
+    rows, cols = np.nonzero(targets)
+    distance = ndi.distance_transform_edt(~targets)
+    offset = np.hypot(np.arange(shape[0])[:, None] - rows.mean(), np.arange(shape[1])[None, :] - cols.mean())
+    score = np.where(fit, np.round(distance) * (1 + dsm.size) + offset / (1 + offset.max()), np.inf)
+    br, bc = np.unravel_index(int(np.argmin(score)), shape)
+    assert found is not None
+    assert found.xy == (1000 + 0.5 * (bc + 0.5), 2000 - 0.5 * (br + 0.5))
+    assert found.ground_m == ground[br, bc]
 
 
 def test_a_chosen_home_on_a_canopy_is_kept_with_its_ground_height_and_a_warning():

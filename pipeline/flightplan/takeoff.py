@@ -131,21 +131,54 @@ def choose_takeoff(
     Ties (pixels equally near the holes) go to the one nearest the targets' centre. A window of a
     larger grid passes the larger grid's ``distance`` to the targets (pixels, cropped) and their
     ``centre`` (row, column in the window's pixels): the targets may lie outside the window.
+
+    The search runs on growing boxes (:func:`_search_reaches`): the pixels nearer the targets
+    than a reach, with the clear radius around them, so that the filters of :func:`open_ground`
+    see what they would see over the whole grid there; the first reach holding open ground
+    gives the same pixel as one search over the whole grid (every pixel beyond is farther), at
+    the cost of the box around the holes where open ground lies near them (0.94 -> 0.41 s for a
+    missed line across the 42 M bench survey: the box of a long strip is still most of the window).
     """
-    fit = open_ground(dsm, ground, water, transform, params=params)
-    if not fit.any():
-        return None
     if distance is None or centre is None:
         if not targets.any():
             return None
         rows, cols = np.nonzero(targets)
         distance, centre = ndi.distance_transform_edt(~targets), (float(rows.mean()), float(cols.mean()))
     offset = np.hypot(np.arange(dsm.shape[0])[:, None] - centre[0], np.arange(dsm.shape[1])[None, :] - centre[1])
-    score = np.where(fit, np.round(distance) * (1 + dsm.size) + offset / (1 + offset.max()), np.inf)
-    r, c = np.unravel_index(int(np.argmin(score)), score.shape)
-    t = transform
-    xy = (t.a * (c + 0.5) + t.b * (r + 0.5) + t.c, t.d * (c + 0.5) + t.e * (r + 0.5) + t.f)
-    return Takeoff((float(xy[0]), float(xy[1])), float(ground[r, c]), "ground points")
+    rank = np.round(distance)
+    tie_scale = 1 + offset.max()
+    margin = int(math.floor(params.clear_radius_m / _pixel_m(transform))) + 1
+    for reach in _search_reaches(float(rank.max()) if rank.size else 0.0):
+        near = rank < reach
+        if not near.any():
+            continue
+        rows, cols = np.nonzero(near)
+        r0, r1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + margin + 1, dsm.shape[0])
+        c0, c1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + margin + 1, dsm.shape[1])
+        box = (slice(r0, r1), slice(c0, c1))
+        fit = open_ground(dsm[box], ground[box], None if water is None else water[box], transform, params=params)
+        fit &= near[box]
+        if fit.any():
+            score = np.where(fit, rank[box] * (1 + dsm.size) + offset[box] / tie_scale, np.inf)
+            r, c = np.unravel_index(int(np.argmin(score)), score.shape)
+            r, c = r + r0, c + c0
+            t = transform
+            xy = (t.a * (c + 0.5) + t.b * (r + 0.5) + t.c, t.d * (c + 0.5) + t.e * (r + 0.5) + t.f)
+            return Takeoff((float(xy[0]), float(xy[1])), float(ground[r, c]), "ground points")
+    return None
+
+
+def _search_reaches(farthest: float) -> list[float]:
+    """Distances (pixels, exclusive) within which :func:`choose_takeoff` looks in turn: 64, 256, ... then all.
+
+    The nearest open ground is usually close to the holes, so the filters of
+    :func:`open_ground` run on a small box first; the last reach takes every pixel.
+    """
+    reaches, reach = [], 64.0
+    while reach <= farthest:
+        reaches.append(reach)
+        reach *= 4
+    return [*reaches, math.inf]
 
 
 def check_home(
