@@ -16,7 +16,7 @@ import logging
 import math
 import os
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import shapely
 
@@ -26,6 +26,7 @@ from .grid import Cell, Grid, PixelWindow
 from .io.vector import read_survey_area
 from .parameters import HoleParams, hole_params
 from .reads import ReadPart, plan_reads
+from .survey.blocks import FootprintDensity
 from .survey.density import (
     Density,
     auto_resolution_m,
@@ -159,6 +160,8 @@ class SurveyPlan:
     sizing: Sizing
     hole_params: HoleParams
     area: SurveyArea | None = None  # how the survey area was found (None: the tile extents)
+    # the sizing is the headers' density until stage 1 has counted the footprint (pipeline.run)
+    density_pending: bool = False
 
     def cell_by_id(self) -> dict[str, Cell]:
         return {cell.id: cell for cell in self.cells}
@@ -194,9 +197,15 @@ class SurveyPlan:
         return self.pixel_size_m**2
 
 
-def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None = None) -> SurveyPlan:
-    """Lay the global grid over the survey, cut it into cells and index tiles by cell."""
-    sizing = plan_sizing(survey.density, config)
+def plan_survey(
+    survey: Survey, config: Config, *, aoi: str | os.PathLike | None = None, density_pending: bool = False
+) -> SurveyPlan:
+    """Lay the global grid over the survey, cut it into cells and index tiles by cell.
+
+    ``density_pending``: sized by the headers' density for now, quietly; stage 1 counts the
+    data footprint and the run plans again from it (:func:`pipeline.run.settle_density`).
+    """
+    sizing = plan_sizing(survey.density, config, quiet=density_pending)
     area = survey_area(survey, config, aoi=aoi)
     planned = (
         [_centres_inside(area.geometry.bounds, sizing.resolution_m / survey.horizontal_unit_m)]
@@ -259,6 +268,7 @@ def plan_survey(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
             vertical_unit_m=survey.vertical_unit_m,
         ),
         area=area,
+        density_pending=density_pending,
     )
 
 
@@ -309,6 +319,34 @@ def survey_area(survey: Survey, config: Config, *, aoi: str | os.PathLike | None
     )
 
 
+def plan_with_footprint(
+    plan: SurveyPlan, footprint: FootprintDensity, config: Config, *, aoi: str | os.PathLike | None = None
+) -> SurveyPlan:
+    """The plan of the survey whose footprint density stage 1 counted (``plan``: sized by the headers').
+
+    Where the measured density gives the same pixel and cell sizes, the grid, cells and read
+    tasks stand and only the sizing and hole parameters change; else the survey is planned
+    anew (``plan.grid != result.grid``: stage 1 must run again).
+    """
+    survey = replace(plan.survey, footprint=footprint)
+    sizing = plan_sizing(survey.density, config, quiet=True)
+    if (sizing.resolution_m, sizing.cell_px) != (plan.sizing.resolution_m, plan.sizing.cell_px):
+        return plan_survey(survey, config, aoi=aoi)
+    sizing = plan_sizing(survey.density, config)  # the same, told this time
+    return replace(
+        plan,
+        survey=survey,
+        sizing=sizing,
+        hole_params=hole_params(
+            config,
+            pixel_size_m=plan.pixel_size_m,
+            spacing_m=sizing.density.spacing_m,
+            vertical_unit_m=survey.vertical_unit_m,
+        ),
+        density_pending=False,
+    )
+
+
 def _centres_inside(bounds: Bounds, resolution: float) -> Bounds:
     """A box shrunk by half a pixel: what the grid must cover for the pixels whose centres lie inside it."""
     minx, miny, maxx, maxy = bounds
@@ -337,18 +375,20 @@ def needs_density(config: Config) -> bool:
     return config.grid.resolution_m == AUTO or (config.holes.enabled and config.holes.min_area_m2 == AUTO)
 
 
-def plan_sizing(density: Density, config: Config) -> Sizing:
+def plan_sizing(density: Density, config: Config, *, quiet: bool = False) -> Sizing:
     """Settle ``grid.resolution_m`` ("auto" or a number) and round ``grid.cell_size_m`` to whole pixels.
 
     Logs the choice, warns when a pixel size set explicitly is finer than the
-    density supports, and logs a cell size that had to be rounded.
+    density supports, and logs a cell size that had to be rounded (``quiet``: none of it,
+    for a sizing that is only a first guess).
     """
     grid = config.grid
     supported = supported_resolution_m(density.pulses_per_m2)
     what = "first returns" if density.first_returns else "points"
+    info, warning = (logger.debug, logger.debug) if quiet else (logger.info, logger.warning)
     if grid.resolution_m == AUTO:
         resolution, source = auto_resolution_m(density.pulses_per_m2), "auto"
-        logger.info(
+        info(
             "pixel size %g m chosen for %.3g %s/m2 (point spacing %.3g m)",
             resolution,
             density.pulses_per_m2,
@@ -358,7 +398,7 @@ def plan_sizing(density: Density, config: Config) -> Sizing:
     else:
         resolution, source = float(grid.resolution_m), "set"
         if resolution < supported * (1 - 1e-9):
-            logger.warning(
+            warning(
                 "grid.resolution_m = %g m is finer than the survey supports: %.3g %s/m2 (point spacing %.3g m) "
                 "fill a %g m pixel with %.2g on average, so many pixels stay empty by chance; %g m or coarser "
                 '(or grid.resolution_m = "auto") gives a complete DSM',
@@ -372,7 +412,7 @@ def plan_sizing(density: Density, config: Config) -> Sizing:
             )
     cell_size, cell_px = round_cell_size(grid.cell_size_m, resolution)
     if not math.isclose(cell_size, grid.cell_size_m, rel_tol=1e-9):
-        logger.info(
+        info(
             "grid.cell_size_m = %g m is not a whole multiple (at least 16) of the %g m pixel: cells are %g m (%d pixels)",
             grid.cell_size_m,
             resolution,

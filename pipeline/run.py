@@ -15,6 +15,7 @@ run has succeeded (``pipeline.staging``).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import json
 import logging
@@ -37,14 +38,16 @@ from .io.checksums import output_records
 from .io.vector import read_survey_area
 from .output_guard import check_before_run, check_same_survey
 from .outputs import FLIGHTPLAN_PRODUCTS, PRODUCTS, RunSummary, run_summary, write_layers, write_manifest
-from .plan import SurveyPlan, needs_density, plan_survey
+from .plan import SurveyPlan, needs_density, plan_survey, plan_with_footprint
 from .progress import ProgressBars as _Progress
 from .progress import StageTimer as _StageTimer
 from .report import ReportInputs, read_report_inputs, write_report
+from .stages.bin_tiles import BIN_TILES
 from .stages.registry import STAGES, RunResults, run_results
 from .stages.stage import Dependency, RunState, Stage
 from .staging import PARTIAL_PREFIX, Staging, disk_full, input_fingerprint, run_and_keep
-from .survey.footprint_density import measure_footprint
+from .survey.blocks import FootprintDensity
+from .survey.footprint_density import footprint_from_counts, measure_footprint, pulse_counting
 from .survey.ground_level import NO_TERRAIN
 from .survey.scan import scan_survey
 
@@ -120,10 +123,14 @@ def run_survey(
         if staging.resumed and staging.commit_pending:  # the interrupted run had finished: move it into place
             cluster_scope.close()
             return _finish_commit(staging)
+        if plan.density_pending and (footprint := staging.kept_footprint()) is not None:
+            plan = plan_with_footprint(plan, footprint, config, aoi=aoi)  # the interrupted run had counted it
+        settle = partial(settle_density, aoi=aoi, budget=budget)
         try:
             summary = _run_and_publish(
                 connect, cluster_scope, staging, plan, config, (started, timer), water_area,
                 progress=options.get("progress", False), keep_work=config.output.keep_intermediate or incremental,
+                settle=settle,
             )  # fmt: skip
         except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError, ClusterError):
             # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
@@ -147,17 +154,66 @@ def _run_and_publish(
     *,
     progress: bool,
     keep_work: bool,
+    settle: Callable[[RunState], RunState] | None = None,
 ) -> RunSummary:
-    """Every stage on the workers, then, the workers stopped (their memory freed), the products."""
+    """Every stage on the workers, then, the workers stopped (their memory freed), the products.
+
+    ``settle`` (:func:`settle_density`) sees the state after stage 1; where the density it
+    counted changes the grid, the stages run again on the new plan, from a clean work folder.
+    """
     started, timer = clock
     with _Progress(progress) as bar:
         runner = _Runner(
             connect(), bar, staging, retries=config.dask.retries, no_worker_timeout_s=config.dask.no_worker_timeout_s
         )
-        state = _run_stages(runner, RunState(plan, config, staging, water_area), timer)
+        try:
+            state = _run_stages(runner, RunState(plan, config, staging, water_area), timer, settle=settle)
+        except _PlanAgain as again:
+            logger.info(
+                "the data footprint is denser than the tile boxes: pixel size %g m, not %g m; decoding again",
+                again.plan.sizing.resolution_m,
+                plan.sizing.resolution_m,
+            )
+            staging.start_again(again.footprint)
+            runner.start_again()
+            state = _run_stages(runner, RunState(again.plan, config, staging, water_area), timer)
     cluster_scope.close()
     results = run_results(state, resumed_tasks=runner.resumed_tasks, reused_tasks=runner.reused_tasks)
-    return _publish(staging, plan, config, results, clock, keep_work=keep_work)
+    return _publish(staging, state.plan, config, results, clock, keep_work=keep_work)
+
+
+class _PlanAgain(Exception):
+    """Stage 1's count of the footprint changed the grid: the run starts again on ``plan``."""
+
+    def __init__(self, plan: SurveyPlan, footprint: FootprintDensity) -> None:
+        super().__init__("the grid changed after stage 1")
+        self.plan, self.footprint = plan, footprint
+
+
+def settle_density(state: RunState, *, aoi: str | os.PathLike | None, budget: MemoryBudget | None = None) -> RunState:
+    """After stage 1 of a plan sized by the headers' density: the density stage 1 counted on the
+    data footprint (the pre-pass's blocks, :mod:`pipeline.survey.footprint_density`), and the
+    plan it gives. The same pixel and cell sizes: the run goes on with the settled plan (its hole
+    parameters and local densities from the footprint); others: :class:`_PlanAgain`.
+    """
+    plan = state.plan
+    if not plan.density_pending:
+        return state
+    started = time.perf_counter()
+    block, _ = pulse_counting(plan.survey)
+    decoded = state[BIN_TILES]
+    parts = [t.pulse_blocks for t in decoded.tiles if t.pulse_blocks is not None]
+    footprint = footprint_from_counts(plan.survey, parts, block, started, how="counted in stage 1")
+    settled = plan_with_footprint(plan, footprint, state.config, aoi=aoi)
+    if settled.grid != plan.grid:
+        if budget is not None:
+            check_plan_memory(settled, state.config, budget)
+        raise _PlanAgain(settled, footprint)
+    # the files' counts are in the footprint now: the client keeps one copy, not two
+    counted = dataclasses.replace(
+        decoded, tiles=tuple(dataclasses.replace(t, pulse_blocks=None) for t in decoded.tiles)
+    )
+    return dataclasses.replace(state.with_result(BIN_TILES, counted), plan=settled)
 
 
 def _finish_commit(staging: Staging) -> RunSummary:
@@ -202,12 +258,22 @@ def _publish(
     return summary
 
 
-def _run_stages(runner: _Runner, state: RunState, timer: _StageTimer) -> RunState:
+def _run_stages(
+    runner: _Runner, state: RunState, timer: _StageTimer, *, settle: Callable[[RunState], RunState] | None = None
+) -> RunState:
     """Walk the stages (:data:`pipeline.stages.registry.STAGES`) in order; returns the run state they gathered.
 
     A stage that streams is submitted with the next one and gathered in the same loop
     (its tasks are their dependencies); a stage without a worker runs on the client.
+    ``settle`` sees the state once stage 1's batch is gathered (:func:`settle_density`).
     """
+
+    def close(state: RunState, batch: list[tuple[Stage, list[Any]]], submitted: dict[Dependency, Any]) -> RunState:
+        state = _close_batch(runner, state, batch, submitted, timer)
+        if settle is not None and any(stage is BIN_TILES for stage, _ in batch):
+            state = settle(state)
+        return state
+
     batch: list[tuple[Stage, list[Any]]] = []
     submitted: dict[Dependency, Any] = {}
     for stage in STAGES:
@@ -215,15 +281,15 @@ def _run_stages(runner: _Runner, state: RunState, timer: _StageTimer) -> RunStat
             continue
         if stage.worker is None:
             if batch:  # the client stage reads what the open batch gathers
-                state, batch, submitted = _close_batch(runner, state, batch, submitted, timer), [], {}
+                state, batch, submitted = close(state, batch, submitted), [], {}
             state = state.with_result(stage, stage.gather(state, []))
             if stage.lap:
                 timer.lap(stage.lap)
             continue
         batch.append((stage, [] if stage.background else _submit_stage(runner, stage, state, submitted)))
         if not stage.streams:
-            state, batch, submitted = _close_batch(runner, state, batch, submitted, timer), [], {}
-    return _close_batch(runner, state, batch, submitted, timer) if batch else state
+            state, batch, submitted = close(state, batch, submitted), [], {}
+    return close(state, batch, submitted) if batch else state
 
 
 def _close_batch(
@@ -320,9 +386,13 @@ def _plan(
         on_error=config.survey.on_error,
         exclude=written,
     )
-    if needs_density(config):
+    # The density on the data footprint: counted by stage 1 as it decodes (the plan is sized by the
+    # headers' density meanwhile, and settled after stage 1: settle_density); PDAL's points are the
+    # user's pipeline's, so that reader's runs count the files' own points in a pre-pass first.
+    pending = needs_density(config) and config.read.reader != "pdal"
+    if needs_density(config) and not pending:
         survey = measure_footprint(survey)
-    plan = plan_survey(survey, config, aoi=aoi)
+    plan = plan_survey(survey, config, aoi=aoi, density_pending=pending)
     if not any(plan.tiles_of_cell.get(cell.id) for cell in plan.cells):  # the planned area's own cells hold none
         raise InputDataError(aoi or "INPUT", "the survey area does not overlap the data of any tile")
     if budget is not None:
@@ -424,6 +494,10 @@ class _Runner:
         self.reused_tasks = 0  # taken from the previous run (incremental)
         self._run_id = uuid.uuid4().hex[:8]
         self._labels: dict[Any, str] = {}
+
+    def start_again(self) -> None:
+        """A new run id: the tasks of a plan run again never share a key with the first try's."""
+        self._run_id = uuid.uuid4().hex[:8]
 
     def submit(
         self,

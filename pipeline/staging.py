@@ -241,6 +241,21 @@ class Staging:
         if interrupted:
             logger.warning("interrupted while the result was being moved into place; the result is complete")
 
+    def start_again(self, footprint: Any) -> None:
+        """A plan that changed after stage 1: the work so far is removed and the density that
+        changed it kept (a resumed run plans from it at once, :meth:`kept_footprint`)."""
+        for sub in WORK_FOLDERS:
+            shutil.rmtree(self.root / sub, ignore_errors=True)
+            (self.root / sub).mkdir(parents=True, exist_ok=True)
+        save_object(self.root / FOOTPRINT_FILE, footprint)
+
+    def kept_footprint(self) -> Any | None:
+        """The density an interrupted run counted in stage 1 before it started again, if any."""
+        from .survey.blocks import FootprintDensity
+
+        found = kept_result(self.root / FOOTPRINT_FILE) if self.resumed else None
+        return found if isinstance(found, FootprintDensity) else None
+
     @property
     def commit_pending(self) -> bool:
         """Whether an interrupted run of this folder had begun its commit (``--resume`` finishes it)."""
@@ -366,6 +381,8 @@ def kept_result(path: Path) -> Any | None:
 
 
 PARTIAL_PREFIX = ".holefill-partial-"
+#: In a partial folder: the footprint density that made an interrupted run plan again.
+FOOTPRINT_FILE = "footprint.npz"
 
 RUN_FILE = "run.json"
 COMMIT_FILE = "commit.json"

@@ -181,3 +181,60 @@ def test_filled_area_is_what_fill_mask_holds(shared_data, tmp_path, dask_client)
     assert fill["filled_area_m2"] == pytest.approx(((mask > 0) & (mask < 255)).sum() * pixel_m2)
     assert fill["filled_area_m2"] == pytest.approx(fill["filled_holes_area_m2"] + fill["filled_small_voids_area_m2"])
     assert fill["filled_area_m2"] > 150
+
+
+def _two_patches(tmp_path):
+    """Two dense patches 800 m apart, cut into three files whose middle box spans the empty 760 m."""
+    rng = np.random.default_rng(1)
+    patches = [(rng.uniform(x0, x0 + 40, 16_000), rng.uniform(0, 40, 16_000)) for x0 in (0.0, 800.0)]
+    x = np.concatenate([p[0] for p in patches])
+    y = np.concatenate([p[1] for p in patches])
+    z = 50.0 + rng.normal(0, 0.05, len(x))
+    return tiles_of(tmp_path, x, y, z, [(-1, 20.3), (20.3, 817.9), (817.9, 1e4)])
+
+
+@pytest.mark.slow
+def test_stage_1_counts_the_pre_pass_blocks_and_plans_again_where_the_boxes_misled(tmp_path, dask_client, caplog):
+    """No pre-pass: the run sizes its grid by the headers' density (4 m here), stage 1 counts the
+    footprint's blocks as it decodes, and the 1 m pixel they support makes the run decode again on
+    the right grid: the density the pre-pass measures, and the DSM of a run told 1 m at the start."""
+    (tmp_path / "in").mkdir()
+    paths = _two_patches(tmp_path / "in")
+    measured = measure_footprint(scan_survey(paths)).density
+    assert auto_resolution_m(scan_survey(paths).header_density.pulses_per_m2) == 4.0
+    with caplog.at_level("INFO", logger="pipeline"):
+        run_survey(paths, tmp_path / "auto", load_config(), client=dask_client)
+    assert "decoding again" in caplog.text
+    density = json.loads((tmp_path / "auto" / "manifest.json").read_text())["grid"]["sizing"]["density"]
+    assert density["area_source"] == "data footprint"
+    assert density["area_m2"] == measured.area_m2 and density["points"] == measured.points == 32_000
+    caplog.clear()
+    with caplog.at_level("INFO", logger="pipeline"):
+        run_survey(paths, tmp_path / "set", load_config(overrides=["grid.resolution_m=1"]), client=dask_client)
+    assert "decoding again" not in caplog.text  # the grid was right: the counts only settle the hole parameters
+    for name in ("auto", "set"):
+        with rasterio.open(tmp_path / name / "dsm.vrt") as src:
+            if name == "auto":
+                auto = src.read(1)
+            else:
+                assert src.res == (1.0, 1.0)
+                assert np.array_equal(src.read(1), auto, equal_nan=True)
+
+
+def test_a_run_that_planned_again_resumes_on_the_counted_density(tmp_path):
+    """The footprint that made a run start again is kept in its partial folder, for --resume alone."""
+    from pipeline.staging import Staging
+    from pipeline.survey.blocks import BlockCounts, FootprintDensity
+
+    blocks = BlockCounts(1.0, np.array([0, 1]), np.array([5, 5]), np.array([9, 12]))
+    footprint = FootprintDensity(blocks, 30, 21, True, 2.0, 0.1)
+    staging = Staging.create(tmp_path / "out", run_key="k")
+    (staging.work / "done" / "stale.npz").write_bytes(b"from the first grid")
+    staging.start_again(footprint)
+    assert not (staging.work / "done" / "stale.npz").exists()
+    staging.keep_for_resume()
+    resumed = Staging.create(tmp_path / "out", run_key="k", resume=True)
+    kept = resumed.kept_footprint()
+    assert kept is not None and kept.pulses == 21 and np.array_equal(kept.blocks.count, blocks.count)
+    resumed.keep_for_resume()
+    assert Staging.create(tmp_path / "out", run_key="k").kept_footprint() is None  # a fresh run counts anew

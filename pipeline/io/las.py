@@ -76,6 +76,7 @@ class PointChunk:
     withheld: np.ndarray  # bool
     point_source_id: np.ndarray  # uint16: the flight line
     pulses: PulseFields | None = None  # decoded only where hole causes need the sensor's geometry
+    return_number: np.ndarray | None = None  # uint8, where the reader decoded it (stage 1 counts first returns)
 
     def __len__(self) -> int:
         return len(self.X)
@@ -371,7 +372,7 @@ def point_chunk(
     return PointChunk(
         X=records["X"], Y=records["Y"], Z=records["Z"], scales=scales, offsets=offsets,
         classification=classification, withheld=withheld, point_source_id=records["point_source_id"],
-        pulses=pulse_fields(records) if pulses else None,
+        pulses=pulse_fields(records) if pulses else None, return_number=_return_numbers(records),
     )  # fmt: skip
 
 

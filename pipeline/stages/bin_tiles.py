@@ -38,6 +38,7 @@ from ..rasterize import (
 from ..reads import Node, cell_of
 from ..sensor.sums import TrajectorySums, trajectory_sums
 from ..staging import Staging, input_fingerprint
+from ..survey.footprint_density import BlockCounter, PulseCounting, pulse_counting
 from ..survey.ground_level import GROUND_CLASS, GroundLevel, count_ground_at_zero
 from ..survey.scan import source_crs_for_task
 from .stage import Dependency, RunState, Stage
@@ -71,6 +72,7 @@ class TileTask:
     pdal: pdal_reader.PdalRead | None = None  # read through PDAL (read.reader = "pdal"), else laspy
     sensor: bool = False  # decode the pulses' fields and sum them for the flight lines' trajectories
     skip_bad_tile: bool = False  # survey.on_error = "skip": a tile that cannot be decoded is reported, not raised
+    counting: PulseCounting | None = None  # count the pulses in the footprint's blocks (the density, run.py)
 
 
 @dataclass(frozen=True)
@@ -87,6 +89,7 @@ class TileResult:
     read_tasks: int = 1  # tasks the file was read by (after results_by_file)
     ground: GroundLevel = GroundLevel()  # ground-class points binned, and those at z = 0
     trajectory: TrajectorySums = field(default_factory=TrajectorySums.empty)  # per flight line and time bin
+    pulse_blocks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (ix, iy, count) when counting
 
 
 @dataclass(frozen=True)
@@ -110,6 +113,7 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
     grid = plan.grid
     top_dirs: dict[int, str] = {}
     cells: dict[int, list[tuple[int, int]]] = {}
+    block, first_only = pulse_counting(plan.survey) if plan.density_pending else (0.0, False)
     tasks = []
     for read_index, (read, window) in enumerate(zip(plan.reads, plan.read_windows)):
         tile = plan.survey.tiles[read.tile_index]
@@ -151,6 +155,7 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
                 top_dir=top_dirs.get(tile.index, "") if read.role == "cell" else "",
                 pdal=pdal,
                 sensor=sensor,
+                counting=PulseCounting(tile.bounds, block, first_only) if plan.density_pending else None,
             )
         )
     tasks = [replace(t, cells=tuple(cells[t.tile_index])) if t.role == "top" else t for t in tasks]
@@ -206,7 +211,13 @@ def hand_over_top(task: TileTask, *after: object) -> TileResult:
     grid, wanted = task.grid, set(task.cells)
     by_cell: dict[tuple[int, int], list[PointChunk]] = {}
     read = outside = 0
+    counter = _counter(task)
+    transformer = (
+        Transformer.from_crs(task.source_crs_wkt, grid.crs_wkt, always_xy=True) if task.source_crs_wkt else None
+    )
     for chunk in read_points(task):
+        if counter is not None:
+            _count_pulses(counter, chunk, task, transformer)
         x, y, _ = chunk.coordinates()
         cell_x, cell_y = cell_of(grid, x, y)
         keys = np.stack([cell_x, cell_y], axis=1)
@@ -231,6 +242,7 @@ def hand_over_top(task: TileTask, *after: object) -> TileResult:
         points_outside=outside,
         seconds=time.perf_counter() - started,
         read_index=task.read_index,
+        pulse_blocks=None if counter is None else counter.counts(),
     )
 
 
@@ -283,7 +295,10 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
     sums: list[TrajectorySums] = []
     origin = (grid.x_left, grid.y_top, 0.0)
     f = task.point_filter
+    counter = _counter(task)
     for chunk, decoded in _points_to_bin(task):
+        if counter is not None and decoded:  # handed-over points were counted by the top task
+            _count_pulses(counter, chunk, task, transformer)
         keep = point_filter_mask(
             chunk.classification,
             chunk.withheld,
@@ -333,7 +348,34 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
         read_index=task.read_index,
         ground=ground,
         trajectory=TrajectorySums.merged(sums),
+        pulse_blocks=None if counter is None else counter.counts(),
     )
+
+
+def _counter(task: TileTask) -> BlockCounter | None:
+    """The pulse counter of a task that counts (:attr:`TileTask.counting`), over its file's box."""
+    return None if task.counting is None else BlockCounter(task.counting.bounds, task.counting.block)
+
+
+def _count_pulses(counter: BlockCounter, chunk: PointChunk, task: TileTask, transformer: Transformer | None) -> None:
+    """Count a decoded chunk's pulses (first returns, or every point) as the density pre-pass would.
+
+    Every decoded point counts, whatever the filter keeps: the footprint is where the
+    sensor measured (:mod:`pipeline.survey.footprint_density`), and the same expressions
+    (``X * scale + offset``, then the transformation) give the same blocks.
+    """
+    assert task.counting is not None
+    x, y = chunk.X, chunk.Y
+    if task.counting.first_only:
+        if chunk.return_number is None:
+            raise ValueError(f"{task.path}: the reader gave no return numbers to count first returns by")
+        first = chunk.return_number == 1
+        x, y = x[first], y[first]
+    x = x * chunk.scales[0] + chunk.offsets[0]
+    y = y * chunk.scales[1] + chunk.offsets[1]
+    if transformer is not None:
+        x, y = transformer.transform(x, y)
+    counter.add(x, y)
 
 
 def _count_left_out(
@@ -418,9 +460,19 @@ def results_by_file(results: list[TileResult]) -> list[TileResult]:
                 read_tasks=kept.read_tasks + 1,
                 ground=kept.ground + r.ground,
                 trajectory=kept.trajectory + r.trajectory,
+                pulse_blocks=_joined_blocks(kept.pulse_blocks, r.pulse_blocks),
             )
         )
     return list(by_file.values())
+
+
+def _joined_blocks(
+    a: tuple[np.ndarray, np.ndarray, np.ndarray] | None, b: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The block counts of two read tasks of one file, listed together (added up when merged)."""
+    if a is None or b is None:
+        return a if b is None else b
+    return (np.concatenate([a[0], b[0]]), np.concatenate([a[1], b[1]]), np.concatenate([a[2], b[2]]))
 
 
 def adopt_result(task: TileTask, kept: TileResult | TileFailure) -> TileResult | TileFailure:

@@ -1,4 +1,4 @@
-"""The survey's density on its data footprint: a pre-pass over the points' x, y.
+"""The survey's density on its data footprint: pulses counted in the blocks of an absolute lattice.
 
 A header's box is an upper bound of where its points are, and can be far larger:
 ``ign_laspy_appendbug`` holds 3.85 first returns/m² on two patches 1 km apart
@@ -7,10 +7,18 @@ fills 36 % of its box. A pixel size chosen from the header density is then 10 m
 where 2 m is supported, and a sampling-gap width from it hides real voids. No
 cheaper source knows the footprint: point order (flight lines, or spatial
 sort) makes any subset of LAZ chunks a biased sample of where data is, and LAZ
-chunk tables hold no positions. So the pre-pass decodes every point's x, y and
-return number (only that layer for LAS 1.4 formats 6-10; formats 0-5 decode
-whole points) and counts first returns (all points where the headers cannot tell
-returns apart) in square blocks on an absolute lattice.
+chunk tables hold no positions. So every point's x, y and return number are read,
+and first returns (all points where the headers cannot tell returns apart) are
+counted in square blocks on an absolute lattice (:class:`BlockCounter`).
+
+Who counts: stage 1, as it decodes the points for the DSM (``TileTask.counting``). The
+run is planned with the headers' density meanwhile and settled from the counts after
+stage 1 (:func:`pipeline.run.settle_density`): where the footprint gives the same pixel and
+cell sizes (31 of the 37 real files, every tiled survey whose tiles are full), nothing is
+decoded twice; where it does not, stage 1 runs again on the grid the footprint supports.
+A pre-pass over the files (:func:`measure_footprint`: x, y and return numbers alone,
+decoded in processes) counts the same blocks for the PDAL reader, whose points are the
+user's pipeline's. Either way the counts, and so the plan, are the same.
 
 The blocks are 1 m, coarsened by powers of two only where a survey's tile boxes
 would need more than :data:`MAX_BLOCKS` (16 km² at 1 m: a block map of at most
@@ -36,7 +44,7 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -93,36 +101,73 @@ def base_block(survey: Survey) -> float:
     return block
 
 
+@dataclass(frozen=True)
+class PulseCounting:
+    """How a reader counts a file's pulses in the blocks of the survey's lattice.
+
+    ``bounds`` is the file's box (survey CRS): points beyond it count in its edge blocks,
+    as the pre-pass counts them; ``first_only``: first returns only (the headers can tell
+    returns apart).
+    """
+
+    bounds: tuple[float, float, float, float]
+    block: float
+    first_only: bool
+
+
+def pulse_counting(survey: Survey) -> tuple[float, bool]:
+    """The survey's block (:func:`base_block`) and whether first returns alone are counted."""
+    return base_block(survey), survey.header_density.first_returns
+
+
 def measure_footprint(survey: Survey, *, workers: int | None = None) -> Survey:
     """The survey with its density measured on the data footprint (decodes x, y of every point).
 
     The files are decoded side by side in up to ``workers`` (default: the machine's cores)
     processes, one per :data:`POINTS_PER_PROCESS` points at least; a small survey is
-    decoded in this process, on threads.
+    decoded in this process, on threads. A run reading with laspy counts the same blocks
+    in stage 1 instead (:func:`footprint_from_counts`); this pre-pass serves the PDAL reader,
+    whose points are the user's pipeline's, not the file's.
     """
     started = time.perf_counter()
-    first = survey.header_density.first_returns
-    block = base_block(survey)
+    block, first = pulse_counting(survey)
     target = survey.crs.to_wkt()
     tasks = [(str(t.path), source_crs_for_task(t, survey), target, t.bounds, block, first) for t in survey.tiles]
     cores = workers or os.cpu_count() or 1
     processes = max(1, min(len(tasks), cores, math.ceil(survey.point_count / POINTS_PER_PROCESS)))
     parts = _count_files(tasks, processes, threads=max(1, min(len(tasks), cores, MAX_THREADS)))
+    measured = footprint_from_counts(survey, parts, block, started, how=f"the pre-pass, {processes} process(es)")
+    return replace(survey, footprint=measured)
+
+
+def footprint_from_counts(
+    survey: Survey,
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    block: float,
+    started: float,
+    *,
+    how: str,
+) -> FootprintDensity:
+    """The density on the data footprint from the files' block counts (the pre-pass's or stage 1's).
+
+    ``started``: when the counting began (``time.perf_counter()``), for the record and the log.
+    """
+    first = survey.header_density.first_returns
     blocks = choose_level(merge_blocks(parts, block))
     pulses = int(blocks.count.sum())
     area_m2 = blocks.occupied * (blocks.block * survey.horizontal_unit_m) ** 2
     measured = FootprintDensity(blocks, survey.point_count, pulses, first, area_m2, time.perf_counter() - started)
     logger.info(
-        "density on the data footprint: %d %s over %.6g m2 (%.4g m blocks), %.3g /m2; %.2f s in %d process(es)",
+        "density on the data footprint: %d %s over %.6g m2 (%.4g m blocks), %.3g /m2; %.2f s (%s)",
         pulses,
         "first returns" if first else "points",
         area_m2,
         blocks.block * survey.horizontal_unit_m,
         pulses / area_m2 if area_m2 else math.inf,
         measured.seconds,
-        processes,
+        how,
     )
-    return replace(survey, footprint=measured)
+    return measured
 
 
 def _count_files(
@@ -178,25 +223,47 @@ def _count_file(
     transformer = (
         Transformer.from_crs(CRS.from_wkt(source_wkt), CRS.from_wkt(target_wkt), always_xy=True) if source_wkt else None
     )
-    minx, miny, maxx, maxy = bounds
-    x0, y0 = math.floor(minx / block), math.floor(miny / block)
-    cols, rows = math.floor(maxx / block) - x0 + 1, math.floor(maxy / block) - y0 + 1
-    dense = np.zeros(cols * rows, np.int64) if cols * rows <= DENSE_FILE_BLOCKS else None
-    sparse: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    counter = BlockCounter(bounds, block)
     for x, y in iter_xy(path, CHUNK_POINTS, first_only=first_only):
         if transformer is not None:
             x, y = transformer.transform(x, y)
-        if dense is None:
-            sparse.append(block_histogram(x, y, block))
-            continue
-        ix = np.clip(np.floor(x / block).astype(np.int64) - x0, 0, cols - 1)
-        iy = np.clip(np.floor(y / block).astype(np.int64) - y0, 0, rows - 1)
-        dense += np.bincount(ix * rows + iy, minlength=cols * rows)
-    if dense is None:
-        merged = merge_blocks(sparse, block)
-        return merged.ix, merged.iy, merged.count
-    keys = np.flatnonzero(dense)
-    return keys // rows + x0, keys % rows + y0, dense[keys]
+        counter.add(x, y)
+    return counter.counts()
+
+
+class BlockCounter:
+    """One file's points counted in the blocks of an absolute lattice, chunk by chunk.
+
+    A dense array over the file's box where it holds at most :data:`DENSE_FILE_BLOCKS`
+    blocks (points beyond the box count in its edge blocks), else sparse histograms.
+    """
+
+    def __init__(self, bounds: tuple[float, float, float, float], block: float) -> None:
+        minx, miny, maxx, maxy = bounds
+        self.block = block
+        self.x0, self.y0 = math.floor(minx / block), math.floor(miny / block)
+        self.cols = math.floor(maxx / block) - self.x0 + 1
+        self.rows = math.floor(maxy / block) - self.y0 + 1
+        dense = self.cols * self.rows <= DENSE_FILE_BLOCKS
+        self.dense: np.ndarray | None = np.zeros(self.cols * self.rows, np.int64) if dense else None
+        self.sparse: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def add(self, x: np.ndarray, y: np.ndarray) -> None:
+        """Count points at scaled coordinates ``x``, ``y`` (survey CRS)."""
+        if self.dense is None:
+            self.sparse.append(block_histogram(x, y, self.block))
+            return
+        ix = np.clip(np.floor(x / self.block).astype(np.int64) - self.x0, 0, self.cols - 1)
+        iy = np.clip(np.floor(y / self.block).astype(np.int64) - self.y0, 0, self.rows - 1)
+        self.dense += np.bincount(ix * self.rows + iy, minlength=self.cols * self.rows)
+
+    def counts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The occupied blocks ``(ix, iy, count)``."""
+        if self.dense is None:
+            merged = merge_blocks(self.sparse, self.block)
+            return merged.ix, merged.iy, merged.count
+        keys = np.flatnonzero(self.dense)
+        return keys // self.rows + self.x0, keys % self.rows + self.y0, self.dense[keys]
 
 
 def local_pulses_per_m2(blocks: BlockCounts, boxes: np.ndarray) -> np.ndarray:
@@ -276,12 +343,16 @@ def sampling_gap_px(survey: Survey, grid: Grid, stats: Any, survey_gap_px: float
 
 
 __all__ = [
+    "BlockCounter",
     "BlockCounts",
     "FootprintDensity",
     "block_histogram",
     "choose_level",
+    "footprint_from_counts",
     "local_pulses_per_m2",
     "measure_footprint",
     "merge_blocks",
+    "pulse_counting",
+    "PulseCounting",
     "sampling_gap_px",
 ]
