@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from .density import Density
@@ -81,34 +80,17 @@ def _sum_by_block(ix: np.ndarray, iy: np.ndarray, count: np.ndarray) -> tuple[np
     x0, y0 = int(ix.min()), int(iy.min())
     rows = int(iy.max()) - y0 + 1
     span = (int(ix.max()) - x0 + 1) * rows
-    if span <= min(
-        DENSE_SPAN_MAX, 4 * len(ix) + (1 << 20)
-    ):  # a dense tally beats sorting (0.29 -> 0.04 s, 42 M survey)
-        unique, sums = _dense_tally(ix - x0, iy - y0, count, rows, span)
+    # a dense tally beats sorting where the blocks' box is not much larger than their number (0.29 -> 0.07 s
+    # on the 42 M survey's 4 M blocks)
+    if span <= min(DENSE_SPAN_MAX, 4 * len(ix) + (1 << 20)):
+        tally = np.bincount((ix - x0) * rows + (iy - y0), weights=count, minlength=span)  # exact below 2**53
+        unique = np.flatnonzero(tally)
+        sums = tally[unique].astype(np.int64)
     else:  # blocks spread far apart: sort the keys
         keys = (ix - x0) * rows + (iy - y0)
         unique, inverse = np.unique(keys, return_inverse=True)
         sums = np.bincount(inverse, weights=count, minlength=len(unique)).astype(np.int64)
     return unique // rows + x0, unique % rows + y0, sums
-
-
-@numba.njit(cache=True)
-def _dense_tally(col, row, count, rows, span):  # pragma: no cover - compiled
-    """Counts summed per block key ``col * rows + row`` in a dense array; the occupied keys in order and their sums."""
-    tally = np.zeros(span, np.int64)
-    for i in range(len(col)):
-        tally[col[i] * rows + row[i]] += count[i]
-    occupied = 0
-    for k in range(span):
-        occupied += tally[k] > 0
-    keys = np.empty(occupied, np.int64)
-    sums = np.empty(occupied, np.int64)
-    j = 0
-    for k in range(span):
-        if tally[k] > 0:
-            keys[j], sums[j] = k, tally[k]
-            j += 1
-    return keys, sums
 
 
 #: :func:`_sum_by_block` tallies in a dense array where the blocks' box holds at most this many (128 MB of float64).
