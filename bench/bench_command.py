@@ -115,18 +115,20 @@ def shifted_copy(source: Path, target: Path, dx: float, dy: float) -> None:
             fh.write(struct.pack("<d", value + delta))
 
 
-def large_survey(bench_dir: Path, base: Path, copies: int) -> Path:
-    """``copies`` shifted copies of the base survey in a row, east of each other."""
+def large_survey(bench_dir: Path, base: Path, copies: int, columns: int | None = None) -> Path:
+    """``copies`` shifted copies of the base survey in rows of ``columns`` (default: one row), east then north."""
     if copies == 1:
         return base
-    folder = bench_dir / f"survey_2000m_x{copies}"
+    columns = columns or copies
+    folder = bench_dir / (f"survey_2000m_x{copies}" + (f"_{columns}cols" if columns < copies else ""))
     marker = folder / "complete.json"
     if not marker.exists():
         shutil.rmtree(folder, ignore_errors=True)
         folder.mkdir(parents=True)
         for k in range(copies):
             for tile in sorted(base.glob("*.laz")):
-                shifted_copy(tile, folder / f"copy{k}_{tile.name}", dx=2000.0 * k, dy=0.0)
+                dx, dy = 2000.0 * (k % columns), 2000.0 * (k // columns)
+                shifted_copy(tile, folder / f"copy{k}_{tile.name}", dx=dx, dy=dy)
         info = json.loads((base / "complete.json").read_text())
         marker.write_text(json.dumps({"points": info["points"] * copies, "tiles": info["tiles"] * copies}))
     return folder
@@ -143,6 +145,11 @@ def main() -> None:
         type=worker_counts,
         default=[os.cpu_count() or 1],
         help="worker count, or several separated by commas (e.g. 16,4,1), timed in that order",
+    )
+    parser.add_argument(
+        "--columns",
+        type=int,
+        help="copies of the 42 M survey per row (default: all in one row); 5 with 1e9: 10 x 10 km",
     )
     parser.add_argument("--repeat", type=int, default=2)
     parser.add_argument("--bench-dir", type=Path, default=Path("bench-out"))
@@ -163,7 +170,7 @@ def main() -> None:
 
     base = base_survey(args.bench_dir)
     per_copy = json.loads((base / "complete.json").read_text())["points"]
-    survey = large_survey(args.bench_dir, base, max(1, -(-int(args.points) // per_copy)))
+    survey = large_survey(args.bench_dir, base, max(1, -(-int(args.points) // per_copy)), args.columns)
     files = sorted(str(p) for p in survey.glob("*.laz"))
     if args.tiles:
         files = files[: args.tiles]
