@@ -25,6 +25,8 @@ from typing import Any
 from .config import Config
 from .errors import ClusterError, HolefillError
 
+logger = logging.getLogger(__name__)
+
 #: One thread per worker process for BLAS and OpenMP (workers are single-threaded
 #: processes; oversubscription slows every kernel), and a bounded GDAL cache each.
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "GDAL_CACHEMAX": "256"}
@@ -342,3 +344,39 @@ class WorkerWatch:
             f"no Dask worker alive for {self.limit_s:g} s (dask.no_worker_timeout_s): every worker died or "
             "none joined the scheduler; finished tasks are kept: run again with --resume"
         )
+
+
+class TaskStream:
+    """Dask's record of the tasks run while the block is open (``distributed.get_task_stream``).
+
+    ``data``: one dict per task (``key``, ``startstops`` with each ``compute`` interval, ``worker``);
+    empty when the scheduler could not give it (the run goes on: the record is for the manifest).
+    """
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+        self.data: list[dict[str, Any]] = []
+        self._stream: Any = None
+
+    def __enter__(self) -> TaskStream:
+        from distributed import get_task_stream
+
+        try:
+            self._stream = get_task_stream(client=self.client).__enter__()
+        except Exception as e:  # a scheduler without the plugin: no record, same run
+            logger.debug("no task stream: %s", e)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._stream is None:
+            return
+        try:
+            self._stream.__exit__(*exc)
+            self.data = list(self._stream.data)
+        except Exception as e:
+            logger.debug("no task stream: %s", e)
+
+
+def task_stream(client: Any) -> TaskStream:
+    """The tasks run while the returned context is open, with their compute seconds (:class:`TaskStream`)."""
+    return TaskStream(client)

@@ -90,6 +90,8 @@ class RunSummary:
     reused_tasks: int = 0  # results of unchanged tiles and cells taken from the previous run (incremental)
     heights: dict[str, Any] = field(default_factory=dict)  # elevations or above the ground (survey.ground_level)
     points_outside: int = 0  # points outside their file's header bounds (reprojected or PDAL reads): not used
+    stage_client_cpu_seconds: dict[str, float] = field(default_factory=dict)  # CPU of this process per stage lap
+    worker_task_seconds: dict[str, dict[str, float]] = field(default_factory=dict)  # Dask stage -> tasks, seconds
 
     @property
     def points_per_second(self) -> float:
@@ -118,6 +120,8 @@ class RunSummary:
             point_files=list(outputs.get("points", [])),
             reused_tasks=int(summary.get("reused_tasks", 0)),
             heights=dict(manifest.get("heights") or {}),
+            stage_client_cpu_seconds=dict(summary.get("stage_client_cpu_seconds", {})),
+            worker_task_seconds=dict(summary.get("worker_task_seconds", {})),
         )
 
 
@@ -140,6 +144,8 @@ def run_summary(
     flightplan: dict[str, Any],
     seconds: float,
     stage_seconds: dict[str, float],
+    stage_client_cpu_seconds: dict[str, float] | None = None,
+    worker_task_seconds: dict[str, dict[str, float]] | None = None,
 ) -> RunSummary:
     """What the run did, for the manifest and the command's last lines."""
     tiles = results.tiles
@@ -156,6 +162,8 @@ def run_summary(
         points_outside=sum(r.points_outside for r in tiles),
         seconds=seconds,
         stage_seconds=stage_seconds,
+        stage_client_cpu_seconds=stage_client_cpu_seconds or {},
+        worker_task_seconds=worker_task_seconds or {},
         skipped=results.skipped(plan),
         dsm_tiles=sorted(os.path.relpath(r.paths["dsm"], staging.root) for r in results.written if r.paths),
         point_files=list(results.points),
@@ -658,6 +666,11 @@ def write_manifest(
             "seconds": round(summary.seconds, 3),
             "points_per_second": round(summary.points_per_second),
             "stage_seconds": {k: round(v, 3) for k, v in summary.stage_seconds.items()},
+            "stage_client_cpu_seconds": {k: round(v, 3) for k, v in summary.stage_client_cpu_seconds.items()},
+            "worker_task_seconds": {
+                k: {"tasks": int(v["tasks"]), "seconds": round(v["seconds"], 3)}
+                for k, v in summary.worker_task_seconds.items()
+            },
             "empty_pixels": sum(r.empty_pixels for r in cell_results),
             "resumed_tasks": summary.resumed_tasks,
             "reused_tasks": summary.reused_tasks,

@@ -10,16 +10,22 @@ from typing import Any
 
 
 class StageTimer:
-    """Seconds per stage for the manifest, each measured from the end of the previous one."""
+    """Seconds per stage for the manifest, each measured from the end of the previous one: the
+    wall time (``seconds``) and the CPU time of this process, the client (``cpu``); and, per
+    Dask stage, its tasks and their compute seconds on the workers (``tasks``, set by the run)."""
 
     def __init__(self, started: float) -> None:
         self.seconds: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+        self.tasks: dict[str, dict[str, float]] = {}
         self._last = started
+        self._last_cpu = time.process_time()
 
     def lap(self, name: str) -> None:
-        now = time.perf_counter()
-        self.seconds[name] = now - self._last
-        self._last = now
+        now, cpu = time.perf_counter(), time.process_time()
+        self.seconds[name] = self.seconds.get(name, 0.0) + now - self._last  # a stage run again adds up
+        self.cpu[name] = self.cpu.get(name, 0.0) + cpu - self._last_cpu
+        self._last, self._last_cpu = now, cpu
 
 
 class ProgressBars:

@@ -30,7 +30,7 @@ from typing import Any, TypedDict, Unpack
 
 from . import __version__, interrupt
 from .budget import MemoryBudget, check_plan_memory, memory_budget
-from .cluster import ClusterStart, WorkerWatch, dask_client
+from .cluster import ClusterStart, WorkerWatch, dask_client, task_stream
 from .config import Config, config_key, to_dict
 from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, TaskError
 from .flight_planning import plan_flights
@@ -166,17 +166,19 @@ def _run_and_publish(
         runner = _Runner(
             connect(), bar, staging, retries=config.dask.retries, no_worker_timeout_s=config.dask.no_worker_timeout_s
         )
-        try:
-            state = _run_stages(runner, RunState(plan, config, staging, water_area), timer, settle=settle)
-        except _PlanAgain as again:
-            logger.info(
-                "the data footprint is denser than the tile boxes: pixel size %g m, not %g m; decoding again",
-                again.plan.sizing.resolution_m,
-                plan.sizing.resolution_m,
-            )
-            staging.start_again(again.footprint)
-            runner.start_again()
-            state = _run_stages(runner, RunState(again.plan, config, staging, water_area), timer)
+        with task_stream(runner.client) as stream:
+            try:
+                state = _run_stages(runner, RunState(plan, config, staging, water_area), timer, settle=settle)
+            except _PlanAgain as again:
+                logger.info(
+                    "the data footprint is denser than the tile boxes: pixel size %g m, not %g m; decoding again",
+                    again.plan.sizing.resolution_m,
+                    plan.sizing.resolution_m,
+                )
+                staging.start_again(again.footprint)
+                runner.start_again()
+                state = _run_stages(runner, RunState(again.plan, config, staging, water_area), timer)
+    timer.tasks = runner.worker_seconds(stream.data)
     cluster_scope.close()
     results = run_results(state, resumed_tasks=runner.resumed_tasks, reused_tasks=runner.reused_tasks)
     return _publish(staging, state.plan, config, results, clock, keep_work=keep_work)
@@ -320,6 +322,7 @@ def _submit_stage(runner: _Runner, stage: Stage, state: RunState, submitted: dic
             key=stage.key(task),
             priority=stage.priority(task),
             adopt=None if stage.adopt is None else partial(stage.adopt, task),
+            stage=stage.name,
         )
         submitted[(stage.name, stage.ident_of(task))] = future
         futures.append(future)
@@ -416,7 +419,10 @@ def _write_products(
         flightplan=flight_summary,
         seconds=time.perf_counter() - started,
         stage_seconds=timer.seconds,  # the same dict: the laps after this one are in the manifest's summary too
+        stage_client_cpu_seconds=timer.cpu,
+        worker_task_seconds=timer.tasks,
     )
+    _log_profile(timer)
     products = [name for name in PRODUCTS if name not in ("manifest.json", "report.html")]
     products += [os.path.basename(f) for f in flight_summary.get("files", [])]
     manifest = write_manifest(
@@ -427,6 +433,19 @@ def _write_products(
     )
     timer.lap("report")
     return summary
+
+
+def _log_profile(timer: _StageTimer) -> None:
+    """The run's profile with ``-v``: each stage's wall and client CPU seconds, the workers' task seconds."""
+    logger.info(
+        "stages, wall / client CPU (s): %s",
+        ", ".join(f"{name} {wall:.2f} / {timer.cpu.get(name, 0.0):.2f}" for name, wall in timer.seconds.items()),
+    )
+    if timer.tasks:
+        logger.info(
+            "worker tasks, count / compute (s): %s",
+            ", ".join(f"{name} {int(v['tasks'])} / {v['seconds']:.2f}" for name, v in timer.tasks.items()),
+        )
 
 
 def _plan_flights(
@@ -494,6 +513,7 @@ class _Runner:
         self.reused_tasks = 0  # taken from the previous run (incremental)
         self._run_id = uuid.uuid4().hex[:8]
         self._labels: dict[Any, str] = {}
+        self._stage_of: dict[Any, str] = {}  # task key -> its stage's name (the workers' seconds per stage)
 
     def start_again(self) -> None:
         """A new run id: the tasks of a plan run again never share a key with the first try's."""
@@ -507,6 +527,7 @@ class _Runner:
         key: str,
         priority: int = 0,
         adopt: Callable[[Any], Any] | None = None,
+        stage: str = "",
     ) -> Any:
         """Submit one task; with a staging folder its result is kept under ``key`` for a resumed run.
 
@@ -541,7 +562,21 @@ class _Runner:
                 key=f"{key}-{self._run_id}",
             )
         self._labels[future.key] = label
+        self._stage_of[future.key] = stage
         return future
+
+    def worker_seconds(self, task_stream: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+        """Per stage, its tasks that ran on the workers and their compute seconds, from Dask's task stream."""
+        out: dict[str, dict[str, float]] = {}
+        for record in task_stream:
+            stage = self._stage_of.get(record.get("key"))
+            if not stage:
+                continue
+            computed = sum(s["stop"] - s["start"] for s in record.get("startstops", ()) if s.get("action") == "compute")
+            entry = out.setdefault(stage, {"tasks": 0, "seconds": 0.0})
+            entry["tasks"] += 1
+            entry["seconds"] += computed
+        return out
 
     def gather(self, futures: list[Any], collect: Callable[[Any], None]) -> None:
         """Every result, in completion order (the kept ones first), to ``collect(result)``."""

@@ -134,6 +134,12 @@ def test_outputs_are_valid_cogs_and_layers(tmp_path, survey_points, dask_client)
     assert cells_layer["points"].sum() == summary.points_used
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["summary"]["points_read"] == summary.points_read
+    # the profile: every lap's wall and client CPU seconds, and each Dask stage's tasks and compute seconds
+    profile = manifest["summary"]
+    assert set(profile["stage_client_cpu_seconds"]) == set(profile["stage_seconds"]) >= {"scan", "rasterize", "holes"}
+    tasks = profile["worker_task_seconds"]
+    assert tasks["bin_tiles"]["tasks"] == 4 and tasks["bin_tiles"]["seconds"] > 0
+    assert tasks["merge_cells"]["tasks"] == tasks["detect_holes"]["tasks"] == summary.cells
     # inputs are never modified
     assert digests == {p: hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in inputs}
 
