@@ -27,8 +27,8 @@ from affine import Affine
 from .config import Config
 from .errors import CRSError, InputDataError
 from .flightplan.altitude import ellipsoid_transformer, vertical_crs_for
-from .flightplan.mission import TAKEOFF_MAX_M, FlightPlan, GroundGrid, HoleInput, plan_mission
-from .io.flightplan_files import read_dsm, read_ground, read_holes, write_flightplan
+from .flightplan.mission import TAKEOFF_MAX_M, BoxGrid, FlightPlan, GroundGrid, HoleInput, plan_mission
+from .io.flightplan_files import file_bounds, read_dsm, read_ground, read_holes, write_flightplan
 from .parameters import flight_params
 
 __all__ = ["plan_flights", "run_point_files", "summarize"]
@@ -85,13 +85,17 @@ def plan_flights(
     ground = None
     if point_files:
         inputs = list(point_files)
+        headers: list[tuple[float, float, float, float]] = []  # the files' bounds, read at the first box
 
         def read_box(box: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
             r0, c0, r1, c1 = box
             corner = transform @ Affine.translation(c0, r0)
-            return read_ground(inputs, corner, (r1 - r0, c1 - c0))
+            if not headers:
+                headers.extend(file_bounds(inputs))
+            return read_ground(inputs, corner, (r1 - r0, c1 - c0), headers)
 
-        ground = GroundGrid(np.full(dsm.shape, np.nan), np.zeros(dsm.shape), reader=read_box)
+        # the ground is read in boxes near the take-off: grids that hold those boxes alone
+        ground = GroundGrid(BoxGrid(dsm.shape, np.nan), BoxGrid(dsm.shape, 0.0), reader=read_box)
     to_ellipsoid = None
     if params.altitude_reference == "ellipsoid":
         probe = home or _centre(holes)

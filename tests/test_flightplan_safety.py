@@ -14,7 +14,7 @@ import shapely
 from affine import Affine
 
 from pipeline.flightplan import CoverageParams, FlightParams, HoleInput, plan_mission
-from pipeline.flightplan.mission import GroundGrid
+from pipeline.flightplan.mission import BoxGrid, GroundGrid
 from pipeline.flightplan.takeoff import TakeoffParams, check_home, choose_takeoff, open_ground
 from pipeline.io.vector import read_layer
 
@@ -145,7 +145,7 @@ def test_take_off_searched_in_growing_boxes_is_the_whole_grid_search(seed):
     open-ground pixel nearest the holes, ties to the nearest to their centre (obstacles, water
     and voids scattered at random; open ground near, far or nowhere)."""
     rng = np.random.default_rng(seed)
-    shape = (420, 380)
+    shape = (420, 700)  # blocks of 256 pixels: whole ones and cut ones at both edges
     ground = 50.0 + rng.normal(0, 0.02, shape)
     dsm = ground.copy()
     crowded = [0.0, 0.02, 0.2, 0.6, 0.9, 1.0][seed]  # share of pixels under a 5 m obstacle
@@ -170,6 +170,22 @@ def test_take_off_searched_in_growing_boxes_is_the_whole_grid_search(seed):
     assert found is not None
     assert found.xy == (1000 + 0.5 * (bc + 0.5), 2000 - 0.5 * (br + 0.5))
     assert found.ground_m == ground[br, bc]
+
+
+def test_a_box_grid_reads_and_writes_as_an_array_does():
+    """The ground grids of a take-off hold only the boxes read: the same values as a full array."""
+    rng = np.random.default_rng(3)
+    grid, array = BoxGrid((50, 60), np.nan), np.full((50, 60), np.nan)
+    for _ in range(6):
+        r0, c0 = rng.integers(0, 45, 2)
+        r1, c1 = r0 + rng.integers(1, 20), c0 + rng.integers(1, 20)
+        values = rng.normal(size=(min(r1, 50) - r0, min(c1, 60) - c0))
+        grid[r0:r1, c0:c1], array[r0:r1, c0:c1] = values, values
+    assert np.array_equal(grid[:, :], array, equal_nan=True)
+    assert np.array_equal(grid[5:33, 40:90], array[5:33, 40:90], equal_nan=True)
+    assert grid.shape == array.shape
+    r, c = np.argwhere(np.isfinite(array))[0]
+    assert grid[int(r), int(c)] == array[r, c] and np.isnan(grid[49, 59]) == np.isnan(array[49, 59])
 
 
 def test_a_chosen_home_on_a_canopy_is_kept_with_its_ground_height_and_a_warning():

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 import pyproj
@@ -42,7 +43,7 @@ from .route import (
 )
 from .takeoff import Takeoff, TakeoffParams, check_home, choose_takeoff
 
-__all__ = ["FlightParams", "FlightPlan", "HoleDecision", "HoleInput", "Sortie", "Waypoint", "plan_mission"]
+__all__ = ["BoxGrid", "FlightParams", "FlightPlan", "HoleDecision", "HoleInput", "Sortie", "Waypoint", "plan_mission"]
 
 REFERENCES = ("takeoff", "amsl", "ellipsoid")
 
@@ -78,6 +79,38 @@ TAKEOFF_SEARCH_M = 150.0
 TAKEOFF_MAX_M = 500.0
 
 
+class BoxGrid:
+    """A grid of ``shape`` that holds only the boxes written into it: ``fill`` everywhere else.
+
+    Reads and writes by row and column slices (or a single pixel), as a numpy array's; what it
+    holds follows the boxes written (the ground points read near a take-off), not the grid's span
+    (a DSM window over holes 10 km apart: 100 M pixels, 800 MB as a float64 array).
+    """
+
+    def __init__(self, shape: tuple[int, int], fill: float) -> None:
+        self.shape = shape
+        self.fill = fill
+        self._boxes: list[tuple[int, int, np.ndarray]] = []  # (row, column, values), later ones on top
+
+    def __getitem__(self, key: tuple[slice | int, slice | int]) -> Any:
+        single = all(isinstance(k, (int, np.integer)) for k in key)
+        rows, cols = (slice(int(k), int(k) + 1) if isinstance(k, (int, np.integer)) else k for k in key)
+        r0, r1, _ = rows.indices(self.shape[0])
+        c0, c1, _ = cols.indices(self.shape[1])
+        out = np.full((max(r1 - r0, 0), max(c1 - c0, 0)), self.fill)
+        for br, bc, values in self._boxes:
+            a0, a1 = max(r0, br), min(r1, br + values.shape[0])
+            b0, b1 = max(c0, bc), min(c1, bc + values.shape[1])
+            if a0 < a1 and b0 < b1:
+                out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = values[a0 - br : a1 - br, b0 - bc : b1 - bc]
+        return float(out[0, 0]) if single else out
+
+    def __setitem__(self, key: tuple[slice, slice], values: np.ndarray) -> None:
+        r0, r1, _ = key[0].indices(self.shape[0])
+        c0, c1, _ = key[1].indices(self.shape[1])
+        self._boxes.append((r0, c0, np.array(np.broadcast_to(values, (r1 - r0, c1 - c0)), dtype=np.float64)))
+
+
 @dataclass(frozen=True)
 class GroundGrid:
     """Ground-class points on the DSM's grid: mean height per pixel (NaN: none), water points per pixel.
@@ -86,8 +119,8 @@ class GroundGrid:
     request (rows ``r0:r1``, columns ``c0:c1``): the caller's I/O, handed in, so the kernels stay pure.
     """
 
-    height: np.ndarray
-    water: np.ndarray | None = None
+    height: np.ndarray | BoxGrid
+    water: np.ndarray | BoxGrid | None = None
     reader: Callable[[tuple[int, int, int, int]], tuple[np.ndarray, np.ndarray]] | None = None
 
     def load(self, box: tuple[int, int, int, int]) -> None:
