@@ -28,7 +28,7 @@ from .config import Config
 from .errors import CRSError, InputDataError
 from .flightplan.altitude import ellipsoid_transformer, vertical_crs_for
 from .flightplan.mission import TAKEOFF_MAX_M, BoxGrid, FlightPlan, GroundGrid, HoleInput, plan_mission
-from .io.flightplan_files import file_bounds, read_dsm, read_ground, read_holes, write_flightplan
+from .io.flightplan_files import DsmWindows, file_bounds, open_dsm, read_ground, read_holes, write_flightplan
 from .parameters import flight_params
 
 __all__ = ["plan_flights", "run_point_files", "summarize"]
@@ -77,11 +77,34 @@ def plan_flights(
     if extent:
         b = np.array(extent)
         bounds = (b[:, 0].min() - reach, b[:, 1].min() - reach, b[:, 2].max() + reach, b[:, 3].max() + reach)
-    dsm, transform, dsm_crs = read_dsm(dsm_path, bounds)
-    if not _same_crs(dsm_crs, holes_crs):
-        raise CRSError(dsm_path, f"the DSM's CRS differs from the holes' CRS ({pyproj.CRS(holes_crs).name})")
     if point_files is None:
         point_files = run_point_files(holes_gpkg)
+    # the DSM window of the holes, read block by block as the plan needs it (lanes, take-off)
+    with open_dsm(dsm_path, bounds) as (dsm, transform, dsm_crs):
+        if not _same_crs(dsm_crs, holes_crs):
+            raise CRSError(dsm_path, f"the DSM's CRS differs from the holes' CRS ({pyproj.CRS(holes_crs).name})")
+        plan = _plan_over(dsm, transform, dsm_crs, (holes, holes_crs), config, home=home, point_files=point_files)
+    if plan.home_warning:
+        logger.warning("flight plan: %s", plan.home_warning)
+    files = write_flightplan(
+        plan, out_dir, drone_enum=config.flightplan.dji_drone_enum, payload_enum=config.flightplan.dji_payload_enum
+    )
+    return summarize(plan, files)
+
+
+def _plan_over(
+    dsm: DsmWindows,
+    transform: Affine,
+    dsm_crs: str,
+    holes_and_crs: tuple[list[HoleInput], str],
+    config: Config,
+    *,
+    home: tuple[float, float] | None,
+    point_files: Sequence[str | os.PathLike],
+) -> FlightPlan:
+    """The mission over the DSM window, the ground read near the take-off from ``point_files``."""
+    holes, holes_crs = holes_and_crs
+    params = flight_params(config)
     ground = None
     if point_files:
         inputs = list(point_files)
@@ -101,18 +124,12 @@ def plan_flights(
         probe = home or _centre(holes)
         to_ellipsoid = ellipsoid_transformer(vertical_crs_for(dsm_crs, config.flightplan.vertical_crs), probe=probe)
     try:
-        plan = plan_mission(
+        return plan_mission(
             holes, dsm, transform, crs_wkt=holes_crs, params=params, home=home, to_ellipsoid=to_ellipsoid,
             snap_home=not config.flightplan.home, ground=ground,
         )  # fmt: skip
     except ValueError as e:
-        raise InputDataError(dsm_path, str(e)) from None
-    if plan.home_warning:
-        logger.warning("flight plan: %s", plan.home_warning)
-    files = write_flightplan(
-        plan, out_dir, drone_enum=config.flightplan.dji_drone_enum, payload_enum=config.flightplan.dji_payload_enum
-    )
-    return summarize(plan, files)
+        raise InputDataError(dsm.path, str(e)) from None
 
 
 def _same_crs(a: str, b: str) -> bool:

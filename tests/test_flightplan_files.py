@@ -17,7 +17,7 @@ from pyproj import CRS
 from pipeline.config import load_config
 from pipeline.errors import ConfigError
 from pipeline.flight_planning import plan_flights
-from pipeline.io.flightplan_files import sortie_file_names
+from pipeline.io.flightplan_files import DsmWindows, open_dsm, read_dsm, sortie_file_names
 from pipeline.io.raster import write_cog
 from pipeline.io.vector import list_layers, read_layer, write_layer
 
@@ -269,3 +269,29 @@ def test_holefill_plan_replans_into_a_folder_and_replaces_older_sorties(survey, 
     )
     assert result.exit_code == 3 and "none.gpkg: holes file not found" in result.output
     assert not (tmp_path / "o").exists()
+
+
+def test_the_dsm_read_block_by_block_is_the_dsm_read_whole(tmp_path, monkeypatch):
+    """The planner reads the DSM of a wide survey block by block as it needs it (DsmWindows):
+    pixels, windows and index arrays hold what one read of the span holds, evicted blocks read
+    again the same, NaN where the DSM has no data."""
+    rng = np.random.default_rng(5)
+    heights = rng.normal(100, 5, (300, 420)).astype(np.float32)
+    heights[rng.random(heights.shape) < 0.05] = np.nan
+    path = write_cog(tmp_path / "dsm.tif", heights, transform=Affine(0.5, 0, 1000, 0, -0.5, 2000), crs_wkt="EPSG:2154")
+    bounds = (1010.0, 1880.0, 1190.0, 1990.0)
+    whole, transform, _ = read_dsm(path, bounds)
+    monkeypatch.setattr(DsmWindows, "BLOCK", 64)
+    monkeypatch.setattr(DsmWindows, "CACHE_BYTES", 3 * 64 * 64 * 8)  # three blocks: most reads evict
+    with open_dsm(path, bounds) as (dsm, same_transform, _):
+        assert same_transform == transform and dsm.shape == whole.shape
+        for _ in range(20):
+            r0, c0 = rng.integers(0, whole.shape[0] - 1), rng.integers(0, whole.shape[1] - 1)
+            r1, c1 = r0 + rng.integers(1, 150), c0 + rng.integers(1, 150)
+            assert np.array_equal(dsm[r0:r1, c0:c1], whole[r0:r1, c0:c1], equal_nan=True)
+            rows, cols = rng.integers(0, whole.shape[0], 40), rng.integers(0, whole.shape[1], 40)
+            assert np.array_equal(dsm[rows, cols], whole[rows, cols], equal_nan=True)
+            r, c = int(r0), int(c0)
+            assert np.array_equal(dsm[r, c], whole[r, c], equal_nan=True)
+        assert np.array_equal(np.asarray(dsm), whole, equal_nan=True)
+        assert np.isnan(whole).any()

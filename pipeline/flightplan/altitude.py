@@ -23,7 +23,7 @@ import math
 import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import pyproj
@@ -69,8 +69,19 @@ class LaneSection:
     surface_max_m: float
 
 
+class Surface(Protocol):
+    """What the planner reads of a DSM: its shape and pixels by index, window or index arrays, as
+    of a float64 array with NaN for no data (an array, or the DSM read block by block on request:
+    :class:`pipeline.io.flightplan_files.DsmWindows`)."""
+
+    @property
+    def shape(self) -> tuple[int, ...]: ...
+
+    def __getitem__(self, key: Any) -> Any: ...
+
+
 def corridor_profile(
-    dsm: np.ndarray,
+    dsm: Surface,
     transform: AffineLike,
     start: Point2,
     end: Point2,
@@ -109,7 +120,7 @@ def corridor_profile(
 
 
 def pixels_near_segment(
-    dsm: np.ndarray, transform: AffineLike, start: Point2, end: Point2, radius_m: float
+    dsm: Surface, transform: AffineLike, start: Point2, end: Point2, radius_m: float
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """The DSM's measured pixels whose centre lies within ``radius_m`` (plus half a pixel's diagonal)
     of a segment: their values and their distance along it from ``start``, window by window (a
@@ -135,16 +146,14 @@ def pixels_near_segment(
             yield values[keep], along[keep]
 
 
-def max_height_along(
-    dsm: np.ndarray, transform: AffineLike, start: Point2, end: Point2, *, half_width_m: float
-) -> float:
+def max_height_along(dsm: Surface, transform: AffineLike, start: Point2, end: Point2, *, half_width_m: float) -> float:
     """Highest DSM value within ``half_width_m`` of a segment; NaN if none."""
     pixel = max(math.hypot(transform.a, transform.d), math.hypot(transform.b, transform.e))
     _, maxima = corridor_profile(dsm, transform, start, end, half_width_m=half_width_m, step_m=max(pixel, 1.0) * 64)
     return float(np.nanmax(maxima)) if np.isfinite(maxima).any() else math.nan
 
 
-def height_at(dsm: np.ndarray, transform: AffineLike, point: Point2, *, search_m: float = 10.0) -> float:
+def height_at(dsm: Surface, transform: AffineLike, point: Point2, *, search_m: float = 10.0) -> float:
     """DSM value at a point; if that pixel is empty, the median within ``search_m``; NaN if none."""
     inverse = _inverse(transform)
     col = inverse[0] * point[0] + inverse[1] * point[1] + inverse[2]
@@ -158,11 +167,11 @@ def height_at(dsm: np.ndarray, transform: AffineLike, point: Point2, *, search_m
     return float(np.median(values)) if values.size else math.nan
 
 
-def nearest_data_point(dsm: np.ndarray, transform: AffineLike, point: Point2) -> Point2 | None:
+def nearest_data_point(dsm: Surface, transform: AffineLike, point: Point2) -> Point2 | None:
     """The centre of the DSM pixel with data nearest to ``point`` (None when the DSM is empty)."""
     import scipy.ndimage as ndi
 
-    empty = ~np.isfinite(dsm)
+    empty = ~np.isfinite(dsm[:, :])  # the whole grid: a home nobody chose, in a hole or off the data
     if empty.all():
         return None
     inverse = _inverse(transform)
@@ -177,7 +186,7 @@ def nearest_data_point(dsm: np.ndarray, transform: AffineLike, point: Point2) ->
 
 
 def lane_sections(
-    dsm: np.ndarray,
+    dsm: Surface,
     transform: AffineLike,
     start: Point2,
     end: Point2,
@@ -223,7 +232,7 @@ def lane_sections(
 
 
 def lane_line(
-    dsm: np.ndarray,
+    dsm: Surface,
     transform: AffineLike,
     start: Point2,
     end: Point2,
@@ -380,7 +389,7 @@ def _window(
 def lane_with_turns(
     lane: Lane,
     turnaround_m: float,
-    dsm: np.ndarray,
+    dsm: Surface,
     transform: AffineLike,
     coverage: CoverageParams,
     *,

@@ -26,14 +26,14 @@ import math
 
 import numpy as np
 
-from .altitude import AffineLike, pixels_near_segment
+from .altitude import AffineLike, Surface, pixels_near_segment
 from .coverage import Point2
 
 __all__ = ["flight_time_s", "leg_clearance"]
 
 
 def leg_clearance(
-    dsm: np.ndarray,
+    dsm: Surface,
     transform: AffineLike,
     start: Point2,
     end: Point2,

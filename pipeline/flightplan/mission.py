@@ -26,7 +26,7 @@ import scipy.ndimage as ndi
 import shapely
 from affine import Affine
 
-from .altitude import AffineLike, height_at, lane_with_turns, max_height_along, nearest_data_point
+from .altitude import AffineLike, Surface, height_at, lane_with_turns, max_height_along, nearest_data_point
 from .clearance import flight_time_s, leg_clearance
 from .coverage import CoverageParams, CoveragePattern, Lane, Point2, cluster_holes, plan_pattern, split_pattern
 from .rescan import SightParams, place_pattern
@@ -238,7 +238,7 @@ class FlightPlan:
 
 def plan_mission(
     holes: list[HoleInput],
-    dsm: np.ndarray,
+    dsm: Surface,
     transform: AffineLike,
     *,
     crs_wkt: str,
@@ -336,7 +336,7 @@ class _SortieContext:
     units: list[CoveragePattern]
     unit_ends: list[PatternEnds]
     home: Point2
-    dsm: np.ndarray
+    dsm: Surface
     transform: AffineLike
     params: FlightParams
     to_lonlat: pyproj.Transformer
@@ -373,7 +373,7 @@ def _flight_time(points: list[_Point], params: FlightParams) -> float:
     return flight_time_s(xyz, _leg_speeds(points, params), acceleration_m_s2=params.acceleration_m_s2)
 
 
-def _check_clearance(sortie: int, points: list[_Point], dsm: np.ndarray, transform, params: FlightParams) -> float:
+def _check_clearance(sortie: int, points: list[_Point], dsm: Surface, transform, params: FlightParams) -> float:
     """The least clearance of a sortie's legs; refuses a leg below ``min_clearance_m``."""
     least = math.inf
     for leg, (a, b) in enumerate(zip(points[:-1], points[1:]), start=1):
@@ -429,7 +429,7 @@ def _patterns(selected: list[HoleInput], coverage: CoverageParams) -> list[Cover
 def _placed_patterns(
     patterns: list[CoveragePattern],
     selected: list[HoleInput],
-    dsm: np.ndarray,
+    dsm: Surface,
     transform: AffineLike,
     params: FlightParams,
 ) -> tuple[list[CoveragePattern], dict[int, float]]:
@@ -455,7 +455,7 @@ def _placed_patterns(
 
 
 def _nearest_open_ground(
-    dsm: np.ndarray, transform: AffineLike, targets: np.ndarray, ground: GroundGrid, params: TakeoffParams
+    dsm: Surface, transform: AffineLike, targets: np.ndarray, ground: GroundGrid, params: TakeoffParams
 ) -> Takeoff | None:
     """:func:`.takeoff.choose_takeoff` within ``TAKEOFF_MAX_M`` of the planned holes, over ground points read where they can matter.
 
@@ -569,7 +569,7 @@ def _choose_home(
     home: Point2 | None,
     patterns: list[CoveragePattern],
     holes: list[HoleInput],
-    dsm: np.ndarray,
+    dsm: Surface,
     transform: AffineLike,
     *,
     ground: GroundGrid | None,
@@ -691,7 +691,7 @@ def _sortie_points(
     visits: list[Visit],
     units: list[CoveragePattern],
     home: Point2,
-    dsm: np.ndarray,
+    dsm: Surface,
     transform: AffineLike,
     params: FlightParams,
 ) -> list[_Point]:
@@ -722,7 +722,7 @@ def _sortie_points(
 
 
 def _lane_points(
-    lane: Lane, pattern: CoveragePattern, dsm: np.ndarray, transform: AffineLike, params: FlightParams
+    lane: Lane, pattern: CoveragePattern, dsm: Surface, transform: AffineLike, params: FlightParams
 ) -> list[_Point]:
     """Turn point, lane start, lane end, turn point, on one straight line (:func:`.altitude.lane_line`)."""
     t = pattern.turnaround_m

@@ -30,7 +30,7 @@ import numpy as np
 import shapely
 
 from ..sensor.sight import SEEN, ground_targets, sight_classes
-from .altitude import AffineLike, lane_with_turns
+from .altitude import AffineLike, Surface, lane_with_turns
 from .coverage import CoverageParams, CoveragePattern, Lane
 
 __all__ = ["CANDIDATE_ANGLE_STEP_DEG", "Placement", "SightParams", "place_pattern"]
@@ -83,7 +83,7 @@ class _Window:
 def place_pattern(
     pattern: CoveragePattern,
     holes: list[shapely.Geometry],
-    dsm: np.ndarray,
+    dsm: Surface,
     transform: AffineLike,
     *,
     params: SightParams,
@@ -211,7 +211,7 @@ def _greedy(views: np.ndarray, covered: np.ndarray, *, min_gain: float) -> list[
     return chosen
 
 
-def _track(lane: Lane, dsm: np.ndarray, transform: AffineLike, params: SightParams) -> np.ndarray | None:
+def _track(lane: Lane, dsm: Surface, transform: AffineLike, params: SightParams) -> np.ndarray | None:
     """The lidar's path along ``lane`` (x, y, height), as :mod:`.mission` flies it: one straight line with its turns.
 
     None where no DSM lies under the lane's swath (off the survey): its height, and so its clearance, is unknown.
@@ -268,7 +268,7 @@ def _shares(window: _Window, seen: np.ndarray, hole_ids: tuple[int, ...]) -> dic
 def _window(
     pattern: CoveragePattern,
     holes: list[shapely.Geometry],
-    dsm: np.ndarray,
+    dsm: Surface,
     transform: AffineLike,
     *,
     reach: float,

@@ -228,7 +228,7 @@ def _search_reaches(farthest: float) -> list[float]:
 
 
 def check_home(
-    dsm: np.ndarray, ground: PixelGrid, transform: AffineLike, home: Point2, *, params: TakeoffParams
+    dsm: PixelGrid, ground: PixelGrid, transform: AffineLike, home: Point2, *, params: TakeoffParams
 ) -> Takeoff:
     """A chosen home, kept: its ground height from the ground points, and a warning on a roof or canopy.
 

@@ -1,7 +1,7 @@
 """The flight-plan files: a run's holes and DSM read for planning, the plans written.
 
-Reading: :func:`read_holes` (a ``holes.gpkg`` layer) and :func:`read_dsm` (a DSM
-window). Writing, in ``out_dir`` (docs/flightplans.md): ``flightplan.gpkg`` (layers
+Reading: :func:`read_holes` (a ``holes.gpkg`` layer) and :func:`open_dsm` (a DSM
+window, read block by block on request; :func:`read_dsm` reads it whole). Writing, in ``out_dir`` (docs/flightplans.md): ``flightplan.gpkg`` (layers
 ``holes_status``, ``flight_lines``, ``waypoints``, ``route``) and, per sortie,
 ``flightplan.plan``, ``flightplan.waypoints``, ``flightplan.kmz`` and
 ``flightplan.kml`` (:mod:`.flightplan_formats`); with several sorties the names carry
@@ -11,9 +11,13 @@ tool that reads, plans and writes is :func:`pipeline.flight_planning.plan_flight
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+from collections import OrderedDict
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyogrio
@@ -26,7 +30,7 @@ from .flightplan_formats import write_kml, write_kmz, write_plan, write_waypoint
 from .las import iter_point_chunks, read_header
 from .vector import write_layer
 
-__all__ = ["read_dsm", "read_ground", "read_holes", "sortie_file_names", "write_flightplan"]
+__all__ = ["DsmWindows", "open_dsm", "read_dsm", "read_ground", "read_holes", "sortie_file_names", "write_flightplan"]
 
 #: ASPRS classes read for the take-off point: ground, and water (not to take off beside).
 _GROUND, _WATER = 2, 9
@@ -71,39 +75,119 @@ def read_dsm(path: str | os.PathLike, bounds: tuple[float, float, float, float] 
 
     ``bounds`` (minx, miny, maxx, maxy) limits the read to a window.
     """
+    with open_dsm(path, bounds) as (windows, transform, crs):
+        return np.asarray(windows), transform, crs
+
+
+@contextlib.contextmanager
+def open_dsm(
+    path: str | os.PathLike, bounds: tuple[float, float, float, float] | None = None
+) -> Iterator[tuple[DsmWindows, Any, str]]:
+    """A DSM window (``bounds``: minx, miny, maxx, maxy; None: the whole raster) to be read on
+    request (:class:`DsmWindows`), its transform and CRS WKT; the file stays open in the block."""
     path = Path(path)
     try:
-        with rasterio.open(path) as src:
-            window = None
-            if bounds is not None:
-                t = src.transform
-                if t.b != 0 or t.d != 0:
-                    raise InputDataError(path, "rotated DSM rasters are not supported")
-                cols = sorted(((bounds[0] - t.c) / t.a, (bounds[2] - t.c) / t.a))
-                rows = sorted(((bounds[1] - t.f) / t.e, (bounds[3] - t.f) / t.e))
-                col0, col1 = math.floor(cols[0]), math.ceil(cols[1])
-                row0, row1 = math.floor(rows[0]), math.ceil(rows[1])
-                col0, row0 = max(0, col0), max(0, row0)
-                col1, row1 = min(src.width, col1), min(src.height, row1)
-                if col1 <= col0 or row1 <= row0:
-                    raise InputDataError(path, f"the DSM does not cover the holes (bounds {bounds})")
-                window = rasterio.windows.Window(col0, row0, col1 - col0, row1 - row0)
-            # float64 with NaN where the mask says no data, made in place: one float64 copy at a time
-            # (a masked read, its float64 copy and the filled one held 2.2 GB over 100 M pixels)
-            data = src.read(1, window=window).astype(np.float64)
-            data[src.read_masks(1, window=window) == 0] = np.nan
-            t = src.transform
-            transform = (
-                t
-                if window is None
-                else type(t)(t.a, t.b, t.c + t.a * window.col_off, t.d, t.e, t.f + t.e * window.row_off)
-            )
-            crs = src.crs.to_wkt() if src.crs else ""
-    except (rasterio.errors.RasterioError, rasterio.errors.WindowError) as e:
+        source = rasterio.open(path)
+    except rasterio.errors.RasterioError as e:
         raise InputDataError(path, f"cannot read the DSM: {e}") from None
-    if not crs:
-        raise CRSError(path, "the DSM has no CRS")
-    return data, transform, crs
+    with source:
+        window = rasterio.windows.Window(0, 0, source.width, source.height)
+        t = source.transform
+        if bounds is not None:
+            if t.b != 0 or t.d != 0:
+                raise InputDataError(path, "rotated DSM rasters are not supported")
+            cols = sorted(((bounds[0] - t.c) / t.a, (bounds[2] - t.c) / t.a))
+            rows = sorted(((bounds[1] - t.f) / t.e, (bounds[3] - t.f) / t.e))
+            col0, col1 = math.floor(cols[0]), math.ceil(cols[1])
+            row0, row1 = math.floor(rows[0]), math.ceil(rows[1])
+            col0, row0 = max(0, col0), max(0, row0)
+            col1, row1 = min(source.width, col1), min(source.height, row1)
+            if col1 <= col0 or row1 <= row0:
+                raise InputDataError(path, f"the DSM does not cover the holes (bounds {bounds})")
+            window = rasterio.windows.Window(col0, row0, col1 - col0, row1 - row0)
+        transform = type(t)(t.a, t.b, t.c + t.a * window.col_off, t.d, t.e, t.f + t.e * window.row_off)
+        crs = source.crs.to_wkt() if source.crs else ""
+        if not crs:
+            raise CRSError(path, "the DSM has no CRS")
+        try:
+            yield DsmWindows(source, window), transform, crs
+        except (rasterio.errors.RasterioError, rasterio.errors.WindowError) as e:
+            raise InputDataError(path, f"cannot read the DSM: {e}") from None
+
+
+class DsmWindows:
+    """A DSM read block by block on request: what the flight planner reads of a survey's span.
+
+    Indexed as a float64 array of the span (NaN where the DSM's mask says no data): ``dsm[r, c]``,
+    ``dsm[r0:r1, c0:c1]``, ``dsm[rows, cols]`` (index arrays), ``np.asarray(dsm)`` (the whole span:
+    the rare fallback). Blocks of :attr:`BLOCK` pixels are read through rasterio as they are
+    first touched and kept while they fit in :attr:`CACHE_BYTES` (least recently used first out),
+    so memory follows what the plan reads (the lanes, the take-off windows), not the span (holes
+    10 km apart: 100 M pixels, 800 MB read whole). The values are those one read of the span gives.
+    """
+
+    BLOCK = 1024
+    CACHE_BYTES = 256 << 20
+
+    def __init__(self, source: Any, window: Any) -> None:
+        self._source = source  # an open rasterio dataset (the caller closes it)
+        self.path = Path(source.name)
+        self._row_off, self._col_off = int(window.row_off), int(window.col_off)
+        self.shape = (int(window.height), int(window.width))
+        self._blocks: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+
+    @property
+    def size(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        whole = self._read(0, self.shape[0], 0, self.shape[1])
+        return whole if dtype is None else whole.astype(dtype)
+
+    def __getitem__(self, key: Any) -> Any:
+        rows, cols = key
+        if isinstance(rows, (int, np.integer)) and isinstance(cols, (int, np.integer)):
+            return self._read(int(rows), int(rows) + 1, int(cols), int(cols) + 1)[0, 0]
+        if isinstance(rows, slice) and isinstance(cols, slice):
+            r0, r1, step_r = rows.indices(self.shape[0])
+            c0, c1, step_c = cols.indices(self.shape[1])
+            if step_r != 1 or step_c != 1:
+                raise IndexError("DsmWindows reads contiguous windows only")
+            return self._read(r0, max(r1, r0), c0, max(c1, c0))
+        rows, cols = np.asarray(rows), np.asarray(cols)
+        if rows.size == 0:
+            return np.empty(rows.shape)
+        r0, c0 = int(rows.min()), int(cols.min())
+        window = self._read(r0, int(rows.max()) + 1, c0, int(cols.max()) + 1)
+        return window[rows - r0, cols - c0]
+
+    def _read(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        out = np.empty((max(r1 - r0, 0), max(c1 - c0, 0)))
+        if out.size == 0:
+            return out
+        b = self.BLOCK
+        for bi in range(r0 // b, (r1 - 1) // b + 1):
+            for bj in range(c0 // b, (c1 - 1) // b + 1):
+                block = self._block(bi, bj)
+                a0, a1 = max(r0, bi * b), min(r1, bi * b + block.shape[0])
+                d0, d1 = max(c0, bj * b), min(c1, bj * b + block.shape[1])
+                out[a0 - r0 : a1 - r0, d0 - c0 : d1 - c0] = block[a0 - bi * b : a1 - bi * b, d0 - bj * b : d1 - bj * b]
+        return out
+
+    def _block(self, bi: int, bj: int) -> np.ndarray:
+        key = (bi, bj)
+        if key in self._blocks:
+            self._blocks.move_to_end(key)
+            return self._blocks[key]
+        b = self.BLOCK
+        height, width = min(b, self.shape[0] - bi * b), min(b, self.shape[1] - bj * b)
+        window = rasterio.windows.Window(self._col_off + bj * b, self._row_off + bi * b, width, height)
+        block = self._source.read(1, window=window).astype(np.float64)
+        block[self._source.read_masks(1, window=window) == 0] = np.nan
+        self._blocks[key] = block
+        while sum(v.nbytes for v in self._blocks.values()) > self.CACHE_BYTES and len(self._blocks) > 1:
+            self._blocks.popitem(last=False)
+        return block
 
 
 def file_bounds(point_files: list[str | os.PathLike]) -> list[tuple[float, float, float, float]]:
