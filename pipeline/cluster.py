@@ -368,7 +368,7 @@ class TaskStream:
         return self
 
     def __exit__(self, *exc: Any) -> None:
-        if self._stream is None:
+        if self._stream is None or exc[0] is not None:  # a run that failed or was interrupted asks nothing more
             return
         try:
             self._stream.__exit__(*exc)
