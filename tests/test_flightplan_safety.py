@@ -321,3 +321,46 @@ def test_demo_take_off_on_the_ground_clearance_and_continuous_turns(tmp_path):
     with zipfile.ZipFile(kmz) as z_:
         wpml = z_.read("wpmz/waylines.wpml").decode()
     assert "toPointAndPassWithContinuityCurvature" in wpml and "Stop" not in wpml
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_take_off_windows_labelled_by_box_groups_are_the_whole_grid_labelling(seed):
+    """The take-off windows come from the holes' clusters labelled within their areas' boxes
+    (not over the span): the same windows as one labelling of the whole grid, touching and
+    overlapping areas, clusters that join across boxes and areas far apart included."""
+    from pipeline.flightplan.mission import _area_boxes, _rasterize_areas, _target_windows
+
+    rng = np.random.default_rng(seed)
+    shape, transform = (600, 900), Affine(1.0, 0, 0, 0, -1.0, 600)
+    areas = []
+    for _ in range(rng.integers(2, 9)):
+        x, y = rng.uniform(0, 880), rng.uniform(0, 580)
+        w, h = rng.uniform(2, 120), rng.uniform(2, 60)
+        areas.append(shapely.affinity.rotate(shapely.box(x, y, x + w, y + h), rng.uniform(0, 90)))
+    targets = _rasterize_areas(areas, shape, transform)
+    reach = int(rng.integers(3, 60))
+    labels, _ = ndi.label(targets)
+    whole = [
+        [max(sl[0].start - reach, 0), max(sl[1].start - reach, 0),
+         min(sl[0].stop + reach, shape[0]), min(sl[1].stop + reach, shape[1])]
+        for sl in ndi.find_objects(labels) if sl is not None
+    ]  # fmt: skip
+    merged = True
+    while merged:
+        merged, out = False, []
+        for box in whole:
+            for other in out:
+                if box[0] < other[2] and other[0] < box[2] and box[1] < other[3] and other[1] < box[3]:
+                    other[:] = [
+                        min(box[0], other[0]),
+                        min(box[1], other[1]),
+                        max(box[2], other[2]),
+                        max(box[3], other[3]),
+                    ]
+                    merged = True
+                    break
+            else:
+                out.append(box)
+        whole = out
+    grouped = _target_windows(targets, reach, _area_boxes(areas, shape, transform))
+    assert grouped == sorted(tuple(b) for b in whole)

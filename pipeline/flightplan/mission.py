@@ -455,7 +455,13 @@ def _placed_patterns(
 
 
 def _nearest_open_ground(
-    dsm: Surface, transform: AffineLike, targets: np.ndarray, ground: GroundGrid, params: TakeoffParams
+    dsm: Surface,
+    transform: AffineLike,
+    targets: np.ndarray,
+    ground: GroundGrid,
+    params: TakeoffParams,
+    *,
+    within: list[tuple[int, int, int, int]],
 ) -> Takeoff | None:
     """:func:`.takeoff.choose_takeoff` within ``TAKEOFF_MAX_M`` of the planned holes, over ground points read where they can matter.
 
@@ -466,15 +472,16 @@ def _nearest_open_ground(
     the DSM alone shows flat and clear nearest to the holes (open ground is flat and clear in the
     DSM too, so the DSM's choice is at least as near), and judged there alone; then the whole
     window. Of the windows' choices the one nearest to its holes wins (ties: nearest to the
-    centre of all of them), as one search over the whole grid would choose.
+    centre of all of them, then the first in row order), as one search over the whole grid would
+    choose. ``within``: boxes that hold every target pixel (:func:`_target_windows`).
     """
     rows, cols = np.nonzero(targets)
     if len(rows) == 0:
         return None
     centre = (float(rows.mean()), float(cols.mean()))
     reach = int(math.ceil(TAKEOFF_MAX_M / max(abs(transform.a), 1e-9)))
-    best: tuple[tuple[float, float], Takeoff] | None = None
-    for r0, c0, r1, c1 in _target_windows(targets, reach):
+    best: tuple[tuple[float, float, int, int], Takeoff] | None = None
+    for r0, c0, r1, c1 in _target_windows(targets, reach, within):
         window = _affine(transform) @ Affine.translation(c0, r0)
         local = (slice(r0, r1), slice(c0, c1))
         distance = ndi.distance_transform_edt(~targets[local])
@@ -483,7 +490,7 @@ def _nearest_open_ground(
             continue
         r = int((found.xy[1] - window.f) / window.e)  # north-up (read_dsm refuses rotated rasters)
         c = int((found.xy[0] - window.c) / window.a)
-        score = (float(np.round(distance[r, c])), math.hypot(r + r0 - centre[0], c + c0 - centre[1]))
+        score = (float(np.round(distance[r, c])), math.hypot(r + r0 - centre[0], c + c0 - centre[1]), r + r0, c + c0)
         if best is None or score < best[0]:
             best = (score, found)
     return None if best is None else best[1]
@@ -536,14 +543,34 @@ def _affine(transform: AffineLike) -> Affine:
     return Affine(transform.a, transform.b, transform.c, transform.d, transform.e, transform.f)
 
 
-def _target_windows(targets: np.ndarray, reach: int) -> list[tuple[int, int, int, int]]:
-    """Boxes ``(r0, c0, r1, c1)`` around the clusters of ``targets``, grown by ``reach`` pixels, overlapping ones merged."""
-    labels, n = ndi.label(targets)
-    boxes = [
-        [max(sl[0].start - reach, 0), max(sl[1].start - reach, 0),
-         min(sl[0].stop + reach, targets.shape[0]), min(sl[1].stop + reach, targets.shape[1])]
-        for sl in ndi.find_objects(labels) if sl is not None
-    ]  # fmt: skip
+def _target_windows(
+    targets: np.ndarray, reach: int, within: list[tuple[int, int, int, int]]
+) -> list[tuple[int, int, int, int]]:
+    """Boxes ``(r0, c0, r1, c1)`` around the clusters of ``targets``, grown by ``reach`` pixels, overlapping ones merged.
+
+    ``within``: boxes that hold every target pixel (each area's, :func:`_area_boxes`). The
+    clusters are labelled box group by box group (boxes grown by a pixel and merged: a cluster
+    never leaves its group), so the label raster follows the holes, not the span (100 M pixels,
+    400 MB of int32 labels, for holes 10 km apart); the clusters and so the windows are those of
+    one labelling of the whole grid.
+    """
+    rows, cols = targets.shape
+    groups = _merged_boxes(
+        [[max(b[0] - 1, 0), max(b[1] - 1, 0), min(b[2] + 1, rows), min(b[3] + 1, cols)] for b in within]
+    )
+    boxes = []
+    for g0, h0, g1, h1 in groups:
+        labels, _ = ndi.label(targets[g0:g1, h0:h1])
+        boxes += [
+            [max(sl[0].start + g0 - reach, 0), max(sl[1].start + h0 - reach, 0),
+             min(sl[0].stop + g0 + reach, rows), min(sl[1].stop + h0 + reach, cols)]
+            for sl in ndi.find_objects(labels) if sl is not None
+        ]  # fmt: skip
+    return _merged_boxes(boxes)
+
+
+def _merged_boxes(boxes: list[list[int]]) -> list[tuple[int, int, int, int]]:
+    """Boxes ``[r0, c0, r1, c1]`` that overlap merged into their hull, until none overlaps (the finest such set)."""
     merged = True
     while merged:
         merged = False
@@ -562,7 +589,7 @@ def _target_windows(targets: np.ndarray, reach: int) -> list[tuple[int, int, int
             else:
                 out.append(box)
         boxes = out
-    return [(b[0], b[1], b[2], b[3]) for b in boxes]
+    return sorted((b[0], b[1], b[2], b[3]) for b in boxes)
 
 
 def _choose_home(
@@ -581,8 +608,11 @@ def _choose_home(
         ground.load_around(home, transform, 2 * params.takeoff.clear_radius_m)
         return check_home(dsm, ground.height, transform, home, params=params.takeoff)
     if home is None and ground is not None and patterns:
-        targets = _rasterize_areas([p.area for p in patterns], dsm.shape, transform)
-        found = _nearest_open_ground(dsm, transform, targets, ground, params.takeoff)
+        areas = [p.area for p in patterns]
+        targets = _rasterize_areas(areas, dsm.shape, transform)
+        found = _nearest_open_ground(
+            dsm, transform, targets, ground, params.takeoff, within=_area_boxes(areas, dsm.shape, transform)
+        )
         if found is not None:
             return found
     warning = "" if ground is None else "no open ground with ground points near the holes"
@@ -594,9 +624,11 @@ def _choose_home(
     return Takeoff(home, height_at(dsm, transform, home), "DSM (no ground points)", warning)
 
 
-def _rasterize_areas(areas: list[shapely.Geometry], shape: tuple[int, ...], transform: AffineLike) -> np.ndarray:
-    """True at the pixels whose centres lie in any of the areas (an axis-aligned DSM grid)."""
-    mask = np.zeros(shape[:2], dtype=bool)
+def _area_boxes(
+    areas: list[shapely.Geometry], shape: tuple[int, ...], transform: AffineLike
+) -> list[tuple[int, int, int, int]]:
+    """Per area, the pixel box ``(r0, c0, r1, c1)`` that holds every pixel whose centre lies in it (empty boxes left out)."""
+    boxes = []
     t = transform
     for area in areas:
         x0, y0, x1, y1 = area.bounds
@@ -604,11 +636,20 @@ def _rasterize_areas(areas: list[shapely.Geometry], shape: tuple[int, ...], tran
         r0, r1 = sorted(((y0 - t.f) / t.e, (y1 - t.f) / t.e))
         c0, r0 = max(0, int(c0)), max(0, int(r0))
         c1, r1 = min(shape[1], int(math.ceil(c1)) + 1), min(shape[0], int(math.ceil(r1)) + 1)
-        if c0 >= c1 or r0 >= r1:
-            continue
-        rr, cc = np.mgrid[r0:r1, c0:c1]
-        inside = shapely.contains_xy(area, t.a * (cc + 0.5) + t.c, t.e * (rr + 0.5) + t.f)
-        mask[r0:r1, c0:c1] |= inside
+        if c0 < c1 and r0 < r1:
+            boxes.append((r0, c0, r1, c1))
+    return boxes
+
+
+def _rasterize_areas(areas: list[shapely.Geometry], shape: tuple[int, ...], transform: AffineLike) -> np.ndarray:
+    """True at the pixels whose centres lie in any of the areas (an axis-aligned DSM grid)."""
+    mask = np.zeros(shape[:2], dtype=bool)
+    t = transform
+    for area in areas:
+        for r0, c0, r1, c1 in _area_boxes([area], shape, transform):
+            rr, cc = np.mgrid[r0:r1, c0:c1]
+            inside = shapely.contains_xy(area, t.a * (cc + 0.5) + t.c, t.e * (rr + 0.5) + t.f)
+            mask[r0:r1, c0:c1] |= inside
     return mask
 
 
