@@ -163,6 +163,12 @@ def test_split_copc_gives_the_products_of_the_whole_file_and_of_the_laz_tiles(sy
     assert split.points_read == whole.points_read == tiles.points_read
     assert split.points_used == whole.points_used == tiles.points_used
     assert split.holes["listed"] > 0
+    # the footprint's density, counted by stage 1 in whichever read tasks decode the points, is one
+    densities = [
+        json.loads((tmp_path / name / "manifest.json").read_text())["grid"]["sizing"]["density"]
+        for name in ("split", "whole", "tiles")
+    ]
+    assert densities[0]["area_source"] == "data footprint" and densities[0] == densities[1] == densities[2]
     same_outputs(tmp_path / "whole", tmp_path / "split", estimated=True)
     assert "holes" in list_layers(tmp_path / "split" / "holes.gpkg")
     same_outputs(
