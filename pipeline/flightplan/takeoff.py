@@ -180,8 +180,9 @@ def choose_takeoff(
 
 
 class _BlockedOpenGround:
-    """:func:`open_ground` block by block (256 pixels a side, each with the clear radius around it, so
-    that the filters see there what they would over the whole grid), only where asked, each block once."""
+    """:func:`open_ground` where asked: block by block (256 pixels a side), on the box of the asked
+    pixels within each block grown by the clear radius (so that the filters see there what they
+    would over the whole grid), each pixel computed once unless a later ask widens its block's box."""
 
     BLOCK = 256
 
@@ -196,21 +197,32 @@ class _BlockedOpenGround:
         self.dsm, self.ground, self.water, self.transform, self.params = dsm, ground, water, transform, params
         self.margin = int(math.floor(params.clear_radius_m / _pixel_m(transform))) + 1
         self.fit = np.zeros(dsm.shape, bool)
-        self.done: set[tuple[int, int]] = set()
+        self.done: dict[tuple[int, int], tuple[int, int, int, int]] = {}  # block -> the box computed in it
 
     def where(self, wanted: np.ndarray) -> np.ndarray:
         """Open ground among the ``wanted`` pixels (False elsewhere)."""
         b, (rows, cols), m = self.BLOCK, wanted.shape, self.margin
         for r0 in range(0, rows, b):
             for c0 in range(0, cols, b):
-                if (r0, c0) in self.done or not wanted[r0 : r0 + b, c0 : c0 + b].any():
+                block = wanted[r0 : r0 + b, c0 : c0 + b]
+                in_rows, in_cols = np.flatnonzero(block.any(axis=1)), np.flatnonzero(block.any(axis=0))
+                if len(in_rows) == 0:
                     continue
-                self.done.add((r0, c0))
-                outer = (slice(max(r0 - m, 0), min(r0 + b + m, rows)), slice(max(c0 - m, 0), min(c0 + b + m, cols)))
+                box = (r0 + int(in_rows[0]), c0 + int(in_cols[0]), r0 + int(in_rows[-1]) + 1, c0 + int(in_cols[-1]) + 1)
+                known = self.done.get((r0, c0))
+                if known is not None:
+                    if known[0] <= box[0] and known[1] <= box[1] and box[2] <= known[2] and box[3] <= known[3]:
+                        continue
+                    box = (min(box[0], known[0]), min(box[1], known[1]), max(box[2], known[2]), max(box[3], known[3]))
+                self.done[(r0, c0)] = box
+                outer = (
+                    slice(max(box[0] - m, 0), min(box[2] + m, rows)),
+                    slice(max(box[1] - m, 0), min(box[3] + m, cols)),
+                )
                 water = None if self.water is None else self.water[outer]
                 fit = open_ground(self.dsm[outer], self.ground[outer], water, self.transform, params=self.params)
-                core = fit[r0 - outer[0].start :, c0 - outer[1].start :][: min(b, rows - r0), : min(b, cols - c0)]
-                self.fit[r0 : r0 + b, c0 : c0 + b] = core
+                a0, b0 = box[0] - outer[0].start, box[1] - outer[1].start
+                self.fit[box[0] : box[2], box[1] : box[3]] = fit[a0 : a0 + box[2] - box[0], b0 : b0 + box[3] - box[1]]
         return self.fit & wanted
 
 
