@@ -138,11 +138,11 @@ def _scipy_step_fit(observations, x0, lower, upper, step0):
     """The fit as scipy's least_squares makes it (trf, then the soft-L1 polish): the reference of the compiled one."""
     from scipy.optimize import least_squares
 
-    from pipeline.holes import walls as W
+    from pipeline.holes.wall_step import soft_l1_cost, step_jacobian, step_residuals
 
     bounds = (np.asarray(lower, dtype=float), np.asarray(upper, dtype=float))
-    residuals = lambda p: W._step_residuals(np.asarray(p, dtype=float), *observations)  # noqa: E731
-    jacobian = lambda p: W._step_jacobian(np.asarray(p, dtype=float), *bounds, *observations)  # noqa: E731
+    residuals = lambda p: step_residuals(np.asarray(p, dtype=float), *observations)  # noqa: E731
+    jacobian = lambda p: step_jacobian(np.asarray(p, dtype=float), *bounds, *observations)  # noqa: E731
     scale = [0.05, 0.1, 0.1 * step0, 0.1 * step0, 0.5]
     options = {"ftol": 1e-6, "xtol": 1e-6, "gtol": 1e-6, "jac": jacobian, "x_scale": scale}
     fit = least_squares(residuals, x0, bounds=(lower, upper), max_nfev=200, **options)
@@ -152,7 +152,7 @@ def _scipy_step_fit(observations, x0, lower, upper, step0):
         robust = least_squares(
             residuals, start, bounds=(lower, upper), max_nfev=100, loss="soft_l1", f_scale=f_scale, **options
         )
-        if robust.status >= 0 and robust.cost <= W._soft_l1_cost(fit.fun, f_scale):
+        if robust.status >= 0 and robust.cost <= soft_l1_cost(fit.fun, f_scale):
             return robust
     return fit
 

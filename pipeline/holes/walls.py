@@ -36,7 +36,6 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import numba
 import numpy as np
 import scipy.ndimage as ndi
 from affine import Affine
@@ -44,6 +43,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from .masks import height_jumps
+from .wall_step import LOGISTIC_NODES, bounded_least_squares, soft_l1_cost
 
 __all__ = ["Wall", "WallParams", "WallSegment", "find_walls", "fit_wall", "wall_segments"]
 
@@ -355,7 +355,7 @@ def _fit_support(
     observations = (
         sp.xc[measured], sp.yc[measured], k_hi, sp.zx[measured],
         sp.xc[has_min], sp.yc[has_min], k_lo, sp.zn[has_min],
-        sp.xc[empty], sp.yc[empty], _LOGISTIC_NODES,
+        sp.xc[empty], sp.yc[empty], LOGISTIC_NODES,
     )  # fmt: skip
     x0 = np.array([phi0, rho0, low0, high0, math.log(0.2)])
     lower = [phi0 - 0.6, rho0 - support_px, low0 - step0, low0, math.log(0.001)]
@@ -426,23 +426,23 @@ def _fit_step(observations: tuple, x0: np.ndarray, lower: list, upper: list, ste
     """Least squares of the S-curve step (a good basin), then a robust soft-L1 polish against outliers.
 
     Both are bounded Levenberg-Marquardt searches compiled in one call each
-    (:func:`_bounded_least_squares`); a wall costs about 0.1 ms instead of scipy's 3.7 ms of
-    interpreter overhead (``least_squares`` gives the same fits within its tolerances,
+    (:func:`.wall_step.bounded_least_squares`); a wall costs about 0.5 ms instead of scipy's 3.7 ms,
+    mostly interpreter overhead (the fits are at least as good as ``least_squares``'s,
     ``tests/test_walls.py``). Returns None when the fit fails.
     """
     lower_a, upper_a = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
     scale = np.array([0.05, 0.1, 0.1 * step0, 0.1 * step0, 0.5])
     start = np.clip(np.asarray(x0, dtype=np.float64), lower_a, upper_a)
     # tolerances of 1e-6 (relative) are far below the 0.2-pixel accuracy a wall needs
-    x, fun, cost, status = _bounded_least_squares(start, lower_a, upper_a, scale, 0.0, 200, *observations)
+    x, fun, cost, status = bounded_least_squares(start, lower_a, upper_a, scale, 0.0, 200, *observations)
     if status < 0:
         return None
     fit = _StepFit(x, fun, cost, status)
     f_scale = max(0.05 * step0, 1e-6)
     # the robust polish only changes a fit that has outliers (residuals beyond the soft-L1 knee)
     if np.max(np.abs(fun), initial=0.0) > 3.0 * f_scale:
-        x, fun, cost, status = _bounded_least_squares(fit.x, lower_a, upper_a, scale, f_scale, 100, *observations)
-        if status >= 0 and cost <= _soft_l1_cost(fit.fun, f_scale):
+        x, fun, cost, status = bounded_least_squares(fit.x, lower_a, upper_a, scale, f_scale, 100, *observations)
+        if status >= 0 and cost <= soft_l1_cost(fit.fun, f_scale):
             fit = _StepFit(x, fun, cost, status)
     return fit
 
@@ -563,266 +563,6 @@ def find_walls(
         if wall is not None:
             walls.append(wall)
     return walls
-
-
-#: Equal-weight quadrature nodes of the standard logistic distribution (its deciles 1, 3,
-#: 5, 7, 9): smoothing by the S-curve is the mean over these shifts.
-_LOGISTIC_NODES = np.log(np.array([0.1, 0.3, 0.5, 0.7, 0.9]) / (1 - np.array([0.1, 0.3, 0.5, 0.7, 0.9])))
-
-
-@numba.njit(cache=True)
-def _step_residuals(
-    params, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
-):  # pragma: no cover - compiled
-    """Residuals of the S-curve step model ([WALL]) for :func:`fit_wall`, compiled.
-
-    ``params`` = (phi, rho, low, high, log_width): the line ``x cos phi + y sin phi = rho``.
-    Highest points follow ``low + step (1 - (1 - a)^k)``, lowest points ``low + step a^k``
-    and empty pixels ``step a`` (they should be on the low side), with ``a`` the pixel's
-    share on the high side.
-    """
-    phi, rho, low, high, log_width = params[0], params[1], params[2], params[3], params[4]
-    c, s = math.cos(phi), math.sin(phi)
-    u, v, width, step = abs(c), abs(s), math.exp(log_width), high - low
-    n_high, n_low = len(x_high), len(x_low)
-    out = np.empty(n_high + n_low + len(x_empty))
-    share = _square_share_kernel(x_high * c + y_high * s - rho, u, v, width, nodes)
-    for i in range(n_high):
-        out[i] = low + step * (1.0 - (1.0 - share[i]) ** k_high[i]) - z_high[i]
-    share = _square_share_kernel(x_low * c + y_low * s - rho, u, v, width, nodes)
-    for i in range(n_low):
-        out[n_high + i] = low + step * share[i] ** k_low[i] - z_low[i]
-    share = _square_share_kernel(x_empty * c + y_empty * s - rho, u, v, width, nodes)
-    for i in range(len(x_empty)):
-        out[n_high + n_low + i] = step * share[i]
-    return out
-
-
-@numba.njit(cache=True)
-def _step_jacobian(
-    params, lower, upper, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
-):  # pragma: no cover - compiled
-    """Forward-difference Jacobian of :func:`_step_residuals` in one compiled call.
-
-    The step is scipy's "2-point" rule (sqrt of machine epsilon, relative to the
-    parameter), taken backwards where a forward step would leave the bounds.
-    """
-    base = _step_residuals(params, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes)
-    jacobian = np.empty((len(base), len(params)))
-    for j in range(len(params)):
-        h = 1.4901161193847656e-08 * max(1.0, abs(params[j]))
-        if params[j] + h > upper[j]:
-            h = -h
-        shifted = params.copy()
-        shifted[j] += h
-        h = shifted[j] - params[j]  # the step actually taken, after rounding
-        moved = _step_residuals(
-            shifted, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
-        )
-        for i in range(len(base)):
-            jacobian[i, j] = (moved[i] - base[i]) / h
-    return jacobian
-
-
-def _soft_l1_cost(residuals: np.ndarray, f_scale: float) -> float:
-    """The cost least_squares(loss="soft_l1") reports for these residuals."""
-    z = (residuals / f_scale) ** 2
-    return float(0.5 * f_scale**2 * np.sum(2 * (np.sqrt(1 + z) - 1)))
-
-
-#: Levenberg-Marquardt damping: start, growth on a rejected step, shrink on an accepted one.
-_DAMPING_START, _DAMPING_UP, _DAMPING_DOWN = 1e-3, 4.0, 1.0 / 3.0
-#: Relative tolerances on the cost's decrease, the step and the scaled gradient (1e-6: far
-#: below the 0.2-pixel accuracy a wall needs).
-_FTOL = _XTOL = _GTOL = 1e-6
-
-
-@numba.njit(cache=True)
-def _loss_weights(fun, f_scale):  # pragma: no cover - compiled
-    """sqrt(rho'(z)) per residual for the soft-L1 loss ``rho(z) = 2 (sqrt(1 + z) - 1)``, ``z = (f / f_scale)^2``."""
-    weights = np.ones(len(fun))
-    if f_scale > 0.0:
-        for i in range(len(fun)):
-            z = (fun[i] / f_scale) ** 2
-            weights[i] = (1.0 + z) ** -0.25
-    return weights
-
-
-@numba.njit(cache=True)
-def _loss_cost(fun, f_scale):  # pragma: no cover - compiled
-    """0.5 sum of squares (``f_scale`` 0), else the soft-L1 cost as scipy's least_squares reports it."""
-    total = 0.0
-    for i in range(len(fun)):
-        if f_scale > 0.0:
-            total += f_scale * f_scale * 2.0 * (math.sqrt(1.0 + (fun[i] / f_scale) ** 2) - 1.0)
-        else:
-            total += fun[i] * fun[i]
-    return 0.5 * total
-
-
-@numba.njit(cache=True)
-def _damped_step(normal, gradient, damping):  # pragma: no cover - compiled
-    """Solve ``(N + damping diag(N)) d = -g`` by Cholesky; an all-NaN step when not positive definite."""
-    n = len(gradient)
-    a = normal.copy()
-    for j in range(n):
-        a[j, j] += damping * max(normal[j, j], 1e-12)
-    lower = np.zeros((n, n))
-    for i in range(n):
-        for j in range(i + 1):
-            value = a[i, j]
-            for k in range(j):
-                value -= lower[i, k] * lower[j, k]
-            if i == j:
-                if not value > 0.0:
-                    return np.full(n, np.nan)
-                lower[i, i] = math.sqrt(value)
-            else:
-                lower[i, j] = value / lower[j, j]
-    y = np.empty(n)
-    for i in range(n):
-        value = -gradient[i]
-        for k in range(i):
-            value -= lower[i, k] * y[k]
-        y[i] = value / lower[i, i]
-    step = np.empty(n)
-    for i in range(n - 1, -1, -1):
-        value = y[i]
-        for k in range(i + 1, n):
-            value -= lower[k, i] * step[k]
-        step[i] = value / lower[i, i]
-    return step
-
-
-@numba.njit(cache=True)
-def _bounded_least_squares(
-    x0, lower, upper, scale, f_scale, max_nfev,
-    x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes,
-):  # pragma: no cover - compiled  # fmt: skip
-    """Minimise the step model's cost within the bounds: Levenberg-Marquardt, steps clipped to the box.
-
-    Variables are scaled by ``scale`` (the size of a meaningful change of each); ``f_scale``
-    > 0 fits the soft-L1 loss by reweighting the residuals and the Jacobian with
-    sqrt(rho') at every iteration (the first-order part of scipy's loss scaling). Stops when
-    the cost falls by less than ``_FTOL`` of itself, the scaled step is below ``_XTOL`` of the
-    scaled parameters, or the largest projected scaled gradient below ``_GTOL`` (as scipy's);
-    status 1, or 0 when ``max_nfev`` residual evaluations are spent (the best fit so far),
-    -1 when the start gives no finite cost.
-    """
-    n = len(x0)
-    x = x0.copy()
-    fun = _step_residuals(x, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes)
-    cost = _loss_cost(fun, f_scale)
-    if not np.isfinite(cost):
-        return x, fun, cost, -1
-    nfev, damping = 1, _DAMPING_START
-    while nfev < max_nfev:
-        jacobian = _step_jacobian(
-            x, lower, upper, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
-        )
-        weights = _loss_weights(fun, f_scale)
-        normal = np.zeros((n, n))
-        gradient = np.zeros(n)
-        for i in range(len(fun)):
-            w2 = weights[i] * weights[i]
-            for a in range(n):
-                ja = jacobian[i, a] * scale[a]
-                gradient[a] += w2 * ja * fun[i]
-                for b in range(a + 1):
-                    normal[a, b] += w2 * ja * jacobian[i, b] * scale[b]
-        for a in range(n):
-            for b in range(a):
-                normal[b, a] = normal[a, b]
-        # a variable at a bound that the gradient pushes out of the box is held there (active set)
-        largest = 0.0
-        for a in range(n):
-            held = (x[a] <= lower[a] and gradient[a] > 0.0) or (x[a] >= upper[a] and gradient[a] < 0.0)
-            if held:
-                gradient[a] = 0.0
-                for b in range(n):
-                    normal[a, b] = 0.0
-                    normal[b, a] = 0.0
-                normal[a, a] = 1.0
-            else:
-                largest = max(largest, abs(gradient[a]))
-        if largest < _GTOL:
-            return x, fun, cost, 1
-        accepted = False
-        while nfev < max_nfev:
-            step = _damped_step(normal, gradient, damping)
-            if not np.isfinite(step).all():
-                damping *= _DAMPING_UP
-                if damping > 1e12:
-                    return x, fun, cost, 1
-                continue
-            trial = np.empty(n)
-            taken = np.empty(n)  # the scaled step after clipping to the box
-            step_norm, x_norm = 0.0, 0.0
-            for a in range(n):
-                trial[a] = min(max(x[a] + step[a] * scale[a], lower[a]), upper[a])
-                taken[a] = (trial[a] - x[a]) / scale[a]
-                step_norm += taken[a] ** 2
-                x_norm += (x[a] / scale[a]) ** 2
-            # the decrease the Gauss-Newton model predicts for the step taken
-            predicted = -(gradient @ taken + 0.5 * taken @ (normal @ taken))
-            trial_fun = _step_residuals(
-                trial, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
-            )
-            nfev += 1
-            trial_cost = _loss_cost(trial_fun, f_scale)
-            if np.isfinite(trial_cost) and trial_cost < cost:
-                decrease = cost - trial_cost
-                ratio = decrease / predicted if predicted > 0.0 else 0.0
-                x, fun, cost = trial, trial_fun, trial_cost
-                if ratio > 0.75:
-                    damping = max(damping * _DAMPING_DOWN, 1e-12)
-                elif ratio < 0.25:
-                    damping *= 2.0
-                accepted = True
-                # as scipy's trf: a small decrease ends the search only where the model holds
-                if (decrease < _FTOL * cost and ratio > 0.25) or math.sqrt(step_norm) < _XTOL * (
-                    _XTOL + math.sqrt(x_norm)
-                ):
-                    return x, fun, cost, 1
-                break
-            damping *= _DAMPING_UP
-            if damping > 1e12 or math.sqrt(step_norm) < _XTOL * (_XTOL + math.sqrt(x_norm)):
-                return x, fun, cost, 1
-        if not accepted:
-            break
-    return x, fun, cost, 0
-
-
-@numba.njit(cache=True)
-def _square_share_kernel(d, u, v, width, nodes):  # pragma: no cover - compiled
-    """Share of a unit pixel on the high side of an S-curve step, per signed distance ``d``.
-
-    For a sharp step, the area of the unit square centred at 0 where ``x u + y v <=
-    t`` (``u``, ``v`` >= 0 the normal's components) is the distribution of ``u U1 +
-    v U2`` for independent uniform U1, U2 on [-1/2, 1/2]: a trapezoid, piecewise
-    quadratic/linear in ``t``. The S-curve of ``width`` smooths it: the mean over the
-    logistic quadrature ``nodes``.
-    """
-    big, small = max(u, v), min(u, v)
-    half_diff, half_sum = 0.5 * (big - small), 0.5 * (big + small)
-    out = np.empty(len(d))
-    for i in range(len(d)):
-        total = 0.0
-        for q in nodes:
-            t = d[i] + width * q
-            if small < 1e-9:
-                value = t / big + 0.5
-            elif t <= -half_diff:
-                x = t + half_sum
-                value = x * x / (2 * big * small) if x > 0 else 0.0
-            elif t < half_diff:
-                value = (t + 0.5 * big) / big
-            else:
-                x = -t + half_sum
-                value = 1.0 - (x * x / (2 * big * small) if x > 0 else 0.0)
-            total += min(max(value, 0.0), 1.0)
-        out[i] = total / len(nodes)
-    return out
 
 
 def _uphill(zmax: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -212,9 +212,7 @@ def hand_over_top(task: TileTask, *after: object) -> TileResult:
     by_cell: dict[tuple[int, int], list[PointChunk]] = {}
     read = outside = 0
     counter = _counter(task)
-    transformer = (
-        Transformer.from_crs(task.source_crs_wkt, grid.crs_wkt, always_xy=True) if task.source_crs_wkt else None
-    )
+    transformer = _transformer(task)
     for chunk in read_points(task):
         if counter is not None:
             _count_pulses(counter, chunk, task, transformer)
@@ -279,17 +277,10 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
     started = time.perf_counter()
     grid = task.grid
     accumulator = HeightMapAccumulator(
-        task.window,
-        resolution=grid.resolution,
-        col_min=grid.col_min,
-        row_top=grid.row_top,
-        grid_width=grid.width,
-        voxel_height=task.voxel_height,
-        offset=grid.offset,
-    )
-    transformer = (
-        Transformer.from_crs(task.source_crs_wkt, grid.crs_wkt, always_xy=True) if task.source_crs_wkt else None
-    )
+        task.window, resolution=grid.resolution, col_min=grid.col_min, row_top=grid.row_top,
+        grid_width=grid.width, voxel_height=task.voxel_height, offset=grid.offset,
+    )  # fmt: skip
+    transformer = _transformer(task)
     read = used = outside = 0
     ground = GroundLevel()
     sums: list[TrajectorySums] = []
@@ -350,6 +341,13 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
         trajectory=TrajectorySums.merged(sums),
         pulse_blocks=None if counter is None else counter.counts(),
     )
+
+
+def _transformer(task: TileTask) -> Transformer | None:
+    """From the task's source CRS to the grid's, or None where the points are in the grid's CRS."""
+    if not task.source_crs_wkt:
+        return None
+    return Transformer.from_crs(task.source_crs_wkt, task.grid.crs_wkt, always_xy=True)
 
 
 def _counter(task: TileTask) -> BlockCounter | None:
