@@ -27,7 +27,8 @@ from affine import Affine
 from .config import Config
 from .errors import CRSError, InputDataError
 from .flightplan.altitude import ellipsoid_transformer, vertical_crs_for
-from .flightplan.mission import TAKEOFF_MAX_M, BoxGrid, FlightPlan, GroundGrid, HoleInput, plan_mission
+from .flightplan.mission import FlightPlan, HoleInput, plan_mission
+from .flightplan.takeoff_search import TAKEOFF_MAX_M, BoxGrid, GroundGrid
 from .io.flightplan_files import DsmWindows, file_bounds, open_dsm, read_ground, read_holes, write_flightplan
 from .parameters import flight_params
 

@@ -14,8 +14,8 @@ import shapely
 from affine import Affine
 
 from pipeline.flightplan import CoverageParams, FlightParams, HoleInput, plan_mission
-from pipeline.flightplan.mission import BoxGrid, GroundGrid
 from pipeline.flightplan.takeoff import TakeoffParams, check_home, choose_takeoff, open_ground
+from pipeline.flightplan.takeoff_search import BoxGrid, GroundGrid
 from pipeline.io.vector import read_layer
 
 PARAMS = CoverageParams(
@@ -80,7 +80,7 @@ def test_home_in_a_forest_is_the_clearing_at_the_ground_points_height():
 def test_open_ground_farther_than_a_pilot_walks_from_the_holes_is_not_sought():
     """The clearing lies 1 km from the hole: beyond ``TAKEOFF_MAX_M`` the search does not go (it
     reads windows around the holes, not the survey's span); the home comes from the DSM, with a warning."""
-    from pipeline.flightplan.mission import TAKEOFF_MAX_M
+    from pipeline.flightplan.takeoff_search import TAKEOFF_MAX_M
 
     dsm, ground, _ = _forest()
     hole = shapely.box(1100, 100, 1150, 140)
@@ -328,7 +328,7 @@ def test_take_off_windows_labelled_by_box_groups_are_the_whole_grid_labelling(se
     """The take-off windows come from the holes' clusters labelled within their areas' boxes
     (not over the span): the same windows as one labelling of the whole grid, touching and
     overlapping areas, clusters that join across boxes and areas far apart included."""
-    from pipeline.flightplan.mission import _area_boxes, _merged_boxes, _rasterize_areas, _target_windows
+    from pipeline.flightplan.takeoff_search import area_boxes, merged_boxes, rasterize_areas, target_windows
 
     rng = np.random.default_rng(seed)
     shape, transform = (600, 900), Affine(1.0, 0, 0, 0, -1.0, 600)
@@ -337,7 +337,7 @@ def test_take_off_windows_labelled_by_box_groups_are_the_whole_grid_labelling(se
         x, y = rng.uniform(0, 880), rng.uniform(0, 580)
         w, h = rng.uniform(2, 120), rng.uniform(2, 60)
         areas.append(shapely.affinity.rotate(shapely.box(x, y, x + w, y + h), rng.uniform(0, 90)))
-    targets = _rasterize_areas(areas, shape, transform)
+    targets = rasterize_areas(areas, shape, transform)
     reach = int(rng.integers(3, 60))
     labels, _ = ndi.label(targets)
     whole = [
@@ -345,5 +345,5 @@ def test_take_off_windows_labelled_by_box_groups_are_the_whole_grid_labelling(se
          min(sl[0].stop + reach, shape[0]), min(sl[1].stop + reach, shape[1])]
         for sl in ndi.find_objects(labels) if sl is not None
     ]  # fmt: skip
-    grouped = _target_windows(targets, reach, _area_boxes(areas, shape, transform))
-    assert grouped == _merged_boxes(whole)  # the merge is shared: the labelling is what differs
+    grouped = target_windows(targets, reach, area_boxes(areas, shape, transform))
+    assert grouped == merged_boxes(whole)  # the merge is shared: the labelling is what differs

@@ -1,0 +1,283 @@
+"""Where a re-flight takes off: the open ground nearest to the planned holes, searched where it can be.
+
+:func:`nearest_open_ground` runs :func:`.takeoff.choose_takeoff` window by window, one per
+cluster of holes (within ``TAKEOFF_MAX_M`` of them), over ground points read on request near the
+place the DSM alone shows open (:class:`GroundGrid`, whose grids hold only the boxes read:
+:class:`BoxGrid`), so that its cost follows the holes and not the span of the survey. The rules
+of open ground are :mod:`.takeoff`'s; :func:`pipeline.flightplan.mission.plan_mission` calls this.
+
+Pure: numpy arrays, shapely geometries and an affine transform in, a ``Takeoff`` out; the ground
+points come through the caller's reader.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.ndimage as ndi
+import shapely
+from affine import Affine
+
+from .altitude import AffineLike, Surface
+from .coverage import Point2
+from .takeoff import Takeoff, TakeoffParams, choose_takeoff
+
+__all__ = [
+    "TAKEOFF_MAX_M",
+    "TAKEOFF_SEARCH_M",
+    "BoxGrid",
+    "GroundGrid",
+    "area_boxes",
+    "merged_boxes",
+    "nearest_open_ground",
+    "rasterize_areas",
+    "target_windows",
+]
+
+
+#: Where the take-off is sought first: the ground points within this distance of the flattest clear
+#: place the DSM shows near the holes (a pilot walks there; the survey's points are not all decoded).
+TAKEOFF_SEARCH_M = 150.0
+#: The farthest from the planned holes a take-off is sought (a pilot keeps the drone in sight: a few
+#: hundred metres); the DSM is read this far around them too (:func:`pipeline.flight_planning.plan_flights`).
+TAKEOFF_MAX_M = 500.0
+
+
+class BoxGrid:
+    """A grid of ``shape`` that holds only the boxes written into it: ``fill`` everywhere else.
+
+    Reads and writes by row and column slices (or a single pixel), as a numpy array's; what it
+    holds follows the boxes written (the ground points read near a take-off), not the grid's span
+    (a DSM window over holes 10 km apart: 100 M pixels, 800 MB as a float64 array).
+    """
+
+    def __init__(self, shape: tuple[int, int], fill: float) -> None:
+        self.shape = shape
+        self.fill = fill
+        self._boxes: list[tuple[int, int, np.ndarray]] = []  # (row, column, values), later ones on top
+
+    def __getitem__(self, key: tuple[slice | int, slice | int]) -> Any:
+        single = all(isinstance(k, (int, np.integer)) for k in key)
+        rows, cols = (slice(int(k), int(k) + 1) if isinstance(k, (int, np.integer)) else k for k in key)
+        r0, r1, _ = rows.indices(self.shape[0])
+        c0, c1, _ = cols.indices(self.shape[1])
+        out = np.full((max(r1 - r0, 0), max(c1 - c0, 0)), self.fill)
+        for br, bc, values in self._boxes:
+            a0, a1 = max(r0, br), min(r1, br + values.shape[0])
+            b0, b1 = max(c0, bc), min(c1, bc + values.shape[1])
+            if a0 < a1 and b0 < b1:
+                out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = values[a0 - br : a1 - br, b0 - bc : b1 - bc]
+        return float(out[0, 0]) if single else out
+
+    def __setitem__(self, key: tuple[slice, slice], values: np.ndarray) -> None:
+        r0, r1, _ = key[0].indices(self.shape[0])
+        c0, c1, _ = key[1].indices(self.shape[1])
+        self._boxes.append((r0, c0, np.array(np.broadcast_to(values, (r1 - r0, c1 - c0)), dtype=np.float64)))
+
+
+@dataclass(frozen=True)
+class GroundGrid:
+    """Ground-class points on the DSM's grid: mean height per pixel (NaN: none), water points per pixel.
+
+    With a ``reader`` the grids start empty and :meth:`load` reads the points of a pixel box on
+    request (rows ``r0:r1``, columns ``c0:c1``): the caller's I/O, handed in, so the kernels stay pure.
+    """
+
+    height: np.ndarray | BoxGrid
+    water: np.ndarray | BoxGrid | None = None
+    reader: Callable[[tuple[int, int, int, int]], tuple[np.ndarray, np.ndarray]] | None = None
+
+    def load(self, box: tuple[int, int, int, int]) -> None:
+        """Read the ground points of ``box`` (clipped to the grid) into the grids, where a reader is set."""
+        if self.reader is None:
+            return
+        rows, cols = self.height.shape
+        r0, c0, r1, c1 = max(box[0], 0), max(box[1], 0), min(box[2], rows), min(box[3], cols)
+        if r1 <= r0 or c1 <= c0:
+            return
+        height, water = self.reader((r0, c0, r1, c1))
+        self.height[r0:r1, c0:c1] = height
+        if self.water is not None:
+            self.water[r0:r1, c0:c1] = water
+
+    def load_around(self, xy: Point2, transform: AffineLike, radius_m: float) -> tuple[int, int, int, int] | None:
+        """Read the ground points within ``radius_m`` of ``xy``; the box read (clipped; None: off the grid)."""
+        col, row = (xy[0] - transform.c) / transform.a, (xy[1] - transform.f) / transform.e  # north-up (read_dsm)
+        r = int(math.ceil(radius_m / max(abs(transform.a), 1e-9)))
+        rows, cols = self.height.shape
+        box = (max(int(row) - r, 0), max(int(col) - r, 0), min(int(row) + r + 1, rows), min(int(col) + r + 1, cols))
+        if box[2] <= box[0] or box[3] <= box[1]:
+            return None
+        self.load(box)
+        return box
+
+
+def nearest_open_ground(
+    dsm: Surface,
+    transform: AffineLike,
+    targets: np.ndarray,
+    ground: GroundGrid,
+    params: TakeoffParams,
+    *,
+    within: list[tuple[int, int, int, int]],
+) -> Takeoff | None:
+    """:func:`.takeoff.choose_takeoff` within ``TAKEOFF_MAX_M`` of the planned holes, over ground points read where they can matter.
+
+    The search runs window by window, one per cluster of holes (their pixels grown by
+    ``TAKEOFF_MAX_M``, overlapping windows merged), so that its cost follows the holes and not the
+    span of the survey (three clusters 10 km apart are three small windows, not one 20 km grid).
+    In each window a grid read on request is read first within ``TAKEOFF_SEARCH_M`` of the place
+    the DSM alone shows flat and clear nearest to the holes (open ground is flat and clear in the
+    DSM too, so the DSM's choice is at least as near), and judged there alone; then the whole
+    window. Of the windows' choices the one nearest to its holes wins (ties: nearest to the
+    centre of all of them, then the first in row order), as one search over the whole grid would
+    choose. ``within``: boxes that hold every target pixel (:func:`target_windows`).
+    """
+    rows, cols = np.nonzero(targets)
+    if len(rows) == 0:
+        return None
+    centre = (float(rows.mean()), float(cols.mean()))
+    reach = int(math.ceil(TAKEOFF_MAX_M / max(abs(transform.a), 1e-9)))
+    best: tuple[tuple[float, float, int, int], Takeoff] | None = None
+    for r0, c0, r1, c1 in target_windows(targets, reach, within):
+        window = _affine(transform) @ Affine.translation(c0, r0)
+        local = (slice(r0, r1), slice(c0, c1))
+        distance = ndi.distance_transform_edt(~targets[local])
+        found = _open_ground_in(dsm[local], transform, targets[local], ground, (r0, c0), params, distance, centre)
+        if found is None:
+            continue
+        r = int((found.xy[1] - window.f) / window.e)  # north-up (read_dsm refuses rotated rasters)
+        c = int((found.xy[0] - window.c) / window.a)
+        score = (float(np.round(distance[r, c])), math.hypot(r + r0 - centre[0], c + c0 - centre[1]), r + r0, c + c0)
+        if best is None or score < best[0]:
+            best = (score, found)
+    return None if best is None else best[1]
+
+
+def _open_ground_in(
+    dsm: np.ndarray,
+    transform: AffineLike,
+    targets: np.ndarray,
+    ground: GroundGrid,
+    corner: tuple[int, int],
+    params: TakeoffParams,
+    distance: np.ndarray,
+    centre: tuple[float, float],
+) -> Takeoff | None:
+    """:func:`.takeoff.choose_takeoff` in one window of the grid (``corner``: its first row and column;
+    ``transform``: the whole grid's)."""
+    r0, c0 = corner
+    window = _affine(transform) @ Affine.translation(c0, r0)
+    shape = dsm.shape
+    local_centre = (centre[0] - r0, centre[1] - c0)
+
+    def judged(box: tuple[int, int, int, int]) -> Takeoff | None:
+        """Judged on the ground points of ``box`` (window pixels) alone."""
+        b0, d0, b1, d1 = box
+        sub = (slice(b0, b1), slice(d0, d1))
+        height = ground.height[r0 + b0 : r0 + b1, c0 + d0 : c0 + d1]
+        water = None if ground.water is None else ground.water[r0 + b0 : r0 + b1, c0 + d0 : c0 + d1]
+        return choose_takeoff(
+            dsm[sub], height, water, window @ Affine.translation(d0, b0), targets[sub], params=params,
+            distance=distance[sub], centre=(local_centre[0] - b0, local_centre[1] - d0),
+        )  # fmt: skip
+
+    if ground.reader is not None:
+        guess = choose_takeoff(dsm, dsm, None, window, targets, params=params, distance=distance, centre=local_centre)
+        if guess is not None:
+            box = ground.load_around(guess.xy, transform, TAKEOFF_SEARCH_M)
+            if box is not None:
+                b0, d0, b1, d1 = box
+                inner = (max(b0 - r0, 0), max(d0 - c0, 0), min(b1 - r0, shape[0]), min(d1 - c0, shape[1]))
+                if inner[2] > inner[0] and inner[3] > inner[1]:
+                    found = judged(inner)
+                    if found is not None:
+                        return found
+        ground.load((r0, c0, r0 + shape[0], c0 + shape[1]))
+    return judged((0, 0, *shape))
+
+
+def _affine(transform: AffineLike) -> Affine:
+    return Affine(transform.a, transform.b, transform.c, transform.d, transform.e, transform.f)
+
+
+def target_windows(
+    targets: np.ndarray, reach: int, within: list[tuple[int, int, int, int]]
+) -> list[tuple[int, int, int, int]]:
+    """Boxes ``(r0, c0, r1, c1)`` around the clusters of ``targets``, grown by ``reach`` pixels, overlapping ones merged.
+
+    ``within``: boxes that hold every target pixel (each area's, :func:`area_boxes`). The
+    clusters are labelled box group by box group (boxes grown by a pixel and merged: a cluster
+    never leaves its group), so the label raster follows the holes, not the span (100 M pixels,
+    400 MB of int32 labels, for holes 10 km apart); the clusters and so the windows are those of
+    one labelling of the whole grid.
+    """
+    rows, cols = targets.shape
+    groups = merged_boxes(
+        [[max(b[0] - 1, 0), max(b[1] - 1, 0), min(b[2] + 1, rows), min(b[3] + 1, cols)] for b in within]
+    )
+    boxes = []
+    for g0, h0, g1, h1 in groups:
+        labels, _ = ndi.label(targets[g0:g1, h0:h1])
+        boxes += [
+            [max(sl[0].start + g0 - reach, 0), max(sl[1].start + h0 - reach, 0),
+             min(sl[0].stop + g0 + reach, rows), min(sl[1].stop + h0 + reach, cols)]
+            for sl in ndi.find_objects(labels) if sl is not None
+        ]  # fmt: skip
+    return merged_boxes(boxes)
+
+
+def merged_boxes(boxes: list[list[int]]) -> list[tuple[int, int, int, int]]:
+    """Boxes ``[r0, c0, r1, c1]`` that overlap merged into their hull, until none overlaps (the finest such set)."""
+    merged = True
+    while merged:
+        merged = False
+        out: list[list[int]] = []
+        for box in boxes:
+            for other in out:
+                if box[0] < other[2] and other[0] < box[2] and box[1] < other[3] and other[1] < box[3]:
+                    other[:] = [
+                        min(box[0], other[0]),
+                        min(box[1], other[1]),
+                        max(box[2], other[2]),
+                        max(box[3], other[3]),
+                    ]
+                    merged = True
+                    break
+            else:
+                out.append(box)
+        boxes = out
+    return sorted((b[0], b[1], b[2], b[3]) for b in boxes)
+
+
+def area_boxes(
+    areas: list[shapely.Geometry], shape: tuple[int, ...], transform: AffineLike
+) -> list[tuple[int, int, int, int]]:
+    """Per area, the pixel box ``(r0, c0, r1, c1)`` that holds every pixel whose centre lies in it (empty boxes left out)."""
+    boxes = []
+    t = transform
+    for area in areas:
+        x0, y0, x1, y1 = area.bounds
+        c0, c1 = sorted(((x0 - t.c) / t.a, (x1 - t.c) / t.a))
+        r0, r1 = sorted(((y0 - t.f) / t.e, (y1 - t.f) / t.e))
+        c0, r0 = max(0, int(c0)), max(0, int(r0))
+        c1, r1 = min(shape[1], int(math.ceil(c1)) + 1), min(shape[0], int(math.ceil(r1)) + 1)
+        if c0 < c1 and r0 < r1:
+            boxes.append((r0, c0, r1, c1))
+    return boxes
+
+
+def rasterize_areas(areas: list[shapely.Geometry], shape: tuple[int, ...], transform: AffineLike) -> np.ndarray:
+    """True at the pixels whose centres lie in any of the areas (an axis-aligned DSM grid)."""
+    mask = np.zeros(shape[:2], dtype=bool)
+    t = transform
+    for area in areas:
+        for r0, c0, r1, c1 in area_boxes([area], shape, transform):
+            rr, cc = np.mgrid[r0:r1, c0:c1]
+            inside = shapely.contains_xy(area, t.a * (cc + 0.5) + t.c, t.e * (rr + 0.5) + t.f)
+            mask[r0:r1, c0:c1] |= inside
+    return mask
