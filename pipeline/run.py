@@ -47,7 +47,7 @@ from .stages.registry import STAGES, RunResults, run_results
 from .stages.stage import Dependency, RunState, Stage
 from .staging import PARTIAL_PREFIX, Staging, disk_full, input_fingerprint, run_and_keep
 from .survey.blocks import FootprintDensity
-from .survey.footprint_density import footprint_from_counts, measure_footprint, pulse_counting
+from .survey.footprint_density import footprint_from_counts, measure_footprint
 from .survey.ground_level import NO_TERRAIN
 from .survey.scan import scan_survey
 
@@ -202,10 +202,9 @@ def settle_density(state: RunState, *, aoi: str | os.PathLike | None, budget: Me
     if not plan.density_pending:
         return state
     started = time.perf_counter()
-    block, _ = pulse_counting(plan.survey)
     decoded = state[BIN_TILES]
     parts = [t.pulse_blocks for t in decoded.tiles if t.pulse_blocks is not None]
-    footprint = footprint_from_counts(plan.survey, parts, block, started, how="counted in stage 1")
+    footprint = footprint_from_counts(plan.survey, parts, started, how="counted in stage 1")
     settled = plan_with_footprint(plan, footprint, state.config, aoi=aoi)
     if settled.grid != plan.grid:
         if budget is not None:

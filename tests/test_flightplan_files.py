@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rasterio
+import rasterio.windows
 import shapely
 from affine import Affine
 from pyproj import CRS
@@ -17,7 +19,7 @@ from pyproj import CRS
 from pipeline.config import load_config
 from pipeline.errors import ConfigError
 from pipeline.flight_planning import plan_flights
-from pipeline.io.flightplan_files import DsmWindows, open_dsm, read_dsm, sortie_file_names
+from pipeline.io.flightplan_files import DsmWindows, open_dsm, sortie_file_names
 from pipeline.io.raster import write_cog
 from pipeline.io.vector import list_layers, read_layer, write_layer
 
@@ -280,7 +282,11 @@ def test_the_dsm_read_block_by_block_is_the_dsm_read_whole(tmp_path, monkeypatch
     heights[rng.random(heights.shape) < 0.05] = np.nan
     path = write_cog(tmp_path / "dsm.tif", heights, transform=Affine(0.5, 0, 1000, 0, -0.5, 2000), crs_wkt="EPSG:2154")
     bounds = (1010.0, 1880.0, 1190.0, 1990.0)
-    whole, transform, _ = read_dsm(path, bounds)
+    with rasterio.open(path) as src:  # one read of the span: columns 20-380, rows 20-240 at 0.5 m
+        window = rasterio.windows.Window(20, 20, 360, 220)
+        whole = src.read(1, window=window).astype(np.float64)
+        whole[src.read_masks(1, window=window) == 0] = np.nan
+        transform = src.transform @ Affine.translation(20, 20)
     monkeypatch.setattr(DsmWindows, "BLOCK", 64)
     monkeypatch.setattr(DsmWindows, "CACHE_BYTES", 3 * 64 * 64 * 8)  # three blocks: most reads evict
     with open_dsm(path, bounds) as (dsm, same_transform, _):

@@ -70,9 +70,9 @@ class LaneSection:
 
 
 class Surface(Protocol):
-    """What the planner reads of a DSM: its shape and pixels by index, window or index arrays, as
-    of a float64 array with NaN for no data (an array, or the DSM read block by block on request:
-    :class:`pipeline.io.flightplan_files.DsmWindows`)."""
+    """What the planner reads of a DSM or a ground grid: its shape and pixels by index, window or
+    index arrays, as of a float64 array with NaN for no data (an array; the DSM read block by block
+    on request, :class:`pipeline.io.flightplan_files.DsmWindows`; the ground grids' ``BoxGrid``)."""
 
     @property
     def shape(self) -> tuple[int, ...]: ...

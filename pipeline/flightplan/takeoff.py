@@ -25,12 +25,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Protocol
 
 import numpy as np
 import scipy.ndimage as ndi
 
-from .altitude import AffineLike, _inverse
+from .altitude import AffineLike, Surface, _inverse
 from .coverage import Point2
 
 __all__ = ["Takeoff", "TakeoffParams", "check_home", "choose_takeoff", "ground_height_at", "open_ground"]
@@ -105,16 +104,7 @@ def open_ground(
     return has_ground & clear & level & dry
 
 
-class PixelGrid(Protocol):
-    """What :func:`ground_height_at` reads of a grid: its shape, pixels and windows (an array, a ``BoxGrid``)."""
-
-    @property
-    def shape(self) -> tuple[int, ...]: ...
-
-    def __getitem__(self, key: Any) -> Any: ...
-
-
-def ground_height_at(ground: PixelGrid, transform: AffineLike, point: Point2, *, search_m: float) -> float:
+def ground_height_at(ground: Surface, transform: AffineLike, point: Point2, *, search_m: float) -> float:
     """Ground height at a point: its pixel's, else the median of the ground pixels within ``search_m``; NaN if none."""
     r, c = _pixel_of(transform, point)
     if 0 <= r < ground.shape[0] and 0 <= c < ground.shape[1] and np.isfinite(ground[r, c]):
@@ -239,9 +229,7 @@ def _search_reaches(farthest: float) -> list[float]:
     return [*reaches, math.inf]
 
 
-def check_home(
-    dsm: PixelGrid, ground: PixelGrid, transform: AffineLike, home: Point2, *, params: TakeoffParams
-) -> Takeoff:
+def check_home(dsm: Surface, ground: Surface, transform: AffineLike, home: Point2, *, params: TakeoffParams) -> Takeoff:
     """A chosen home, kept: its ground height from the ground points, and a warning on a roof or canopy.
 
     Without ground points near it (within ``clear_radius_m``), the DSM there stands in

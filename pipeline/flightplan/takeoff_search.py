@@ -106,7 +106,7 @@ class GroundGrid:
 
     def load_around(self, xy: Point2, transform: AffineLike, radius_m: float) -> tuple[int, int, int, int] | None:
         """Read the ground points within ``radius_m`` of ``xy``; the box read (clipped; None: off the grid)."""
-        col, row = (xy[0] - transform.c) / transform.a, (xy[1] - transform.f) / transform.e  # north-up (read_dsm)
+        col, row = (xy[0] - transform.c) / transform.a, (xy[1] - transform.f) / transform.e  # north-up (open_dsm)
         r = int(math.ceil(radius_m / max(abs(transform.a), 1e-9)))
         rows, cols = self.height.shape
         box = (max(int(row) - r, 0), max(int(col) - r, 0), min(int(row) + r + 1, rows), min(int(col) + r + 1, cols))
@@ -150,7 +150,7 @@ def nearest_open_ground(
         found = _open_ground_in(dsm[local], transform, targets[local], ground, (r0, c0), params, distance, centre)
         if found is None:
             continue
-        r = int((found.xy[1] - window.f) / window.e)  # north-up (read_dsm refuses rotated rasters)
+        r = int((found.xy[1] - window.f) / window.e)  # north-up (open_dsm refuses rotated rasters)
         c = int((found.xy[0] - window.c) / window.a)
         score = (float(np.round(distance[r, c])), math.hypot(r + r0 - centre[0], c + c0 - centre[1]), r + r0, c + c0)
         if best is None or score < best[0]:

@@ -1,7 +1,7 @@
 """The flight-plan files: a run's holes and DSM read for planning, the plans written.
 
 Reading: :func:`read_holes` (a ``holes.gpkg`` layer) and :func:`open_dsm` (a DSM
-window, read block by block on request; :func:`read_dsm` reads it whole). Writing, in ``out_dir`` (docs/flightplans.md): ``flightplan.gpkg`` (layers
+window, read block by block on request). Writing, in ``out_dir`` (docs/flightplans.md): ``flightplan.gpkg`` (layers
 ``holes_status``, ``flight_lines``, ``waypoints``, ``route``) and, per sortie,
 ``flightplan.plan``, ``flightplan.waypoints``, ``flightplan.kmz`` and
 ``flightplan.kml`` (:mod:`.flightplan_formats`); with several sorties the names carry
@@ -30,7 +30,7 @@ from .flightplan_formats import write_kml, write_kmz, write_plan, write_waypoint
 from .las import iter_point_chunks, read_header
 from .vector import write_layer
 
-__all__ = ["DsmWindows", "open_dsm", "read_dsm", "read_ground", "read_holes", "sortie_file_names", "write_flightplan"]
+__all__ = ["DsmWindows", "open_dsm", "read_ground", "read_holes", "sortie_file_names", "write_flightplan"]
 
 #: ASPRS classes read for the take-off point: ground, and water (not to take off beside).
 _GROUND, _WATER = 2, 9
@@ -68,15 +68,6 @@ def read_holes(path: str | os.PathLike, *, layer: str = "holes") -> tuple[list[H
         for row, az in zip(frame.itertuples(), azimuths)
     ]
     return holes, frame.crs.to_wkt()
-
-
-def read_dsm(path: str | os.PathLike, bounds: tuple[float, float, float, float] | None = None):
-    """A DSM (GeoTIFF, COG or VRT) as float64 with NaN for nodata, its transform and CRS WKT.
-
-    ``bounds`` (minx, miny, maxx, maxy) limits the read to a window.
-    """
-    with open_dsm(path, bounds) as (windows, transform, crs):
-        return np.asarray(windows), transform, crs
 
 
 @contextlib.contextmanager

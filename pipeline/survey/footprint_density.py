@@ -136,23 +136,23 @@ def measure_footprint(survey: Survey, *, workers: int | None = None) -> Survey:
     cores = workers or os.cpu_count() or 1
     processes = max(1, min(len(tasks), cores, math.ceil(survey.point_count / POINTS_PER_PROCESS)))
     parts = _count_files(tasks, processes, threads=max(1, min(len(tasks), cores, MAX_THREADS)))
-    measured = footprint_from_counts(survey, parts, block, started, how=f"the pre-pass, {processes} process(es)")
+    measured = footprint_from_counts(survey, parts, started, how=f"the pre-pass, {processes} process(es)")
     return replace(survey, footprint=measured)
 
 
 def footprint_from_counts(
     survey: Survey,
     parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-    block: float,
     started: float,
     *,
     how: str,
 ) -> FootprintDensity:
-    """The density on the data footprint from the files' block counts (the pre-pass's or stage 1's).
+    """The density on the data footprint from the files' block counts (the pre-pass's or stage 1's,
+    in the survey's blocks: :func:`pulse_counting`).
 
     ``started``: when the counting began (``time.perf_counter()``), for the record and the log.
     """
-    first = survey.header_density.first_returns
+    block, first = pulse_counting(survey)
     blocks = choose_level(merge_blocks(parts, block))
     pulses = int(blocks.count.sum())
     area_m2 = blocks.occupied * (blocks.block * survey.horizontal_unit_m) ** 2
