@@ -27,6 +27,7 @@ KERNELS = [
     "pipeline.holes.detect",
     "pipeline.holes.link",
     "pipeline.holes.causes",
+    "pipeline.holes.wall_step",
     "pipeline.holes.walls",
     "pipeline.holes.outlines",
     "pipeline.holes.vertical",
@@ -50,6 +51,7 @@ KERNELS = [
     "pipeline.flightplan.altitude",
     "pipeline.flightplan.rescan",
     "pipeline.flightplan.takeoff",
+    "pipeline.flightplan.takeoff_search",
     "pipeline.flightplan.clearance",
     "pipeline.flightplan.mission",
 ]
@@ -76,6 +78,7 @@ FLOW = [
     "pipeline.holes.detect",
     "pipeline.holes.link",
     "pipeline.holes.causes",
+    "pipeline.holes.wall_step",
     "pipeline.holes.walls",
     "pipeline.holes.outlines",
     "pipeline.holes.vertical",
@@ -97,6 +100,7 @@ FLOW = [
     "pipeline.flightplan.altitude",
     "pipeline.flightplan.rescan",
     "pipeline.flightplan.takeoff",
+    "pipeline.flightplan.takeoff_search",
     "pipeline.flightplan.clearance",
     "pipeline.flightplan.mission",
 ]
