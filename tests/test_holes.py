@@ -11,6 +11,7 @@ import scipy.ndimage as ndi
 from pipeline import holes as H
 from pipeline.grid import Grid, PixelWindow
 from pipeline.parameters import default_cause_rules
+from pipeline.sensor.sight import BLOCKED, SEEN
 
 JUMP = 2.0
 
@@ -349,6 +350,80 @@ def test_same_holes_whatever_the_cell_size(connectivity):
         grow = ndi.binary_dilation(mask, ndi.generate_binary_structure(2, 1))
         ring = grow & data
         assert base.stats["ring_px"][hole_id - 1] == ring.sum()
+
+
+def strip_scene(n=160):
+    """A missed strip (columns 70-89, outside every swath) between two swaths, with voids at its edges.
+
+    West of it, a house at the swath's edge whose shadow (blocked from every line) opens onto the
+    strip; east of it, a dark patch seen unobstructed that touches the strip; further west, a
+    shadow that touches nothing; further east, a wide shadow with a sliver outside every swath
+    on its side (rows 120-139: where the swath's edge runs through it, at its unknown surface).
+    """
+    rng = np.random.default_rng(3)
+    z = 10 + rng.normal(0, 0.02, (n, n))
+    count = np.ones((n, n), np.uint32)
+    coverage = np.ones((n, n), np.int8)
+    sight = np.zeros((n, n), np.uint8)
+    coverage[:, 70:90] = 2
+    count[:, 70:90] = 0
+    z[20:40, 50:62] += 9.0  # the house at the strip's edge, its shadow east of it
+    count[20:40, 62:70] = 0
+    sight[20:40, 62:70] = BLOCKED
+    count[60:72, 90:100] = 0  # the dark patch
+    sight[60:72, 90:100] = SEEN
+    z[100:110, 20:28] += 9.0  # a house inside the swath, its shadow touching nothing
+    count[100:110, 28:33] = 0
+    sight[100:110, 28:33] = BLOCKED
+    z[120:140, 120:136] += 12.0  # a tall house east of the strip, its wide shadow west of it
+    count[120:140, 100:120] = 0
+    sight[120:140, 100:120] = BLOCKED
+    coverage[120:140, 100:102] = 2
+    sight[120:140, 100:102] = 0
+    return count, z, coverage, sight
+
+
+@pytest.mark.parametrize("connectivity", [4, 8])
+def test_shadows_opening_onto_a_missed_strip_join_it_whatever_the_cell_size(connectivity):
+    count, z, coverage, sight = strip_scene()
+    rules = default_cause_rules(pixel_size=1.0, jump_threshold=JUMP)
+
+    def classify(stats):
+        return H.classify_causes(stats, rules, sight_known=True)
+
+    results = {}
+    for cell_px, col_min, row_top in ((1000, 0, None), (64, 0, None), (40, 13, 500)):
+        grid = make_grid(*count.shape, cell_px, col_min=col_min, row_top=row_top)
+        zmax, zmin = surface(count, z)
+        cells = detect_all(grid, count, zmax, zmin, connectivity=connectivity, coverage=coverage, sight=sight)
+        catalog = H.link_holes(
+            [c.without_labels() for c in cells], min_area_px=4, joins=lambda stats: H.strip_joins(classify(stats))
+        )
+        results[cell_px] = (hole_raster(grid, cells, catalog), catalog, classify(catalog.stats))
+    raster, catalog, causes = results[1000]
+    for key in (64, 40):
+        other_raster, other, other_causes = results[key]
+        np.testing.assert_array_equal(other_raster, raster)
+        np.testing.assert_array_equal(other.holes["area_px"], catalog.holes["area_px"])
+        np.testing.assert_array_equal(other.stats["ring_px"], catalog.stats["ring_px"])
+        np.testing.assert_array_equal(other_causes, causes)
+
+    def cause_at(row, col):
+        hole = raster[row, col]
+        return hole, str(causes["cause"][hole - 1]), str(causes["rule"][hole - 1])
+
+    strip, cause, rule = cause_at(5, 80)
+    assert (cause, rule) == ("missed_coverage", "coverage_gap")
+    assert cause_at(30, 65)[0] == strip  # the shadow opening onto the strip is part of it
+    assert cause_at(65, 95)[0] != strip and cause_at(65, 95)[1] == "no_return"  # seen: apart
+    assert cause_at(105, 30)[1:] == ("occlusion", "line_of_sight")  # touches nothing: itself
+    wide, cause, rule = cause_at(130, 110)
+    assert (cause, rule) == ("occlusion", "line_of_sight")  # 40 px outside every swath on 360 px of shadow
+    assert cause_at(130, 100)[0] == wide  # ... which took the sliver in
+    # the strip's ring is counted once per pixel, as on the whole raster
+    mask = raster == wide
+    ring = ndi.binary_dilation(mask, ndi.generate_binary_structure(2, 1)) & (count > 0)
+    assert catalog.stats["ring_px"][wide - 1] == ring.sum()
 
 
 # --------------------------------------------------------------------------------------

@@ -62,7 +62,7 @@ Pipeline contract
 
 from __future__ import annotations
 
-from .causes import CAUSE_DTYPE, CAUSES, CauseRules, classify_causes
+from .causes import CAUSE_DTYPE, CAUSES, CauseRules, classify_causes, strip_joins
 from .detect import PART_DTYPE, SIDE_BITS, SIDES, CellEvidence, CellHoles, DetectParams, EdgeStrip, detect_cell_holes
 from .link import HoleCatalog, PartRecord, link_holes, mark_sampling_gaps
 from .masks import height_jumps, hole_mask, vertical_holes
@@ -92,5 +92,6 @@ __all__ = [
     "merge_hole_stats",
     "ring_metrics",
     "shape_metrics",
+    "strip_joins",
     "vertical_holes",
 ]

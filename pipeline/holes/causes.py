@@ -16,7 +16,7 @@ import numpy as np
 from ._kernels import _BIG
 from .stats import HoleStats, _hist_quantiles, ring_metrics, shape_metrics
 
-__all__ = ["CAUSE_DTYPE", "CAUSES", "RULES", "CauseRules", "classify_causes"]
+__all__ = ["CAUSE_DTYPE", "CAUSES", "RULES", "CauseRules", "classify_causes", "strip_joins"]
 
 #: Causes :func:`classify_causes` can return.
 CAUSES: tuple[str, ...] = ("occlusion", "water", "missed_coverage", "no_return", "covered", "unknown")
@@ -355,3 +355,33 @@ def _level_window(stats: HoleStats, tolerance: float) -> tuple[np.ndarray, np.nd
     level[rows[first]] = inside[first]
     below[rows[first]] = under[first]
     return level, below
+
+
+def strip_joins(causes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which holes take in the voids touching them across a coverage gap's edge, and which voids join.
+
+    A missed strip (``missed_coverage`` by ``coverage_gap``: outside every flown line's swath)
+    takes in the occlusions that open onto it: the shadows cast toward the strip by what
+    stands at a flown line's swath edge. The line that was not flown is one whose sensor
+    positions should have seen into them (they lie across the strip from the shadows' flown
+    line), so they are voids of the missed line too and its re-flight covers them. And where the
+    swath's edge runs through a void, the side each pixel lies on depends on the unknown height
+    of its first surface: the edge at a roof's or a crown's height and at the ground's lie
+    ``(z_top - z_ground) tan(angle)`` apart (3-5 m at a swath edge's 20-27 degrees under 10 m
+    trees or houses), so the void split there is slivers whose cause is a toss of a coin. The
+    joined void's cause follows the rules on its merged evidence (``coverage_gap`` where at
+    least ``gap_min_fraction`` of it lies outside every swath): a wide shadow with a sliver of
+    strip stays an occlusion. Water and voids seen unobstructed (``no_return``) stay apart: a
+    river crossing a missed strip is two holes.
+
+    Parameters
+    ----------
+    causes : ndarray of CAUSE_DTYPE
+        :func:`classify_causes` of the holes as linked on each side of the gap's edge.
+
+    Returns
+    -------
+    takes_in, joins : ndarray of bool
+        Per hole (the ``joins`` of :func:`pipeline.holes.link_holes`).
+    """
+    return causes["rule"] == "coverage_gap", causes["cause"] == "occlusion"

@@ -7,7 +7,7 @@ shared ring rows for linking on the client. See ``docs/holes.md``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -98,6 +98,10 @@ class CellHoles:
         Whether any pixel of the core holds a point.
     small_void_count, small_void_px : int
         Closed parts below ``min_area_px`` settled in the cell (labelled -1).
+    contacts : ndarray of int32, shape (K, 2)
+        Pairs of part labels ``(a, b)``, ``a < b``, whose pixels touch within the core: a part in
+        a coverage gap and one outside it, labelled apart (:func:`pipeline.holes.link_holes` may
+        join them, ``joins``).
     """
 
     cell: Cell
@@ -110,6 +114,7 @@ class CellHoles:
     core_has_data: bool
     small_void_count: int = 0
     small_void_px: int = 0
+    contacts: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int32))
 
     @property
     def n_parts(self) -> int:
@@ -255,7 +260,7 @@ def _find_parts(
     """Label, classify and measure the hole parts of a cell core from its checked work arrays."""
     R = work.R
     core = cell.window
-    labels, n = _label_holes(work, connectivity)
+    labels, n, split = _label_holes(work, connectivity)
     data_core = work.core(work.data)
     core_has_data = bool(data_core.any())
     edges = _edge_strips(labels, core)
@@ -275,13 +280,17 @@ def _find_parts(
 
     cols = _empty_columns(n)
     _pixel_statistics(cols, labels, n, core, work, connectivity)
-    closed = _closed_parts(cols, edges, n)
+    contacts = _part_contacts(labels, connectivity) if split else np.zeros((0, 2), np.int32)
+    # a part touching one on the other side of a coverage gap's edge is not a whole hole:
+    # linking may join the two (its ring pixels are resolved as an open part's)
+    closed = _closed_parts(cols, edges, n) & ~np.isin(np.arange(1, n + 1), contacts)
     small = closed & (cols["area_px"] < min_area_px)  # complete holes: small ones are settled here
     small_void_count, small_void_px = int(small.sum()), int(cols["area_px"][small].sum())
     if small_void_count:
-        labels, cols, closed = _drop_parts(labels, cols, closed, small)
+        labels, cols, closed, relabel = _drop_parts(labels, cols, closed, small)
         n = len(closed)
         edges = _edge_strips(labels, core)
+        contacts = relabel[contacts]  # parts in contact are never dropped
     height_hist, line_hist, shared = _ring_statistics(
         cols,
         labels,
@@ -305,7 +314,26 @@ def _find_parts(
         core_has_data=core_has_data,
         small_void_count=small_void_count,
         small_void_px=small_void_px,
+        contacts=contacts,
     )
+
+
+def _part_contacts(labels: np.ndarray, connectivity: int) -> np.ndarray:
+    """Pairs ``(a, b)``, ``a < b``, of part labels whose pixels touch (by ``connectivity``): sorted, unique, int32.
+
+    Parts of one labelling never touch; parts in a coverage gap and out of it do (``_label_holes``).
+    """
+    rows, cols = labels.shape
+    pairs = [np.zeros((0, 2), np.int32)]
+    shifts = [(0, 1), (1, 0)] + ([(1, 1), (1, -1)] if connectivity == 8 else [])
+    for dr, dc in shifts:
+        here = labels[: rows - dr, max(0, -dc) : cols - max(0, dc)]
+        there = labels[dr:, max(0, dc) : cols + min(0, dc)]
+        touch = (here > 0) & (there > 0) & (here != there)
+        if touch.any():
+            a, b = here[touch], there[touch]
+            pairs.append(np.column_stack([np.minimum(a, b), np.maximum(a, b)]).astype(np.int32))
+    return np.unique(np.concatenate(pairs), axis=0)
 
 
 def _check_inputs(
@@ -422,16 +450,17 @@ def _work_arrays(arrays: dict[str, np.ndarray | None], cell: Cell, R: int) -> _W
     )
 
 
-def _label_holes(work: _Work, connectivity: int) -> tuple[np.ndarray, int]:
+def _label_holes(work: _Work, connectivity: int) -> tuple[np.ndarray, int, bool]:
     """Parts of the core's hole pixels, numbered in raster order of their first pixels.
 
-    With a coverage gap, the pixels inside and outside it are labelled apart.
+    With a coverage gap, the pixels inside and outside it are labelled apart (the third
+    value says whether they were).
     """
     structure = ndi.generate_binary_structure(2, 1 if connectivity == 4 else 2)
     hole = work.core(work.hole)
     if work.gap is None or not (gap := work.core(work.gap) & hole).any():
         labels, n = ndi.label(hole, structure=structure)
-        return labels.astype(np.int32, copy=False), int(n)
+        return labels.astype(np.int32, copy=False), int(n), False
     inside, n_in = ndi.label(gap, structure=structure)
     outside, n_out = ndi.label(hole & ~gap, structure=structure)
     merged = np.where(inside > 0, inside, np.where(outside > 0, outside + n_in, 0)).ravel()
@@ -440,7 +469,7 @@ def _label_holes(work: _Work, connectivity: int) -> tuple[np.ndarray, int]:
     present = values > 0
     relabel = np.zeros(n + 1, np.int32)
     relabel[values[present][np.argsort(first[present])]] = np.arange(1, n + 1, dtype=np.int32)
-    return relabel[merged].reshape(hole.shape), n
+    return relabel[merged].reshape(hole.shape), n, True
 
 
 def _closed_parts(cols: dict[str, np.ndarray], edges: tuple[EdgeStrip, ...], n: int) -> np.ndarray:
@@ -453,13 +482,13 @@ def _closed_parts(cols: dict[str, np.ndarray], edges: tuple[EdgeStrip, ...], n: 
 
 def _drop_parts(
     labels: np.ndarray, cols: dict[str, np.ndarray], closed: np.ndarray, drop: np.ndarray
-) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
-    """Label the dropped parts -1 and number the others 1..k again, in order."""
+) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """Label the dropped parts -1 and number the others 1..k again, in order; also the map from old labels to new."""
     keep = np.flatnonzero(~drop)
     relabel = np.full(len(drop) + 1, -1, np.int32)
     relabel[0] = 0
     relabel[keep + 1] = np.arange(1, len(keep) + 1, dtype=np.int32)
-    return relabel[labels], {k: v[keep] for k, v in cols.items()}, closed[keep]
+    return relabel[labels], {k: v[keep] for k, v in cols.items()}, closed[keep], relabel
 
 
 def _ring_statistics(

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -121,13 +121,20 @@ class HoleCatalog:
         return out
 
 
-def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatalog:
+def link_holes(
+    cells: Sequence[CellHoles],
+    *,
+    min_area_px: int = 1,
+    joins: Callable[[HoleStats], tuple[np.ndarray, np.ndarray]] | None = None,
+) -> HoleCatalog:
     """Link hole parts across cell edges into global holes and layer them.
 
     Parts of adjacent cells whose edge pixels touch (4-adjacency across the
     shared edge; with 8-connectivity also diagonally, including across cell
     corners), both inside a coverage gap or both outside, belong to one hole: the connected components of that contact graph
-    (a union-find) are the global holes. Layers follow [OPEN] section 3.2:
+    (a union-find) are the global holes. Where ``joins`` is given, holes on the two sides of a
+    coverage gap's edge that touch (within a cell, ``CellHoles.contacts``, or across a cell edge)
+    are then joined where it says so. Layers follow [OPEN] section 3.2:
     layer 1 = parts that touch measured data (a measured pixel 4-adjacent, in
     the core or the halo), layer n + 1 = parts linked to a layer-n part.
 
@@ -140,6 +147,11 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
         Every cell of the survey (labels may have been dropped).
     min_area_px : int
         Holes with fewer pixels are small voids (flagged ``is_small``).
+    joins : callable, optional
+        Called with the statistics of the holes as linked on each side of a gap's edge; returns
+        per hole whether it takes in the holes touching it that join, and whether it joins the
+        hole it touches (two bool arrays). Joined holes make one hole, whose statistics are
+        merged again from the parts (the same whatever the cells).
 
     Returns
     -------
@@ -155,14 +167,32 @@ def link_holes(cells: Sequence[CellHoles], *, min_area_px: int = 1) -> HoleCatal
     n_nodes = int(offsets[-1])
     edges = _EdgePixels.of(cells, offsets)
     in_gap = np.concatenate([c.stats["gap_px"] > 0 for c in cells])
-    graph = _contact_graph(edges, connectivity, n_nodes, in_gap)
+    a, b = _touching_parts(edges, connectivity)
+    same_side = in_gap[a] == in_gap[b]
+    graph = _symmetric_graph(a[same_side], b[same_side], n_nodes)
     n_comp, comp = csgraph.connected_components(graph, directed=False)
-    entries, e_comp = _shared_ring_entries(cells, offsets, comp, edges)
-    merged = merge_hole_stats(
-        [c.stats for c in cells] + [_shared_ring_stats(entries, cells[0].stats.height_bin)],
-        [comp[offsets[k] : offsets[k + 1]] for k in range(len(cells))] + [e_comp],
-        n_comp,
-    )
+    merged = _merged_stats(cells, offsets, comp, n_comp, edges)
+    if joins is not None:
+        within = [offsets[k] + c.contacts.astype(np.int64) - 1 for k, c in enumerate(cells) if len(c.contacts)]
+        across_a = np.concatenate([a[~same_side], *(pairs[:, 0] for pairs in within)])
+        across_b = np.concatenate([b[~same_side], *(pairs[:, 1] for pairs in within)])
+        if len(across_a):
+            takes_in, joining = joins(merged)
+            ca, cb = comp[across_a], comp[across_b]
+            join = (takes_in[ca] & joining[cb]) | (joining[ca] & takes_in[cb])
+            if join.any():
+                n_comp, joined = csgraph.connected_components(
+                    _symmetric_graph(ca[join], cb[join], n_comp), directed=False
+                )
+                comp = joined[comp]
+                merged = _merged_stats(cells, offsets, comp, n_comp, edges)
+                # joined parts of neighbouring cells are linked parts (``neighbour_idx``, layers)
+                crossing = join[: int((~same_side).sum())]
+                graph = _symmetric_graph(
+                    np.concatenate([a[same_side], a[~same_side][crossing]]),
+                    np.concatenate([b[same_side], b[~same_side][crossing]]),
+                    n_nodes,
+                )
     # hole ids 1..H in raster order of first pixels
     order = np.lexsort((merged["first_col"], merged["first_row"]))
     hole_id_of_comp = np.empty(n_comp, np.int64)
@@ -244,11 +274,34 @@ class _EdgePixels:
         return np.where(self.keys[i] == key, self.key_nodes[i], -1)
 
 
-def _contact_graph(edges: _EdgePixels, connectivity: int, n_nodes: int, in_gap: np.ndarray) -> sparse.csr_matrix:
-    """Symmetric 0/1 adjacency of the parts whose edge pixels touch across a cell edge.
+def _merged_stats(
+    cells: Sequence[CellHoles], offsets: np.ndarray, comp: np.ndarray, n_comp: int, edges: _EdgePixels
+) -> HoleStats:
+    """The statistics of the holes ``comp`` makes of the parts (one row per component), each ring pixel once per hole."""
+    entries, e_comp = _shared_ring_entries(cells, offsets, comp, edges)
+    return merge_hole_stats(
+        [c.stats for c in cells] + [_shared_ring_stats(entries, cells[0].stats.height_bin)],
+        [comp[offsets[k] : offsets[k + 1]] for k in range(len(cells))] + [e_comp],
+        n_comp,
+    )
 
-    Parts inside a coverage gap link only to parts inside one (``in_gap`` per node),
-    as detection labels them apart within a cell.
+
+def _symmetric_graph(a: np.ndarray, b: np.ndarray, n_nodes: int) -> sparse.csr_matrix:
+    """The symmetric 0/1 adjacency of ``n_nodes`` nodes with the edges ``a[i] - b[i]``."""
+    graph = sparse.coo_matrix(
+        (np.ones(2 * len(a), np.int8), (np.concatenate([a, b]), np.concatenate([b, a]))),
+        shape=(n_nodes, n_nodes),
+    ).tocsr()
+    graph.sum_duplicates()
+    graph.data[:] = 1
+    return graph
+
+
+def _touching_parts(edges: _EdgePixels, connectivity: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of parts (nodes ``a[i]``, ``b[i]``) whose edge pixels touch across a cell edge.
+
+    Parts inside a coverage gap and parts outside one are among them (detection labels them
+    apart within a cell); :func:`link_holes` links those on one side.
     """
     a_list, b_list = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     for s, side in enumerate(SIDES):
@@ -263,15 +316,8 @@ def _contact_graph(edges: _EdgePixels, connectivity: int, n_nodes: int, in_gap: 
             a_list.append(edges.nodes[m][ok])
             b_list.append(other[ok])
     a, b = np.concatenate(a_list), np.concatenate(b_list)
-    keep = (a != b) & (in_gap[a] == in_gap[b])
-    a, b = a[keep], b[keep]
-    graph = sparse.coo_matrix(
-        (np.ones(2 * len(a), np.int8), (np.concatenate([a, b]), np.concatenate([b, a]))),
-        shape=(n_nodes, n_nodes),
-    ).tocsr()
-    graph.sum_duplicates()
-    graph.data[:] = 1
-    return graph
+    keep = a != b
+    return a[keep], b[keep]
 
 
 def _shared_ring_entries(

@@ -31,7 +31,7 @@ from ..rasterize import STATISTIC_DTYPES, STATISTIC_NAMES, PixelStatistics
 from . import plain_data
 
 #: Bumped whenever the layout of a kept result changes, so stale files are never read.
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 
 
 #: The longest name holefill gives an internal file or folder (a file system allows 255 bytes,

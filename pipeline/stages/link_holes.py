@@ -10,11 +10,12 @@ its cause, and a resumed run reads it instead of linking again.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 from ..config import Config
-from ..holes import HoleCatalog, classify_causes, link_holes, mark_sampling_gaps, ring_metrics
+from ..holes import HoleCatalog, classify_causes, link_holes, mark_sampling_gaps, ring_metrics, strip_joins
 from ..holes.coverage import line_bands
 from ..holes.flight_lines import line_azimuths, strip_azimuths
 from ..io.intermediate import save_object
@@ -56,22 +57,27 @@ def link_cells(
     are not known; ``geometry``: the flight lines' trajectories and swaths, whose lines of
     sight decide the causes where it is complete.
     """
-    catalog = link_holes([d.cell_holes for d in detected], min_area_px=params.min_area_px)
-    gap_px = sampling_gap_px(plan.survey, plan.grid, catalog.stats, params.sampling_gap_px)
-    catalog, gaps = mark_sampling_gaps(catalog, gap_px)
     rules = cause_rules(
         config,
         pixel_size_m=plan.grid.resolution * plan.survey.horizontal_unit_m,
         vertical_unit_m=plan.survey.vertical_unit_m,
     )
     sight_known = geometry is not None and geometry.complete
-    causes = classify_causes(
-        catalog.stats,
-        rules,
+    classify = partial(
+        classify_causes,
+        rules=rules,
         bands_known=len(line_bands(line_moments)) >= 2,
         sight_known=sight_known,
         heights_assumed=sight_known and geometry is not None and geometry.heights_assumed,
     )
+    catalog = link_holes(
+        [d.cell_holes for d in detected],
+        min_area_px=params.min_area_px,
+        joins=lambda stats: strip_joins(classify(stats)),
+    )
+    gap_px = sampling_gap_px(plan.survey, plan.grid, catalog.stats, params.sampling_gap_px)
+    catalog, gaps = mark_sampling_gaps(catalog, gap_px)
+    causes = classify(catalog.stats)
     if sight_known:
         assert geometry is not None
         # to 0.01 degree: the fit's last digits follow the order the reads summed in (a split COPC file)
