@@ -242,5 +242,7 @@ def test_a_recorded_angle_the_returns_exceed_is_not_the_scanner_s():
     assert _largest_angle(4.002, 20.0) == 20.0
     assert _largest_angle(20.0, 20.3) == 20.3  # a whole-degree rank refined within its half degree
     assert _largest_angle(20.0, 15.0) == 20.0  # a cropped swath measures low: the record stands
+    assert _largest_angle(23.0, 22.42) == 22.5  # just below the rank's half degree: its nearest angle
+    assert _largest_angle(23.0, 23.7) == 23.5
     assert _largest_angle(20.5, 21.5) == 20.5  # within the slack: the record stands
     assert math.isnan(_largest_angle(math.nan, math.nan))
