@@ -426,6 +426,39 @@ def test_shadows_opening_onto_a_missed_strip_join_it_whatever_the_cell_size(conn
     assert catalog.stats["ring_px"][wide - 1] == ring.sum()
 
 
+def test_water_beside_a_shadow_is_no_evidence_of_water_where_the_lines_of_sight_are_known():
+    """A tree's shadow on a lake's shore has the lake's edge in its ring: blocked, so an occlusion."""
+    count, z, coverage, sight = strip_scene()
+    water = np.zeros(count.shape, np.uint16)
+    water[98:112, 33:36] = 2  # class-9 returns along the isolated shadow's east side
+    grid = make_grid(*count.shape, 64)
+    zmax, zmin = surface(count, z)
+    cells = detect_all(grid, count, zmax, zmin, coverage=coverage, sight=sight, water_points=water)
+    catalog = H.link_holes([c.without_labels() for c in cells], min_area_px=4)
+    hole = hole_raster(grid, cells, catalog)[105, 30] - 1
+    rules = default_cause_rules(pixel_size=1.0, jump_threshold=JUMP)
+    assert catalog.stats["ring_water_px"][hole] / catalog.stats["ring_px"][hole] < H.causes.WATER_RING_SHARE
+    known = H.classify_causes(catalog.stats, rules, sight_known=True)[hole]
+    assert (known["cause"], known["rule"]) == ("occlusion", "line_of_sight")
+    rim_only = H.classify_causes(catalog.stats, rules)[hole]
+    assert (rim_only["cause"], rim_only["rule"]) == ("water", "water_points")
+
+
+def test_seen_voids_join_a_missed_strip_only_where_the_heights_are_assumed():
+    causes = np.array(
+        [
+            ("missed_coverage", "coverage_gap"),
+            ("occlusion", "line_of_sight"),
+            ("no_return", "seen"),
+            ("water", "water_edge"),
+        ],
+        H.CAUSE_DTYPE,
+    )
+    takes_in, joins = H.strip_joins(causes)
+    assert takes_in.tolist() == [True, False, False, False] and joins.tolist() == [False, True, False, False]
+    assert H.strip_joins(causes, heights_assumed=True)[1].tolist() == [False, True, True, False]
+
+
 # --------------------------------------------------------------------------------------
 # causes
 # --------------------------------------------------------------------------------------

@@ -235,6 +235,24 @@ def test_the_survey_extent_closes_the_seams_between_tiles():
     assert apart.geom_type == "MultiPolygon"
 
 
+def test_a_void_the_tiles_enclose_is_no_edge_of_the_survey():
+    """A missed strip whose tiles' data stops at its edges leaves a hole in their boxes: not the survey's edge."""
+    from pipeline.stages.detect_holes import survey_extent
+
+    # 100 m tiles around the middle square, cut into two 50 m tiles whose data stops 10 m short of their border
+    boxes = [
+        (x, y, x + 100.0, y + 100.0)
+        for x in (0.0, 100.0, 200.0)
+        for y in (0.0, 100.0, 200.0)
+        if (x, y) != (100.0, 100.0)
+    ]
+    boxes += [(100.0, 100.0, 140.0, 200.0), (160.0, 100.0, 200.0, 200.0)]
+    extent = survey_extent(boxes, 1.0)
+    assert extent.geom_type == "Polygon" and len(extent.interiors) == 0
+    assert extent.area == pytest.approx(300.0 * 300.0)
+    assert not shapely.boundary(extent).intersects(shapely.Point(140.0, 150.0).buffer(5.0))
+
+
 def test_a_recorded_angle_the_returns_exceed_is_not_the_scanner_s():
     """IGN's lidar-prod extract records 0-4 degrees over a swath 110 m wide: the returns' own edges win."""
     from pipeline.sensor.trajectory import _largest_angle

@@ -63,17 +63,18 @@ def link_cells(
         vertical_unit_m=plan.survey.vertical_unit_m,
     )
     sight_known = geometry is not None and geometry.complete
+    heights_assumed = sight_known and geometry is not None and geometry.heights_assumed
     classify = partial(
         classify_causes,
         rules=rules,
         bands_known=len(line_bands(line_moments)) >= 2,
         sight_known=sight_known,
-        heights_assumed=sight_known and geometry is not None and geometry.heights_assumed,
+        heights_assumed=heights_assumed,
     )
     catalog = link_holes(
         [d.cell_holes for d in detected],
         min_area_px=params.min_area_px,
-        joins=lambda stats: strip_joins(classify(stats)),
+        joins=lambda stats: strip_joins(classify(stats), heights_assumed=heights_assumed),
     )
     gap_px = sampling_gap_px(plan.survey, plan.grid, catalog.stats, params.sampling_gap_px)
     catalog, gaps = mark_sampling_gaps(catalog, gap_px)
