@@ -149,6 +149,35 @@ def test_a_second_line_from_the_other_side_sees_the_shadow():
     assert classes[30, 27] == SEEN
 
 
+def test_a_pixel_s_class_does_not_depend_on_the_window_beyond_its_reach():
+    """Rays stop at the reach and clear the heights within it: a tower 70 m away, and the size of the
+    window around the reach, change nothing (a 4 m2 void at a Delft scan's edge was blocked with
+    250 m cells and not with 50 m ones: the window's highest roof decided when its ray left the grid)."""
+    rng = np.random.default_rng(5)
+    size, reach = 200, 30.0
+    zmax = rng.uniform(0.0, 3.0, (size, size))
+    zmax[:, 150:160] = 60.0  # a tower block 70-80 m east of the candidates
+    zmax[95:105, 84:86] = 8.0  # a wall just east of them
+    candidates = np.zeros((size, size), bool)
+    candidates[90:110, 80:84] = True
+    candidates[2, 80:84] = True  # near the grid's north edge: their rays leave it
+    zmax[candidates] = np.nan
+    targets = ground_targets(np.nan_to_num(zmax), np.isfinite(zmax), candidates, step=2.5, pixel_size=1.0)
+    track = np.array([[300.0, 250.0, 150.0], [300.0, -250.0, 150.0]])  # east of the window, flying south
+
+    def classes(rows, cols):
+        window = (slice(*rows), slice(*cols))
+        return sight_classes(
+            candidates[window], zmax[window], targets[window], np.ones((1, rows[1] - rows[0], cols[1] - cols[0]), bool),
+            [track], origin_xy=(float(cols[0]), float(size - rows[0])), pixel_size=1.0, reach=reach,
+        )  # fmt: skip
+
+    whole = classes((0, size), (0, size))
+    near = classes((0, 140), (50, 114))  # the candidates' rows and columns grown by the reach
+    np.testing.assert_array_equal(near, whole[0:140, 50:114])
+    assert (whole[candidates] == BLOCKED).any() and (whole[candidates] == SEEN).any()
+
+
 def test_the_largest_scan_angle_from_the_swath_s_edges_where_none_is_recorded():
     """Multiple returns place the sensor; the swath's edges and their heights give the scanner's angle."""
     (line,) = _fit([_scan(angles=False)])

@@ -143,7 +143,11 @@ def sight_classes(
         Pixel size in world units.
     reach : float
         How far (world units) a ray is followed: one that leaves the window sooner (the survey's
-        grid ends there) without clearing every height in it proves nothing, and the pixel is not seen by it.
+        grid ends there) without clearing every height within the reach proves nothing, and the
+        pixel is not seen by it. A ray stops at the reach, and clears the heights when it rises
+        above the highest within the reach's square around its pixel: the window (the cell's
+        core grown by the reach) holds that square whatever the cell size, so a pixel's class
+        does not depend on it. ``inf``: followed to the window's edge.
     max_scan_angles : list of float, optional
         Each line's largest scan angle (degrees; NaN where unknown). Where known, the swath is
         exact: a pixel lies in it when the ray from the sensor to its ground is no farther from the
@@ -158,7 +162,7 @@ def sight_classes(
     if len(rows) == 0:
         return out
     covered = swaths[:, rows, cols] if len(swaths) else np.zeros((0, len(rows)), bool)
-    top = float(np.nanmax(zmax)) if np.isfinite(zmax).any() else -np.inf
+    tops_within_reach = _highest_within(zmax, reach / pixel_size)
     seen = np.zeros(len(rows), np.bool_)
     swept = np.zeros(len(rows), np.bool_)
     angles = max_scan_angles if max_scan_angles is not None else [math.nan] * len(tracks)
@@ -171,10 +175,19 @@ def sight_classes(
         tan_max = math.tan(math.radians(angle)) if math.isfinite(angle) and angle > 0 else math.inf
         _cast(
             rows[todo], cols[todo], targets, tops, zmax, np.ascontiguousarray(track, np.float64),
-            origin_xy[0], origin_xy[1], pixel_size, top, seen, swept, np.flatnonzero(todo), reach, tan_max,
+            origin_xy[0], origin_xy[1], pixel_size, tops_within_reach, seen, swept, np.flatnonzero(todo), reach, tan_max,
         )  # fmt: skip
     out[rows, cols] = np.where(~swept, OUTSIDE_SWATHS, np.where(seen, SEEN, BLOCKED))
     return out
+
+
+def _highest_within(zmax: np.ndarray, reach_px: float) -> np.ndarray:
+    """Per pixel, the highest measured height in the square of half-side ``reach_px`` around it (-inf: none)."""
+    heights = np.where(np.isfinite(zmax), zmax, -np.inf)
+    if not math.isfinite(reach_px) or reach_px >= max(zmax.shape):
+        return np.full(zmax.shape, float(heights.max(initial=-np.inf)))
+    size = 2 * math.ceil(reach_px) + 1
+    return ndi.maximum_filter(heights, size=size, mode="constant", cval=-np.inf)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -206,7 +219,7 @@ def _sensor_at(track, x, y):
 
 
 @numba.njit(cache=True, nogil=True)
-def _cast(rows, cols, targets, tops, zmax, track, x_left, y_top, pixel, top, seen, swept, slots, reach, tan_max):
+def _cast(rows, cols, targets, tops, zmax, track, x_left, y_top, pixel, highest, seen, swept, slots, reach, tan_max):
     height, width = zmax.shape
     for n in range(len(rows)):
         r, c = rows[n], cols[n]
@@ -236,8 +249,9 @@ def _cast(rows, cols, targets, tops, zmax, track, x_left, y_top, pixel, top, see
         step = 0.5 * pixel
         tolerance = slope * 0.5 * pixel
         blocked = False
+        top = highest[r, c]
         t = step
-        while t < distance:
+        while t < distance and t < reach:
             ray_z = z0 + slope * t
             if ray_z > top:
                 break
