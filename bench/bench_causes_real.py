@@ -6,9 +6,12 @@ listed hole with an independent truth (``pipeline.evaluate.causes``: the
 producer's water-class points beside the hole, reference lake polygons, building
 points standing above the ring). Each file with water-class points is run a
 second time with that evidence withheld: a copy of the file with class 9
-relabelled 1 (unclassified), so the DSM and the holes are the same and only the
-``water_points`` rule loses its evidence; the rim rules (``level_rim``,
-``flat_low_rim``) are then scored against a truth they never saw. The copies live
+relabelled 1 (unclassified), so the DSM is the same and the rules lose the
+water-class evidence; the rim rules (``level_rim``, ``flat_low_rim``) are then
+scored against a truth they never saw. The holes may differ a little (a warning
+says so): the water returns also set the first surface that bounds a swath at a
+lake's edge (``sensor.sight.surface_tops``), and a hole whose cause changes may
+join a missed strip or stop joining it (``holes.strip_joins``). The copies live
 in the output folder (a temporary one by default), never in the repository.
 
 Printed: per file and pooled over the water files and over the others, for both
