@@ -1,7 +1,7 @@
 """Hole causes on lidar scans simulated over real terrain (``pipeline.simulate``).
 
 Run: ``python bench/bench_sim_causes.py [--scans 30] [--terrains delft,bcts,topography]
-[--seeds 0,1,2,...] [--json out.json] [--work folder] [--set KEY=VALUE ...]``.
+[--seeds 0,1,2,...] [--json out.json] [--work folder] [--set KEY=VALUE ...] [--aoi]``.
 
 Scan ``k`` flies over terrain ``k mod len(terrains)`` with the parameters drawn from seed
 ``seeds[k]`` (default ``k``): heading, lines with ids in arbitrary order, a dropped line
@@ -9,7 +9,8 @@ Scan ``k`` flies over terrain ``k mod len(terrains)`` with the parameters drawn 
 density, field of view, height, dark patches (``random_scan_params``). The tiles (CRS
 embedded) go through the DEFAULT pipeline, exactly as ``holefill run TILES --out OUT``
 runs it -- no AOI, no water polygons, pixel size and minimum hole area "auto" -- on one
-local cluster shared by the runs. The truth is then made at the run's pixel size
+local cluster shared by the runs (with ``--aoi``, the scene's rectangle is given as the
+planned area, ``holefill run --aoi``). The truth is then made at the run's pixel size
 (``write_truth``), and the holes scored with ``pipeline.evaluate.truth.score_holes``. Prints,
 per terrain and pooled: holes, right/total per true cause, the confusion (true ->
 reported), the IoU of hole pixels, and every hole whose cause is wrong with the rule that
@@ -27,24 +28,31 @@ import sys
 import tempfile
 import time
 
+import pyproj
+import shapely
 from bench_causes import Tally, format_tally, wrong_holes
 
 from pipeline.config import load_config
 from pipeline.evaluate.truth import score_holes
+from pipeline.io.vector import write_layer
 from pipeline.run import run_survey
 from pipeline.simulate import TERRAINS, Terrain, load_terrain, random_scan_params, simulate_scan, write_truth
 
 DEFAULT_DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
-def run_scan(terrain: Terrain, seed: int, folder: pathlib.Path, client, overrides: tuple[str, ...] = ()) -> dict:
-    """Simulate one scan, run the default pipeline on its tiles and score its holes."""
+def run_scan(
+    terrain: Terrain, seed: int, folder: pathlib.Path, client, overrides: tuple[str, ...] = (), *, aoi: bool = False
+) -> dict:
+    """Simulate one scan, run the default pipeline on its tiles (``aoi``: the scene's rectangle as
+    the planned area) and score its holes."""
     params = random_scan_params(seed, terrain)
     started = time.perf_counter()
     scan = simulate_scan(terrain, params, folder / "scan")
     simulated = time.perf_counter() - started
     out = folder / "out"
-    run_survey([str(folder / "scan" / "tiles")], out, load_config(overrides=overrides), client=client)
+    planned = planned_area(terrain, folder / "planned_area.gpkg") if aoi else None
+    run_survey([str(folder / "scan" / "tiles")], out, load_config(overrides=overrides), client=client, aoi=planned)
     seconds = time.perf_counter() - started - simulated
     manifest = json.loads((out / "manifest.json").read_text())
     resolution = float(manifest["grid"]["resolution"])
@@ -64,6 +72,15 @@ def run_scan(terrain: Terrain, seed: int, folder: pathlib.Path, client, override
         "score": score,
         "wrong": wrong_holes(out / "holes.gpkg", truth),
     }
+
+
+def planned_area(terrain: Terrain, path: pathlib.Path) -> pathlib.Path:
+    """The scene's rectangle as a GeoPackage: the area the survey was planned to cover."""
+    rows, cols = terrain.surface.shape
+    box = shapely.box(
+        terrain.x_min, terrain.y_min, terrain.x_min + cols * terrain.cell_m, terrain.y_min + rows * terrain.cell_m
+    )
+    return write_layer(path, "planned_area", [{"name": terrain.name}], [box], crs_wkt=pyproj.CRS(terrain.crs).to_wkt())
 
 
 def print_summary(results: list[dict], terrains: list[str]) -> tuple[dict[str, Tally], Tally]:
@@ -106,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
         metavar="KEY=VALUE",
         help="a setting for every run (as holefill run --set)",
     )
+    parser.add_argument("--aoi", action="store_true", help="give the scene's rectangle as the planned area")
     args = parser.parse_args(argv)
     terrains = [name.strip() for name in args.terrains.split(",") if name.strip()]
     unknown = sorted(set(terrains) - set(TERRAINS))
@@ -129,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         work = args.work or pathlib.Path(scratch)
         for k in range(args.scans):
             name, seed = terrains[k % len(terrains)], seeds[k]
-            result = run_scan(loaded[name], seed, work / f"{name}-{seed}", client, tuple(args.set))
+            result = run_scan(loaded[name], seed, work / f"{name}-{seed}", client, tuple(args.set), aoi=args.aoi)
             score = result["score"]
             print(
                 f"{name:12s} {result['params']}\n{'':12s} -> {result['points']:,} points, {result['resolution']} m "
