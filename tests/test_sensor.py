@@ -149,6 +149,23 @@ def test_a_second_line_from_the_other_side_sees_the_shadow():
     assert classes[30, 27] == SEEN
 
 
+def test_the_first_surface_of_a_void_is_the_water_s_only_where_most_returns_beside_it_are():
+    """A void on a lake lies at the water; one on the bank, with a few of the lake's returns beside it, on the bank."""
+    from pipeline.sensor.sight import surface_tops
+
+    zmax = np.full((20, 20), 5.0)  # the bank, 5 m above the lake
+    water = np.zeros((20, 20), bool)
+    water[:, :10] = True  # the lake, west half
+    zmax[water] = 0.0
+    void = np.zeros((20, 20), bool)
+    void[10, 4] = True  # on the lake
+    void[10, 11] = True  # on the bank, one pixel from the lake's edge returns
+    zmax[void] = np.nan
+    tops = surface_tops(zmax, np.isfinite(zmax), void, pixel_size=1.0, water=water)
+    assert tops[10, 4] == pytest.approx(0.0)
+    assert tops[10, 11] > 2.5  # the bank's level where its returns are the most (here 2 of 3 columns)
+
+
 def test_a_pixel_s_class_does_not_depend_on_the_window_beyond_its_reach():
     """Rays stop at the reach and clear the heights within it: a tower 70 m away, and the size of the
     window around the reach, change nothing (a 4 m2 void at a Delft scan's edge was blocked with

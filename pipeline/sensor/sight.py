@@ -76,9 +76,12 @@ def surface_tops(
 
     What bounds a swath is the first surface the scanner's outermost pulses meet: a void
     among trees at a swath's edge lay under the canopy the edge pulses could not reach,
-    and the ground beneath is wider in the swath than the canopy. Where that nearest radius
-    holds water returns (``water``), their level: a lake's edge lies at the water, not at the
-    trees on its shore. NaN where no radius of ``TARGET_RADII_M`` holds a measured pixel.
+    and the ground beneath is wider in the swath than the canopy. Where at least half of that
+    nearest radius's returns are water returns (``water``), their level: a lake's edge lies at
+    the water, not at the trees on its shore; a void among land returns with a few of the water's
+    beside it lies on the land (a band along a missed strip next to a lake, 2-4 px wide, was taken
+    at the water's level and so inside the swath). NaN where no radius of ``TARGET_RADII_M`` holds
+    a measured pixel.
     """
     out = np.full(zmax.shape, np.nan)
     rows, cols = np.nonzero(where)
@@ -93,20 +96,25 @@ def surface_tops(
         r0, r1 = max(rows.min() - radius, 0), min(rows.max() + radius + 1, zmax.shape[0])
         c0, c1 = max(cols.min() - radius, 0), min(cols.max() + radius + 1, zmax.shape[1])
         window = (slice(r0, r1), slice(c0, c1))
-        level_all = _window_mean(zmax[window], measured[window], radius)[rows - r0, cols - c0]
-        level_water = _window_mean(zmax[window], on_water[window], radius)[rows - r0, cols - c0]
-        level = np.where(np.isnan(level_water), level_all, level_water)
+        level_all, count_all = _window_mean(zmax[window], measured[window], radius)
+        level_water, count_water = _window_mean(zmax[window], on_water[window], radius)
+        at = (rows - r0, cols - c0)
+        # on the water where most of the nearest returns are the water's: a void beside a lake
+        # among land returns lies on the land (the bank at a swath's edge, not the lake's level)
+        on_lake = np.isfinite(level_water[at]) & (count_water[at] >= 0.5 * count_all[at])
+        level = np.where(on_lake, level_water[at], level_all[at])
         found = np.where(todo, level, found)
     out[rows, cols] = found
     return out
 
 
-def _window_mean(values: np.ndarray, where: np.ndarray, radius: int) -> np.ndarray:
-    """Mean of ``values`` over the pixels ``where`` in the square of ``radius`` around each pixel (NaN: none)."""
+def _window_mean(values: np.ndarray, where: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of ``values`` over the pixels ``where`` in the square of ``radius`` around each pixel (NaN: none),
+    and the share of the square's pixels those are."""
     size = 2 * radius + 1
     total = ndi.uniform_filter(np.where(where, values, 0.0).astype(np.float64), size=size, mode="constant")
     count = ndi.uniform_filter(where.astype(np.float64), size=size, mode="constant")
-    return np.where(count > 0.5 / size**2, total / np.maximum(count, 1e-12), np.nan)
+    return np.where(count > 0.5 / size**2, total / np.maximum(count, 1e-12), np.nan), count
 
 
 def sight_classes(
