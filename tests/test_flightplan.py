@@ -269,3 +269,24 @@ def test_flightplan_kernels_import_no_io_library():
     )
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == "", f"pipeline.flightplan imports {loaded}"
+
+
+def test_a_lane_over_a_void_wider_than_its_swath_flies_above_the_surface_beside_it():
+    """A missed strip 200 m wide: no DSM under the lane's 40 m corridor; the lane clears what stands beside the strip."""
+    from pipeline.flightplan.altitude import lane_line
+
+    dsm = np.full((400, 600), 20.0)
+    dsm[:, 200:400] = np.nan  # the strip, x 200-400 m (1 m pixels)
+    dsm[50:60, 150:160] = 35.0  # a house on the west bank
+    dsm[300:310, 420:430] = 28.0  # and one on the east bank
+    transform = Affine(1.0, 0.0, 0.0, 0.0, -1.0, 400.0)
+    first, last = lane_line(
+        dsm, transform, (300.0, 0.0), (300.0, 400.0),
+        half_width_m=20.0, altitude_agl_m=50.0, max_gradient=0.1, slope_gain_m=5.0,
+    )  # fmt: skip
+    assert first == last == pytest.approx(35.0 + 50.0)  # the highest beside the strip, the lane level
+    with pytest.raises(ValueError, match="no DSM height"):
+        lane_line(
+            np.full((10, 10), np.nan), transform, (0.0, 0.0), (5.0, 5.0),
+            half_width_m=2.0, altitude_agl_m=50.0, max_gradient=0.1, slope_gain_m=5.0,
+        )  # fmt: skip

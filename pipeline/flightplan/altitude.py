@@ -251,13 +251,24 @@ def lane_line(
     sloping ground). Either way the lane is one straight segment: it never follows
     the canopy, and the lidar range changes smoothly.
 
+    A lane over a void wider than its swath (a missed flight line's strip, the reason to fly
+    it) has no DSM value under it: the corridor is widened, doubling, until it reaches the
+    measured surface beside the void, whose highest value then stands for the whole lane (the
+    surface under the void is unknown; what stands around it is the best guess of what may).
+
     Raises
     ------
     ValueError
-        If the corridor holds no DSM value at all.
+        If no widening up to the DSM's own extent finds a DSM value.
     """
     pixel = max(math.hypot(transform.a, transform.d), math.hypot(transform.b, transform.e))
-    edges, maxima = corridor_profile(dsm, transform, start, end, half_width_m=half_width_m, step_m=max(pixel, 1.0))
+    extent = pixel * math.hypot(*dsm.shape)
+    width = half_width_m
+    edges, maxima = corridor_profile(dsm, transform, start, end, half_width_m=width, step_m=max(pixel, 1.0))
+    while not np.isfinite(maxima).any() and width < extent:
+        width *= 2.0
+        edges, maxima = corridor_profile(dsm, transform, start, end, half_width_m=width, step_m=max(pixel, 1.0))
+        maxima = np.full_like(maxima, np.nanmax(maxima)) if np.isfinite(maxima).any() else maxima
     if not np.isfinite(maxima).any():
         raise ValueError(f"no DSM height within {half_width_m:.0f} m of the lane {start} -> {end}")
     need = np.where(np.isfinite(maxima), maxima, np.nanmax(maxima)) + altitude_agl_m
