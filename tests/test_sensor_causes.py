@@ -82,3 +82,36 @@ def test_a_ground_model_s_voids_under_buildings_and_trees_are_covered(tmp_path, 
     for geometry in covered.geometry:
         inside = geometry_mask(geometry, survey.transform, raised.shape)
         assert raised[inside].mean() > 0.5
+
+
+def test_a_simulated_scan_with_a_missed_line_has_the_same_holes_at_any_cell_size(shared_data, tmp_path, dask_client):
+    """Delft, one line dropped, single returns and no scan angles: the shadows that open onto the
+    strip are part of its hole (none touches it), and the holes, causes and rules are those of one
+    1000 m cell with 50 m cells (rays stop at the sight reach, whatever the window)."""
+    import shapely
+
+    from pipeline.simulate import load_terrain, random_scan_params, simulate_scan
+
+    terrain = load_terrain("delft", shared_data)
+    scan = simulate_scan(terrain, random_scan_params(15, terrain), tmp_path / "scan")
+    found = {}
+    for cell_m in (50, 1000):
+        out = tmp_path / f"out{cell_m}"
+        run_survey([str(tmp_path / "scan" / "tiles")], out, load_config(overrides=[f"grid.cell_size_m={cell_m}"]),
+                   client=dask_client)  # fmt: skip
+        holes = read_layer(out / "holes.gpkg", "holes")
+        found[cell_m] = holes
+    strips = found[50][found[50]["cause"] == "missed_coverage"]
+    assert len(strips) >= 1 and set(strips["cause_rule"]) == {"coverage_gap"}
+    strip = shapely.union_all(strips.geometry.values)
+    shadows = found[50][found[50]["cause"] == "occlusion"]
+    shared_edge = shadows.geometry.intersection(
+        strip
+    ).length  # touching at a pixel's corner is no contact (4-connected)
+    assert len(shadows) > 50 and not (shared_edge > 0).any(), shadows[shared_edge > 0][["area_m2", "cause_rule"]]
+    keys = [
+        sorted(zip(h.geometry.area.round(3), h.geometry.centroid.x.round(2), h["cause"], h["cause_rule"]))
+        for h in found.values()
+    ]
+    assert keys[0] == keys[1]
+    assert scan.n_points > 1_000_000
