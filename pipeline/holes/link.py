@@ -177,14 +177,9 @@ def link_holes(
         across_a = np.concatenate([a[~same_side], *(pairs[:, 0] for pairs in within)])
         across_b = np.concatenate([b[~same_side], *(pairs[:, 1] for pairs in within)])
         if len(across_a):
-            takes_in, joining = joins(merged)
-            ca, cb = comp[across_a], comp[across_b]
-            join = (takes_in[ca] & joining[cb]) | (joining[ca] & takes_in[cb])
+            joined, n_joined, join = _joined_components(comp[across_a], comp[across_b], n_comp, *joins(merged))
             if join.any():
-                n_comp, joined = csgraph.connected_components(
-                    _symmetric_graph(ca[join], cb[join], n_comp), directed=False
-                )
-                comp = joined[comp]
+                comp, n_comp = joined[comp], n_joined
                 merged = _merged_stats(cells, offsets, comp, n_comp, edges)
                 # joined parts of neighbouring cells are linked parts (``neighbour_idx``, layers)
                 crossing = join[: int((~same_side).sum())]
@@ -272,6 +267,19 @@ class _EdgePixels:
             return np.full(len(key), -1, np.int64)
         i = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
         return np.where(self.keys[i] == key, self.key_nodes[i], -1)
+
+
+def _joined_components(
+    ca: np.ndarray, cb: np.ndarray, n_comp: int, takes_in: np.ndarray, joining: np.ndarray
+) -> tuple[np.ndarray, int, np.ndarray]:
+    """Holes ``ca[i]`` and ``cb[i]`` touch across a gap's edge: the holes once those that join are joined.
+
+    Returns the new hole of each old one, how many there are, and which touching pairs joined
+    (one takes in, the other joins).
+    """
+    join = (takes_in[ca] & joining[cb]) | (joining[ca] & takes_in[cb])
+    n_joined, joined = csgraph.connected_components(_symmetric_graph(ca[join], cb[join], n_comp), directed=False)
+    return joined, int(n_joined), join
 
 
 def _merged_stats(
