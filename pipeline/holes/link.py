@@ -148,10 +148,9 @@ def link_holes(
     min_area_px : int
         Holes with fewer pixels are small voids (flagged ``is_small``).
     joins : callable, optional
-        Called with the statistics of the holes as linked on each side of a gap's edge; returns
-        per hole whether it takes in the holes touching it that join, and whether it joins the
-        hole it touches (two bool arrays). Joined holes make one hole, whose statistics are
-        merged again from the parts (the same whatever the cells).
+        From the statistics of the holes as linked on each side of a gap's edge: per hole, whether
+        it takes in the holes touching it that join, and whether it joins (two bool arrays).
+        Joined holes' statistics are merged again from the parts (the same whatever the cells).
 
     Returns
     -------
@@ -172,22 +171,17 @@ def link_holes(
     graph = _symmetric_graph(a[same_side], b[same_side], n_nodes)
     n_comp, comp = csgraph.connected_components(graph, directed=False)
     merged = _merged_stats(cells, offsets, comp, n_comp, edges)
-    if joins is not None:
-        within = [offsets[k] + c.contacts.astype(np.int64) - 1 for k, c in enumerate(cells) if len(c.contacts)]
-        across_a = np.concatenate([a[~same_side], *(pairs[:, 0] for pairs in within)])
-        across_b = np.concatenate([b[~same_side], *(pairs[:, 1] for pairs in within)])
-        if len(across_a):
-            joined, n_joined, join = _joined_components(comp[across_a], comp[across_b], n_comp, *joins(merged))
-            if join.any():
-                comp, n_comp = joined[comp], n_joined
-                merged = _merged_stats(cells, offsets, comp, n_comp, edges)
-                # joined parts of neighbouring cells are linked parts (``neighbour_idx``, layers)
-                crossing = join[: int((~same_side).sum())]
-                graph = _symmetric_graph(
-                    np.concatenate([a[same_side], a[~same_side][crossing]]),
-                    np.concatenate([b[same_side], b[~same_side][crossing]]),
-                    n_nodes,
-                )
+    if joins is not None and (
+        found := _join_across_gaps(cells, offsets, comp, a[~same_side], b[~same_side], joins, merged)
+    ):
+        comp, n_comp, crossing = found
+        merged = _merged_stats(cells, offsets, comp, n_comp, edges)
+        # joined parts of neighbouring cells are linked parts (``neighbour_idx``, layers)
+        graph = _symmetric_graph(
+            np.concatenate([a[same_side], a[~same_side][crossing]]),
+            np.concatenate([b[same_side], b[~same_side][crossing]]),
+            n_nodes,
+        )
     # hole ids 1..H in raster order of first pixels
     order = np.lexsort((merged["first_col"], merged["first_row"]))
     hole_id_of_comp = np.empty(n_comp, np.int64)
@@ -269,17 +263,32 @@ class _EdgePixels:
         return np.where(self.keys[i] == key, self.key_nodes[i], -1)
 
 
-def _joined_components(
-    ca: np.ndarray, cb: np.ndarray, n_comp: int, takes_in: np.ndarray, joining: np.ndarray
-) -> tuple[np.ndarray, int, np.ndarray]:
-    """Holes ``ca[i]`` and ``cb[i]`` touch across a gap's edge: the holes once those that join are joined.
+def _join_across_gaps(
+    cells: Sequence[CellHoles],
+    offsets: np.ndarray,
+    comp: np.ndarray,
+    across_a: np.ndarray,
+    across_b: np.ndarray,
+    joins: Callable[[HoleStats], tuple[np.ndarray, np.ndarray]],
+    merged: HoleStats,
+) -> tuple[np.ndarray, int, np.ndarray] | None:
+    """The holes once those that touch across a gap's edge and ``joins`` says so are joined; None: none are.
 
-    Returns the new hole of each old one, how many there are, and which touching pairs joined
-    (one takes in, the other joins).
+    ``across_a[i]``, ``across_b[i]``: parts touching across a cell edge and a gap's edge; the
+    cells' own ``contacts`` are the pairs within a cell. Returns the new hole of each part, how
+    many holes there are, and which of the cross-cell pairs joined.
     """
+    within = [offsets[k] + c.contacts.astype(np.int64) - 1 for k, c in enumerate(cells) if len(c.contacts)]
+    ca = comp[np.concatenate([across_a, *(pairs[:, 0] for pairs in within)])]
+    cb = comp[np.concatenate([across_b, *(pairs[:, 1] for pairs in within)])]
+    if not len(ca):
+        return None
+    takes_in, joining = joins(merged)
     join = (takes_in[ca] & joining[cb]) | (joining[ca] & takes_in[cb])
-    n_joined, joined = csgraph.connected_components(_symmetric_graph(ca[join], cb[join], n_comp), directed=False)
-    return joined, int(n_joined), join
+    if not join.any():
+        return None
+    n_joined, joined = csgraph.connected_components(_symmetric_graph(ca[join], cb[join], len(merged)), directed=False)
+    return joined[comp], int(n_joined), join[: len(across_a)]
 
 
 def _merged_stats(
