@@ -29,6 +29,7 @@ from ..fill.by_cause import (
     MISSED_NOTE,
     SMALL_VOID,
     TOO_LARGE,
+    WATER,
     FillParams,
     HoleFill,
     fill_hole,
@@ -77,6 +78,9 @@ class FillTask:
     sources: tuple[CellSource, ...]  # every cell whose core meets one of the holes' windows
     params: FillParams
     result_path: str  # the filled holes of the task, kept for the writer stage
+    # water holes other cells fill whose boxes meet the task's: their water returns and shared ring
+    # pixels are theirs here as in their own task (fill_cell_holes), whatever cell owns which hole
+    water_neighbours: tuple[int, ...] = ()
 
 
 def cell_sources(
@@ -140,6 +144,7 @@ def fill_tasks(
                 window=box.expand(margin).intersection(grid.window),
             )
         )
+    water = [h for holes_of_cell in owned.values() for h in holes_of_cell if fill_kind(h.cause, params) == WATER]
     tasks = []
     for owner, to_fill in owned.items():
         needed: dict[str, CellSource] = {}
@@ -148,7 +153,14 @@ def fill_tasks(
                 cell_id = grid.cell(ix, iy).id
                 if cell_id in sources:
                     needed[cell_id] = sources[cell_id]
-        tasks.append(FillTask(owner, tuple(to_fill), tuple(needed.values()), params, str(staging.cell_fill(owner))))
+        window = _union([hole.window for hole in to_fill])
+        own = {hole.hole_id for hole in to_fill}
+        neighbours = tuple(
+            sorted(h.hole_id for h in water if h.hole_id not in own and not h.window.intersection(window).is_empty)
+        )
+        tasks.append(
+            FillTask(owner, tuple(to_fill), tuple(needed.values()), params, str(staging.cell_fill(owner)), neighbours)
+        )
     return tasks, skipped
 
 
@@ -178,12 +190,19 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
     codes = np.zeros(window.shape, np.uint8)
     filled_ids = np.zeros(window.shape, np.int64)
     for kind, group in groups.items():
-        labels = _group_labels(hole_ids, [hole.hole_id for hole in group])
+        # water holes are filled with the other cells' water holes beside them, each hole's level read
+        # from the water returns nearest to it and its own ring: the same evidence whichever cell owns it
+        beside = [i for i in task.water_neighbours if kind == WATER and (hole_ids == i).any()]
+        in_call = sorted([hole.hole_id for hole in group] + beside)
+        labels = _group_labels(hole_ids, in_call)
         outcome = fill_hole(zmax, zmin, measured, labels, kind, params, water, counts)
-        for k, hole in enumerate(group, start=1):
+        for hole in group:
+            k = in_call.index(hole.hole_id) + 1
             record = hole_record(hole.hole_id, k, labels, outcome, distance, task.result_path)
             missed = hole.cause == "missed_coverage" and record.status == FILLED  # filled on request: flagged
             results[hole.hole_id] = replace(record, detail=MISSED_NOTE) if missed else record
+        if beside:
+            labels = np.where(np.isin(hole_ids, beside), 0, labels)  # their heights are their own tasks'
         done = (labels > 0) & np.isfinite(outcome.heights)
         heights[done], codes[done] = outcome.heights[done], outcome.method_code[done]
         filled_ids[done] = hole_ids[done]
