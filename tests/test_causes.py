@@ -87,8 +87,8 @@ def test_rule_order_is_one_table():
     assert [rule for rule, _ in RULES] == [
         "water_mask",
         "covered",
-        "missing_tile",
         "water_ring",
+        "missing_tile",
         "coverage_gap",
         "water_points",
         "line_of_sight",

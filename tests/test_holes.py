@@ -455,8 +455,8 @@ def test_seen_voids_join_a_missed_strip_only_where_the_heights_are_assumed():
         H.CAUSE_DTYPE,
     )
     takes_in, joins = H.strip_joins(causes)
-    assert takes_in.tolist() == [True, False, False, False] and joins.tolist() == [False, True, False, False]
-    assert H.strip_joins(causes, heights_assumed=True)[1].tolist() == [False, True, True, False]
+    assert takes_in.tolist() == [1, 0, 0, 2] and joins.tolist() == [0, 1, 0, 2]  # strips take in shadows, water water
+    assert H.strip_joins(causes, heights_assumed=True)[1].tolist() == [0, 1, 1, 2]
 
 
 # --------------------------------------------------------------------------------------

@@ -162,3 +162,40 @@ def test_planned_area_beyond_the_tiles_is_missed_coverage(shared_data, tmp_path,
     assert len(planned) == 1, holes[["area_m2", "cause", "cause_rule"]]
     assert planned.iloc[0]["cause"] == "missed_coverage"
     assert planned.iloc[0]["area_m2"] == pytest.approx(150**2 - 50**2, rel=0.01)
+
+
+def test_tiles_left_out_over_a_lake_are_water_filled_at_its_level(tmp_path, dask_client, monkeypatch):
+    """A lake wider than a tile: the delivery leaves out the tiles nothing came back from.
+
+    Their squares are rimmed by the lake's own water returns (``water_ring`` before
+    ``missing_tile``), so they are water, filled flat at the lake's level, and the DSM is
+    written over the cells that hold no point at all (before: ``missed_coverage`` /
+    ``missing_tile``, nodata awaiting a re-flight over open water).
+    """
+    from pipeline.io.raster import read_raster
+    from pipeline.synth import build_scene, draw
+    from pipeline.synth.scenes import cause_scene
+
+    monkeypatch.setattr(draw, "LAKE_SIZE_M", (300.0, 300.0))
+    base = cause_scene("lakes")
+    spec = base.__class__(**{
+        **base.__dict__, "width_m": 420.0, "height_m": 420.0, "lakes": 1, "building_density": 0.0,
+        "tree_density": 5.0, "missed_line": None,
+    })  # fmt: skip
+    survey = generate_survey(tmp_path / "tiles", spec)
+    names = {p.name for p in (tmp_path / "tiles").glob("*.laz")}
+    assert len(names) < 25  # some tiles over the lake returned nothing and were not written
+    holes = run(tmp_path / "tiles", tmp_path / "out", dask_client, "grid.cell_size_m=100")
+    assert (holes["cause"] == "water").all(), holes[["area_m2", "cause", "cause_rule"]]
+    dsm, _, _ = read_raster(tmp_path / "out" / "dsm.vrt")
+    rows, cols = np.indices(dsm.shape)
+    is_water, level = build_scene(spec).water_level((cols + 0.5) * spec.resolution, spec.height_m - (rows + 0.5) * spec.resolution)
+    voids = is_water & (survey.hole_cause == HoleCause.WATER)
+    assert voids.sum() > 15_000
+    assert np.isfinite(dsm[voids]).all()  # every void on the lake holds a height, in cells without a point too
+    assert np.abs(dsm[voids] - level[voids]).max() < 0.02
+    # the same hole and heights with other cells: the level is read from the same water returns
+    other = run(tmp_path / "tiles", tmp_path / "cells250", dask_client, "grid.cell_size_m=250")
+    assert hole_masks(other, survey) == hole_masks(holes, survey)
+    assert list(other["fill_note"]) == list(holes["fill_note"])
+    assert np.array_equal(read_raster(tmp_path / "cells250" / "dsm.vrt")[0], dsm, equal_nan=True)

@@ -26,8 +26,8 @@ CAUSES: tuple[str, ...] = ("occlusion", "water", "missed_coverage", "no_return",
 RULES: tuple[tuple[str, str], ...] = (
     ("water_mask", "water"),
     ("covered", "covered"),
-    ("missing_tile", "missed_coverage"),
     ("water_ring", "water"),
+    ("missing_tile", "missed_coverage"),
     ("coverage_gap", "missed_coverage"),
     ("water_points", "water"),
     ("line_of_sight", "occlusion"),
@@ -44,8 +44,9 @@ RULES: tuple[tuple[str, str], ...] = (
 RIM_ONLY_RULES = ("jumps", "shadow", "strip", "flat_low_rim")
 
 #: A hole whose ring holds water-class returns on at least this share of its pixels is water before
-#: any coverage gap: it is enclosed by measured water more than by anything else, and water is level,
-#: so the pulses that returned from the water beyond it reached its height there. Where a swath's
+#: any coverage gap or missing tile: it is enclosed by measured water more than by anything else, and
+#: water is level, so the pulses that returned from the water beyond it reached its height there (a
+#: delivery leaves out the tiles from which nothing came back: the middle of a lake wider than a tile). Where a swath's
 #: modelled edge runs through a lake (heights assumed, sides cut by a small extract's edge), the
 #: returns around the void say more than the model (``ign_crop2_water``: a 36 m2 void at a 50 m
 #: extract's edge, class 9 all round, the ring within 0.17 m of the water's level, was a coverage gap).
@@ -360,6 +361,12 @@ def _level_window(stats: HoleStats, tolerance: float) -> tuple[np.ndarray, np.nd
     return level, below
 
 
+#: Kinds of join across a gap's edge (:func:`strip_joins`): a missed strip and the voids of its missed line ...
+STRIP_JOIN = 1
+#: ... and one water body's voids on both sides (a lake's tiles left out of a delivery, its voids in the others).
+WATER_JOIN = 2
+
+
 def strip_joins(causes: np.ndarray, *, heights_assumed: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Which holes take in the voids touching them across a coverage gap's edge, and which voids join.
 
@@ -381,6 +388,12 @@ def strip_joins(causes: np.ndarray, *, heights_assumed: bool = False) -> tuple[n
     is the same coin toss (a simulated Delft scan flown with a 54 degree scanner, assumed 40:
     five voids of 4-12 m2 between the data's edge and the modelled one, each seen).
 
+    Water takes in water: a gap-side void that is water (``water_ring``: the middle of a lake
+    wider than a tile, whose tiles the delivery left out because nothing came back) and the
+    water voids it touches in the delivered tiles are one water body, filled at one level read
+    from all of its edge (``bench_water.py --lake-m 300``: the left-out tiles' level was read
+    from 11 water-return pixels, 2.4 cm low, the rest of the lake from 431).
+
     Parameters
     ----------
     causes : ndarray of CAUSE_DTYPE
@@ -390,10 +403,15 @@ def strip_joins(causes: np.ndarray, *, heights_assumed: bool = False) -> tuple[n
 
     Returns
     -------
-    takes_in, joins : ndarray of bool
-        Per hole (the ``joins`` of :func:`pipeline.holes.link_holes`).
+    takes_in, joins : ndarray of int8
+        Per hole, the kind of join (``STRIP_JOIN``, ``WATER_JOIN``; 0 none) it takes in and the
+        kind it joins (the ``joins`` of :func:`pipeline.holes.link_holes`).
     """
-    joins = causes["cause"] == "occlusion"
+    water = causes["cause"] == "water"
+    joins = np.where(causes["cause"] == "occlusion", STRIP_JOIN, 0).astype(np.int8)
     if heights_assumed:
-        joins |= causes["rule"] == "seen"
-    return causes["rule"] == "coverage_gap", joins
+        joins[causes["rule"] == "seen"] = STRIP_JOIN
+    joins[water] = WATER_JOIN
+    takes_in = np.where(causes["rule"] == "coverage_gap", STRIP_JOIN, 0).astype(np.int8)
+    takes_in[water] = WATER_JOIN
+    return takes_in, joins

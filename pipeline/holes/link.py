@@ -148,8 +148,9 @@ def link_holes(
     min_area_px : int
         Holes with fewer pixels are small voids (flagged ``is_small``).
     joins : callable, optional
-        From the statistics of the holes as linked on each side of a gap's edge: per hole, whether
-        it takes in the holes touching it that join, and whether it joins (two bool arrays).
+        From the statistics of the holes as linked on each side of a gap's edge: per hole, the kind
+        of join it takes in from the holes touching it and the kind it joins (two int arrays, 0
+        none; bool arrays are one kind): two touching holes join where one takes in what the other joins.
         Joined holes' statistics are merged again from the parts (the same whatever the cells).
 
     Returns
@@ -283,8 +284,8 @@ def _join_across_gaps(
     cb = comp[np.concatenate([across_b, *(pairs[:, 1] for pairs in within)])]
     if not len(ca):
         return None
-    takes_in, joining = joins(merged)
-    join = (takes_in[ca] & joining[cb]) | (joining[ca] & takes_in[cb])
+    takes_in, joining = (np.asarray(kinds, np.int64) for kinds in joins(merged))
+    join = ((takes_in[ca] > 0) & (takes_in[ca] == joining[cb])) | ((joining[ca] > 0) & (joining[ca] == takes_in[cb]))
     if not join.any():
         return None
     n_joined, joined = csgraph.connected_components(_symmetric_graph(ca[join], cb[join], len(merged)), directed=False)

@@ -73,7 +73,7 @@ class WriteTask:
 @dataclass(frozen=True)
 class WriteResult:
     cell_id: str
-    paths: dict[str, str]  # product -> the tile written; empty when the cell holds no point
+    paths: dict[str, str]  # product -> the tile written; empty when the cell holds no point and no fill
     filled_px: int = 0
 
 
@@ -135,7 +135,7 @@ def write_cell_rasters(task: WriteTask, *after: object) -> WriteResult:
     needed = ("zmax", "count") if task.fill is None else ("zmax", "zmin", "count")
     stats = load_cell_statistics(task.statistics_path, needed)
     core = stats.crop(cell.window)
-    if not core.count.any():
+    if not core.count.any() and task.fill is None:
         return WriteResult(cell.id, {})
     rasters: dict[str, np.ndarray] = {"dsm": core.zmax}
     filled_px = 0
@@ -143,6 +143,9 @@ def write_cell_rasters(task: WriteTask, *after: object) -> WriteResult:
         rasters["dsm_unfilled"] = core.zmax
         rasters["dsm"], rasters["fill_mask"], rasters["fill_distance"] = _paint_fills(task, stats, core)
         filled_px = int(((rasters["fill_mask"] > 0) & (rasters["fill_mask"] < NOT_FILLED)).sum())
+        # a cell without a point is written where a fill reaches it: a lake wider than a cell
+        if not core.count.any() and not filled_px:
+            return WriteResult(cell.id, {})
     written = {}
     for product, path in task.paths.items():
         write_cog(
