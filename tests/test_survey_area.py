@@ -189,7 +189,9 @@ def test_tiles_left_out_over_a_lake_are_water_filled_at_its_level(tmp_path, dask
     assert (holes["cause"] == "water").all(), holes[["area_m2", "cause", "cause_rule"]]
     dsm, _, _ = read_raster(tmp_path / "out" / "dsm.vrt")
     rows, cols = np.indices(dsm.shape)
-    is_water, level = build_scene(spec).water_level((cols + 0.5) * spec.resolution, spec.height_m - (rows + 0.5) * spec.resolution)
+    is_water, level = build_scene(spec).water_level(
+        (cols + 0.5) * spec.resolution, spec.height_m - (rows + 0.5) * spec.resolution
+    )
     voids = is_water & (survey.hole_cause == HoleCause.WATER)
     assert voids.sum() > 15_000
     assert np.isfinite(dsm[voids]).all()  # every void on the lake holds a height, in cells without a point too
