@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+import scipy.ndimage as ndi
 
 from pipeline.simulate import (
     FlightLine,
@@ -268,3 +269,19 @@ def test_scan_over_real_urban_terrain(shared_data, tmp_path):
     truth, _ = scan.truth(1.0)
     assert set(np.unique(truth)) <= {0, 1, 2, 3, 4}
     assert {int(i) for i in np.unique(scan.point_source_id)} == {line.source_id for line in params.lines}
+
+
+def test_dark_patches_keep_off_water():
+    """A dark patch is land: none of its cells lies within the margin of water, whatever the seed."""
+    from pipeline.simulate.params import DARK_PATCH_WATER_MARGIN_M, dark_mask, dark_patches
+
+    terrain = with_block_and_pond(flat_terrain(200.0, 0.5))
+    water = terrain.kind == Surface.WATER
+    reach = int(np.ceil(DARK_PATCH_WATER_MARGIN_M / terrain.cell_m))
+    near_water = ndi.binary_dilation(water, iterations=reach, structure=np.ones((3, 3), bool))
+    placed = 0
+    for seed in range(40):
+        patches = dark_patches(terrain, np.random.default_rng(seed), count=3)
+        placed += len(patches)
+        assert not (dark_mask(terrain, patches) & near_water).any(), seed
+    assert placed == 120  # the pond, 4 % of the scene, never leaves a patch without a place

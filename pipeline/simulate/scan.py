@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from . import _kernels
-from .params import FlightLine, ScanParams
+from .params import FlightLine, ScanParams, dark_mask
 from .terrain import Surface, Terrain
 from .truth import cell_causes, truth_causes
 
@@ -220,31 +220,6 @@ def _no_points() -> dict[str, np.ndarray]:
         "edge_of_flight_line": np.uint8, "point_source_id": np.uint16,
     }  # fmt: skip
     return {key: np.zeros(0, dtype) for key, dtype in dtypes.items()}
-
-
-def dark_mask(terrain: Terrain, patches: tuple[tuple[tuple[float, float], ...], ...]) -> np.ndarray:
-    """Terrain cells whose centre lies inside one of the polygons (even-odd rule)."""
-    rows, cols = terrain.shape
-    mask = np.zeros((rows, cols), bool)
-    cell = terrain.cell_m
-    for polygon in patches:
-        vertices = np.asarray(polygon, dtype=np.float64)
-        c0 = max(0, int((vertices[:, 0].min() - terrain.x_min) / cell))
-        c1 = min(cols, int((vertices[:, 0].max() - terrain.x_min) / cell) + 1)
-        r0 = max(0, int((terrain.bounds[3] - vertices[:, 1].max()) / cell))
-        r1 = min(rows, int((terrain.bounds[3] - vertices[:, 1].min()) / cell) + 1)
-        if c0 >= c1 or r0 >= r1:
-            continue
-        px = terrain.x_min + (np.arange(c0, c1) + 0.5) * cell
-        py = terrain.bounds[3] - (np.arange(r0, r1) + 0.5) * cell
-        gx, gy = np.meshgrid(px, py)
-        inside = np.zeros(gx.shape, bool)
-        for (xa, ya), (xb, yb) in zip(vertices, np.roll(vertices, -1, axis=0)):
-            crosses = (ya > gy) != (yb > gy)
-            x_cross = xa + (gy - ya) * (xb - xa) / np.where(yb == ya, 1.0, yb - ya)
-            inside ^= crosses & (gx < x_cross)
-        mask[r0:r1, c0:c1] |= inside
-    return mask
 
 
 def write_tiles(
