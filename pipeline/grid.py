@@ -170,7 +170,7 @@ class Grid:
 
     def window_transform(self, window: PixelWindow) -> Affine:
         """The affine transform of a window's top-left pixel."""
-        return self.transform * Affine.translation(window.col_off, window.row_off)
+        return self.transform @ Affine.translation(window.col_off, window.row_off)
 
     def window_bounds(self, window: PixelWindow) -> tuple[float, float, float, float]:
         r = self.resolution

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import shapely
 
-from pipeline.sensor.sight import BLOCKED, OUTSIDE_SWATHS, SEEN, ground_targets, sight_classes
+from pipeline.sensor.sight import BLOCKED, OUTSIDE_SWATHS, SEEN, ground_targets, shadow_contradictions, sight_classes
 from pipeline.sensor.sums import TrajectorySums, trajectory_sums
 from pipeline.sensor.trajectory import fit_flight_lines, swath_polygon
 
@@ -130,6 +130,35 @@ def test_line_of_sight_behind_a_wall():
     assert classes[30, 40] == SEEN
     assert classes[30, 5] == OUTSIDE_SWATHS
     assert classes[0, 0] == 0
+
+
+def test_the_shadows_beside_a_wall_tell_the_sensor_s_height():
+    """A 20 m wall 70 m across track from a sensor 200 m up: its shadow is 7 m long (20 x 70 / 200).
+
+    A trajectory 100 m up casts it 14 m, over ground that returned points; one 400 m up casts it
+    3.5 m, and leaves the rest of the void in view: the true height contradicts fewest pixels.
+    """
+    size = 60
+    zmax = np.zeros((size, size))
+    zmax[:, 30] = 20.0
+    zmax[:, 23:30] = np.nan  # x 23-30 m: the shadow, 7 m
+    measured = np.isfinite(zmax)
+    zmin = np.where(measured, zmax, np.nan)
+    zmin[:, 30] = 0.0  # the wall's foot returned too: its pixel spans the step
+    swaths = np.ones((1, size, size), bool)
+
+    def contradicting(height: float) -> int:
+        track = np.array([[100.0, 200.0, height], [100.0, -140.0, height]])  # flies south at x = 100
+        blocked, seen, judged = shadow_contradictions(
+            zmax, zmin, measured, swaths, [track], origin_xy=(0.0, 60.0), pixel_size=1.0, reach=60.0,
+            step=2.5, near_px=16,
+        )  # fmt: skip
+        assert judged > 0
+        return blocked + seen
+
+    low, true, high = contradicting(100.0), contradicting(200.0), contradicting(400.0)
+    assert true < low and true < high, (low, true, high)
+    assert true <= 2 * size  # at most the shadow's last column, where the ray grazes the wall's top
 
 
 def test_a_second_line_from_the_other_side_sees_the_shadow():

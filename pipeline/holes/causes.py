@@ -165,9 +165,11 @@ def classify_causes(
         are off; ``river_rim`` and ``level_rim`` then ask for an elongated hole (a river's or a
         canal's course: a level rim alone is no evidence of water).
     heights_assumed : bool
-        Whether the sensor's heights are assumed (``nominal``: single returns and no scan angles):
-        the swaths stand, but the lines of sight lean as the assumed field of view makes them, and the
-        rim's occlusion rules (``jumps``, ``shadow``) speak too.
+        Whether the sensor's heights are assumed (``nominal``: single returns and no scan angles)
+        from a field of view nothing measured (the survey's shadows did not settle it,
+        :func:`pipeline.stages.detect_holes.fov_from_shadows`): the swaths stand, but the lines of
+        sight lean as the assumed field of view makes them, and the rim's occlusion rules (``jumps``,
+        ``shadow``) speak too.
 
     Returns
     -------

@@ -25,7 +25,7 @@ import numba
 import numpy as np
 import scipy.ndimage as ndi
 
-__all__ = ["BLOCKED", "OUTSIDE_SWATHS", "SEEN", "ground_targets", "sight_classes"]
+__all__ = ["BLOCKED", "OUTSIDE_SWATHS", "SEEN", "ground_targets", "shadow_contradictions", "sight_classes"]
 
 #: Classes of a hole pixel (:func:`sight_classes`); 0: not a hole pixel.
 OUTSIDE_SWATHS, BLOCKED, SEEN = 1, 2, 3
@@ -186,6 +186,56 @@ def sight_classes(
         )  # fmt: skip
     out[rows, cols] = np.where(~swept, OUTSIDE_SWATHS, np.where(seen, SEEN, BLOCKED))
     return out
+
+
+def shadow_contradictions(
+    zmax: np.ndarray,
+    zmin: np.ndarray,
+    measured: np.ndarray,
+    swaths: np.ndarray,
+    tracks: list[np.ndarray],
+    *,
+    origin_xy: tuple[float, float],
+    pixel_size: float,
+    reach: float,
+    step: float,
+    near_px: int,
+    max_scan_angles: list[float] | None = None,
+    within: np.ndarray | None = None,
+) -> tuple[int, int, int]:
+    """How far a trajectory's heights disagree with the shadows the survey shows beside its steps.
+
+    Beside each step (a surface more than ``step`` above a pixel's ground within ``near_px``
+    pixels), a sensor placed too low casts shadows that are too long, over ground that returned
+    points; one placed too high casts them too short, and the voids behind the step read as seen.
+    Returns ``(returned_but_blocked, empty_but_seen, judged)``: measured open-ground pixels (a
+    single surface, ``zmax - zmin`` under ``step``) that no line could see, empty pixels some line
+    saw, and how many pixels beside a step were judged (those ``within``, default all). A dark or
+    wet patch beside a step is seen from any height, and adds the same to each trajectory's count.
+    Arguments as :func:`sight_classes`.
+    """
+    highest = ndi.maximum_filter(np.where(measured, zmax, -np.inf), size=2 * near_px + 1, mode="constant", cval=-np.inf)
+    inside = swaths.any(axis=0) if len(swaths) else np.zeros(zmax.shape, bool)
+    empty = ~measured & inside
+    ground = np.where(measured, zmin, ground_targets(zmin, measured, empty, step=step, pixel_size=pixel_size))
+    near_step = np.isfinite(ground) & (highest - np.nan_to_num(ground, nan=np.inf) > step) & inside
+    if within is not None:
+        near_step &= within
+    open_ground = measured & (zmax - zmin < step) & near_step
+    voids = empty & near_step
+    classes = sight_classes(
+        open_ground | voids,
+        np.where(measured, zmax, np.nan),
+        ground,
+        swaths,
+        tracks,
+        origin_xy=origin_xy,
+        pixel_size=pixel_size,
+        reach=reach,
+        max_scan_angles=max_scan_angles,
+    )
+    judged = int(open_ground.sum() + voids.sum())
+    return int((open_ground & (classes == BLOCKED)).sum()), int((voids & (classes == SEEN)).sum()), judged
 
 
 def _highest_within(zmax: np.ndarray, reach_px: float) -> np.ndarray:

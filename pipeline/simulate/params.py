@@ -356,7 +356,7 @@ def dark_patches(
     ground_rows, ground_cols = ground_rows[inside], ground_cols[inside]
     if len(ground_rows) == 0:
         return ()
-    retries = np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0])
+    retries = rng.spawn(1)[0]
     for _ in range(count):
         for attempt in range(DARK_PATCH_TRIES):
             patch = _star(terrain, rng if attempt == 0 else retries, ground_rows, ground_cols, radius_m)

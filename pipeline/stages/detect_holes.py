@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
+import scipy.ndimage as ndi
 import shapely
 
 from ..config import HOLE_CONTEXT_PX, Config
@@ -33,7 +34,14 @@ from ..io.intermediate import load_cell_statistics, save_labels
 from ..io.raster import geometry_mask
 from ..plan import HoleParams, SurveyPlan
 from ..rasterize import PixelStatistics
-from ..sensor.sight import OUTSIDE_SWATHS, ground_targets, sight_classes, surface_tops
+from ..sensor.sight import (
+    OUTSIDE_SWATHS,
+    TARGET_RADII_M,
+    ground_targets,
+    shadow_contradictions,
+    sight_classes,
+    surface_tops,
+)
 from ..sensor.sums import TrajectorySums
 from ..sensor.trajectory import FlightLine, fit_flight_lines, swath_polygon
 from ..staging import Staging
@@ -114,6 +122,12 @@ class SensorGeometry:
     points_in_lines: int
     points_timed: int
     points_used: int
+    fov_from_shadows: float | None = None  # the field of view the shadows gave, where heights are assumed
+
+    @property
+    def rim_rules(self) -> bool:
+        """Whether the rim's occlusion rules speak too: heights assumed from a field of view nothing measured."""
+        return self.heights_assumed and self.fov_from_shadows is None
 
     @property
     def swaths(self) -> tuple[shapely.Geometry, ...]:
@@ -166,25 +180,159 @@ def _without_holes(area: shapely.Geometry) -> shapely.Geometry:
     return shapely.union_all([shapely.Polygon(shapely.get_exterior_ring(p)) for p in polygons if not p.is_empty])
 
 
-def sensor_geometry(tiles: list[TileResult], plan: SurveyPlan, config: Config) -> SensorGeometry:
-    """Gather: the flight lines' trajectories and swaths from the sums of every tile."""
+def sensor_geometry(
+    tiles: list[TileResult], plan: SurveyPlan, config: Config, *, fov_from_shadows: float | None = None
+) -> SensorGeometry:
+    """Gather: the flight lines' trajectories and swaths from the sums of every tile.
+
+    ``fov_from_shadows``: the field of view the survey's shadows give (:func:`fov_from_shadows`),
+    taken instead of ``sensor.nominal_fov_deg`` where a line's heights are assumed.
+    """
     sums = TrajectorySums.merged([t.trajectory for t in tiles])
-    grid = plan.grid
-    lines = fit_flight_lines(
-        sums.lines,
-        sums.bins,
-        sums.values,
-        origin=(grid.x_left, grid.y_top, 0.0),
-        nominal_fov_deg=config.sensor.nominal_fov_deg,
-        extent=survey_extent([tile.bounds for tile in plan.survey.tiles], grid.resolution),
-    )
+    fov = config.sensor.nominal_fov_deg if fov_from_shadows is None else fov_from_shadows
+    lines = _fitted_lines(sums, plan, fov)
     return SensorGeometry(
         lines=tuple(lines),
         swaths_wkb=tuple(shapely.to_wkb(swath_polygon(line)) for line in lines),
         points_in_lines=sum(line.points for line in lines),
         points_timed=sums.points,
         points_used=sum(t.points_used for t in tiles),
+        fov_from_shadows=fov_from_shadows,
     )
+
+
+def _fitted_lines(sums: TrajectorySums, plan: SurveyPlan, nominal_fov_deg: float) -> list[FlightLine]:
+    grid = plan.grid
+    return fit_flight_lines(
+        sums.lines,
+        sums.bins,
+        sums.values,
+        origin=(grid.x_left, grid.y_top, 0.0),
+        nominal_fov_deg=nominal_fov_deg,
+        extent=survey_extent([tile.bounds for tile in plan.survey.tiles], grid.resolution),
+    )
+
+
+#: Fields of view tried for lines whose heights are assumed (degrees): airborne scanners sweep 20-75.
+FOV_SEARCH_DEG = tuple(range(20, 77, 4))
+#: Squares of this side (metres, on the absolute pixel lattice, whatever the cells) judge a field of view:
+FOV_SQUARE_M = 250.0
+#: the ones with most voids beside a step among an even sample of this many ...
+FOV_SAMPLE_SQUARES = 24
+#: ... of which this many are used.
+FOV_EVIDENCE_SQUARES = 4
+#: Voids and returned ground beside steps a field of view needs before the shadows speak.
+FOV_MIN_EVIDENCE_PX = 200
+
+
+def fov_from_shadows(
+    tiles: list[TileResult], merged: list[CellResult], plan: SurveyPlan, config: Config
+) -> float | None:
+    """The scanner's field of view at which the survey's shadows fit best, where its heights are assumed.
+
+    Single returns without scan angles give no sensor position: each line's height is its
+    swath's half-width over the tangent of half an assumed field of view. The shadows beside
+    the survey's steps tell that height: a sensor too low casts them over ground that returned
+    points, one too high leaves the voids behind the steps in view
+    (:func:`pipeline.sensor.sight.shadow_contradictions`). The field of view whose trajectories
+    contradict fewest pixels, over the ``FOV_EVIDENCE_SQUARES`` squares with most voids beside a step,
+    searched every 4 degrees from 20 to 76 and then to the degree; None where those squares hold
+    fewer than ``FOV_MIN_EVIDENCE_PX`` pixels beside a step (flat open ground casts no shadow), or
+    where the best lies at either end of the range (no scanner's field of view fits: the tracks
+    are off, as in an extract cut from inside the swaths on both sides).
+    The squares do not depend on the cells, so neither does the field of view.
+    """
+    sums = TrajectorySums.merged([t.trajectory for t in tiles])
+    grid = plan.grid
+    pixel_m = grid.resolution * plan.survey.horizontal_unit_m
+    reach_px = max(1, math.ceil(config.sensor.sight_reach_m / pixel_m))
+    near_px = max(1, math.ceil(TARGET_RADII_M[-1] / pixel_m))
+    step = plan.hole_params.jump_threshold
+    windows = _step_windows(merged, plan, reach_px, near_px)
+    if not windows:
+        return None
+
+    def contradictions(fov: float) -> tuple[int, int]:
+        lines = _fitted_lines(sums, plan, fov)
+        swaths = [swath_polygon(line) for line in lines]
+        contradicting = judged = 0
+        for window, zmax, zmin, measured, core in windows:
+            transform = grid.window_transform(window)
+            masks = np.zeros((len(swaths), *window.shape), bool)
+            for k, swath in enumerate(swaths):
+                masks[k] = geometry_mask(swath, transform, window.shape)
+            blocked, seen, n = shadow_contradictions(
+                zmax, zmin, measured, masks, [line.sensor for line in lines],
+                origin_xy=(transform.c, transform.f), pixel_size=grid.resolution, reach=reach_px * grid.resolution,
+                step=step, near_px=near_px, max_scan_angles=[line.max_scan_angle_deg for line in lines], within=core,
+            )  # fmt: skip
+            contradicting, judged = contradicting + blocked + seen, judged + n
+        return contradicting, judged
+
+    assumed = config.sensor.nominal_fov_deg
+    at_assumed, judged = contradictions(assumed)
+    if judged < FOV_MIN_EVIDENCE_PX:
+        return None
+    scores = {fov: contradictions(fov)[0] for fov in FOV_SEARCH_DEG}
+    coarse = min(scores, key=lambda f: (scores[f], abs(f - assumed)))
+    if coarse in (FOV_SEARCH_DEG[0], FOV_SEARCH_DEG[-1]):
+        # no airborne scanner's field of view fits: the tracks are off, not the heights (an extract
+        # inside the swaths, cut on both sides: IGN's 50 m tile 77050_627755 fitted best at 17 degrees)
+        logger.info(
+            "field of view from the shadows: none between %d and %d degrees fits",
+            *FOV_SEARCH_DEG[:: len(FOV_SEARCH_DEG) - 1],
+        )
+        return None
+    for fov in range(coarse - 3, coarse + 4):
+        if fov not in scores:
+            scores[fov] = contradictions(fov)[0]
+    best = min(scores, key=lambda f: (scores[f], abs(f - assumed)))
+    logger.info(
+        "field of view from the shadows: %d degrees (%d of %d pixels beside steps contradict it; %d at the assumed %g)",
+        best, scores[best], judged, at_assumed, assumed,
+    )  # fmt: skip
+    return float(best)
+
+
+def _step_windows(
+    merged: list[CellResult], plan: SurveyPlan, reach_px: int, near_px: int
+) -> list[tuple[PixelWindow, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """The windows (a square grown by the reach) of the squares with most voids beside a step.
+
+    The squares, ``FOV_SQUARE_M`` on the absolute pixel lattice, do not depend on the cells: an
+    even sample of ``FOV_SAMPLE_SQUARES`` of those the grid meets is ranked by its empty pixels
+    within ``near_px`` of a height jump, and the best ``FOV_EVIDENCE_SQUARES`` that hold any are read
+    whole: ``(window, zmax, zmin, measured, core)`` (``core``: the square's own pixels).
+    """
+    grid, cells = plan.grid, plan.cell_by_id()
+    neighbours = tuple((cells[r.cell_id].window, r.statistics_path) for r in merged)
+    side = max(1, math.ceil(FOV_SQUARE_M / (grid.resolution * plan.survey.horizontal_unit_m)))
+    rows = range((grid.row_top - grid.height + 1) // side, grid.row_top // side + 1)  # absolute rows count upwards
+    cols = range(grid.col_min // side, (grid.col_min + grid.width - 1) // side + 1)
+    squares = [
+        PixelWindow(grid.row_top - (r * side + side - 1), c * side - grid.col_min, side, side).intersection(grid.window)
+        for r in reversed(rows)
+        for c in cols
+    ]
+    squares = [w for w in squares if not w.is_empty]
+    sample = squares[:: max(1, math.ceil(len(squares) / FOV_SAMPLE_SQUARES))]
+    structure = np.ones((3, 3), bool)
+    ranked = []
+    for k, square in enumerate(sample):
+        zmax, zmin, measured, _ = _read_window(neighbours, square)
+        jumps = height_jumps(zmax, zmin, jump_threshold=plan.hole_params.jump_threshold)
+        near = ndi.binary_dilation(jumps, structure=structure, iterations=near_px) if jumps.any() else jumps
+        ranked.append((int((near & ~measured).sum()), k))
+    out = []
+    for voids, k in sorted(ranked, key=lambda r: (-r[0], r[1]))[:FOV_EVIDENCE_SQUARES]:
+        if voids == 0:
+            break
+        window = sample[k].expand(reach_px).intersection(grid.window)
+        zmax, zmin, measured, _ = _read_window(neighbours, window)
+        core = np.zeros(window.shape, bool)
+        core[sample[k].slices_within(window)] = True
+        out.append((window, zmax, zmin, measured, core))
+    return out
 
 
 def sensor_inputs(
@@ -197,6 +345,8 @@ def sensor_inputs(
     geometry = sensor_geometry(tiles, plan, config)
     if not geometry.complete:
         return geometry, None
+    if geometry.heights_assumed and (fov := fov_from_shadows(tiles, merged, plan, config)) is not None:
+        geometry = sensor_geometry(tiles, plan, config, fov_from_shadows=fov)
     logger.debug("flight lines: %s", [(g.line, g.part, g.method, round(g.flying_height)) for g in geometry.lines])
     return geometry, sight_inputs(plan, merged, geometry, config.sensor.sight_reach_m)
 

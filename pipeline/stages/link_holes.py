@@ -69,7 +69,8 @@ def link_cells(
         rules=rules,
         bands_known=len(line_bands(line_moments)) >= 2,
         sight_known=sight_known,
-        heights_assumed=heights_assumed,
+        # the rim's occlusion rules speak where nothing measured the assumed heights (the shadows did not)
+        heights_assumed=heights_assumed and geometry is not None and geometry.rim_rules,
     )
     catalog = link_holes(
         [d.cell_holes for d in detected],
