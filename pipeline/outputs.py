@@ -396,9 +396,21 @@ def write_hole_layers(
         "walls": len(wall_records),
         "height_jump_px": int(sum(d.jump_px for d in detected)),
         "aoi_area_m2": round(sum(d.aoi_px for d in detected) * plan.pixel_area_m2, 2),
+        "assumed_heights": _assumed_heights(holes, config),
         "largest": sorted(hole_records, key=lambda r: -r["area_m2"])[:20],
         "fill": _fill_counts(plan, catalog, fills, listed, written or []) if fills is not None else {},
     }
+
+
+def _assumed_heights(holes: HoleSet, config: Config) -> dict | None:
+    """Where the sensor's heights are assumed (single returns, no scan angles): the field of view they
+    come from, and whether the survey's shadows gave it (docs/holes.md); None where they are measured."""
+    geometry = holes.geometry
+    if geometry is None or not geometry.heights_assumed:
+        return None
+    from_shadows = geometry.fov_from_shadows is not None
+    fov = geometry.fov_from_shadows if from_shadows else config.sensor.nominal_fov_deg
+    return {"field_of_view_deg": fov, "from": "shadows" if from_shadows else "sensor.nominal_fov_deg"}
 
 
 def _hole_records(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import laspy
 import numpy as np
 import pytest
@@ -87,7 +89,8 @@ def test_a_ground_model_s_voids_under_buildings_and_trees_are_covered(tmp_path, 
 def test_a_simulated_scan_with_a_missed_line_has_the_same_holes_at_any_cell_size(shared_data, tmp_path, dask_client):
     """Delft, one line dropped, single returns and no scan angles: the shadows that open onto the
     strip are part of its hole (none touches it), and the holes, causes and rules are those of one
-    1000 m cell with 50 m cells (rays stop at the sight reach, whatever the window)."""
+    1000 m cell with 50 m cells (rays stop at the sight reach, whatever the window), the field of
+    view from the shadows included."""
     import shapely
 
     from pipeline.simulate import load_terrain, random_scan_params, simulate_scan
@@ -101,6 +104,9 @@ def test_a_simulated_scan_with_a_missed_line_has_the_same_holes_at_any_cell_size
                    client=dask_client)  # fmt: skip
         holes = read_layer(out / "holes.gpkg", "holes")
         found[cell_m] = holes
+        # its heights are assumed: the field of view comes from its shadows (flown 54, assumed 40)
+        assumed = json.loads((out / "manifest.json").read_text())["holes"]["assumed_heights"]
+        assert assumed["from"] == "shadows" and 46 <= assumed["field_of_view_deg"] <= 60, assumed
     strips = found[50][found[50]["cause"] == "missed_coverage"]
     assert len(strips) >= 1 and set(strips["cause_rule"]) == {"coverage_gap"}
     strip = shapely.union_all(strips.geometry.values)
