@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 import shapely
 
-from pipeline.sensor.sight import BLOCKED, OUTSIDE_SWATHS, SEEN, ground_targets, shadow_contradictions, sight_classes
+from pipeline.sensor.sight import (
+    BLOCKED,
+    OUTSIDE_SWATHS,
+    SEEN,
+    ground_targets,
+    pixels_beside_steps,
+    shadow_contradictions,
+    sight_classes,
+)
 from pipeline.sensor.sums import TrajectorySums, trajectory_sums
 from pipeline.sensor.trajectory import fit_flight_lines, swath_polygon
 
@@ -146,13 +154,13 @@ def test_the_shadows_beside_a_wall_tell_the_sensor_s_height():
     zmin = np.where(measured, zmax, np.nan)
     zmin[:, 30] = 0.0  # the wall's foot returned too: its pixel spans the step
     swaths = np.ones((1, size, size), bool)
+    beside = pixels_beside_steps(zmax, zmin, measured, step=2.5, near_px=16, pixel_size=1.0)
 
     def contradicting(height: float) -> int:
         track = np.array([[100.0, 200.0, height], [100.0, -140.0, height]])  # flies south at x = 100
         blocked, seen, judged = shadow_contradictions(
-            zmax, zmin, measured, swaths, [track], origin_xy=(0.0, 60.0), pixel_size=1.0, reach=60.0,
-            step=2.5, near_px=16,
-        )  # fmt: skip
+            zmax, measured, beside, swaths, [track], origin_xy=(0.0, 60.0), pixel_size=1.0, reach=60.0
+        )
         assert judged > 0
         return blocked + seen
 

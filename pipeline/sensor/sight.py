@@ -20,12 +20,22 @@ tolerance): the surface model's blocks must not invent obstacles at their corner
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
 import scipy.ndimage as ndi
 
-__all__ = ["BLOCKED", "OUTSIDE_SWATHS", "SEEN", "ground_targets", "shadow_contradictions", "sight_classes"]
+__all__ = [
+    "BLOCKED",
+    "OUTSIDE_SWATHS",
+    "SEEN",
+    "StepPixels",
+    "ground_targets",
+    "pixels_beside_steps",
+    "shadow_contradictions",
+    "sight_classes",
+]
 
 #: Classes of a hole pixel (:func:`sight_classes`); 0: not a hole pixel.
 OUTSIDE_SWATHS, BLOCKED, SEEN = 1, 2, 3
@@ -188,45 +198,63 @@ def sight_classes(
     return out
 
 
-def shadow_contradictions(
+class StepPixels(NamedTuple):
+    """The pixels beside a step (:func:`pixels_beside_steps`) and the ground under each."""
+
+    ground: np.ndarray  # float: the lowest return of a measured pixel, the ground found nearby for an empty one
+    open_ground: np.ndarray  # bool: measured, a single surface (``zmax - zmin`` under the step)
+    voids: np.ndarray  # bool: empty
+
+
+def pixels_beside_steps(
     zmax: np.ndarray,
     zmin: np.ndarray,
     measured: np.ndarray,
+    *,
+    step: float,
+    near_px: int,
+    pixel_size: float,
+    within: np.ndarray | None = None,
+) -> StepPixels:
+    """The pixels (those ``within``, default all) with a surface more than ``step`` above their ground
+    within ``near_px`` pixels: where a shadow's length tells the sensor's height (:func:`shadow_contradictions`)."""
+    highest = ndi.maximum_filter(np.where(measured, zmax, -np.inf), size=2 * near_px + 1, mode="constant", cval=-np.inf)
+    empty = ~measured
+    ground = np.where(measured, zmin, ground_targets(zmin, measured, empty, step=step, pixel_size=pixel_size))
+    near_step = np.isfinite(ground) & (highest - np.nan_to_num(ground, nan=np.inf) > step)
+    if within is not None:
+        near_step &= within
+    return StepPixels(ground, measured & (zmax - zmin < step) & near_step, empty & near_step)
+
+
+def shadow_contradictions(
+    zmax: np.ndarray,
+    measured: np.ndarray,
+    beside: StepPixels,
     swaths: np.ndarray,
     tracks: list[np.ndarray],
     *,
     origin_xy: tuple[float, float],
     pixel_size: float,
     reach: float,
-    step: float,
-    near_px: int,
     max_scan_angles: list[float] | None = None,
-    within: np.ndarray | None = None,
 ) -> tuple[int, int, int]:
     """How far a trajectory's heights disagree with the shadows the survey shows beside its steps.
 
-    Beside each step (a surface more than ``step`` above a pixel's ground within ``near_px``
-    pixels), a sensor placed too low casts shadows that are too long, over ground that returned
-    points; one placed too high casts them too short, and the voids behind the step read as seen.
-    Returns ``(returned_but_blocked, empty_but_seen, judged)``: measured open-ground pixels (a
-    single surface, ``zmax - zmin`` under ``step``) that no line could see, empty pixels some line
-    saw, and how many pixels beside a step were judged (those ``within``, default all). A dark or
-    wet patch beside a step is seen from any height, and adds the same to each trajectory's count.
+    Beside each step (``beside``, :func:`pixels_beside_steps`), a sensor placed too low casts
+    shadows that are too long, over ground that returned points; one placed too high casts them
+    too short, and the voids behind the step read as seen. Returns ``(returned_but_blocked,
+    empty_but_seen, judged)``: open-ground pixels inside a swath that no line could see, empty
+    pixels some line saw, and how many pixels inside a swath were judged. A dark or wet patch
+    beside a step is seen from any height, and adds the same to each trajectory's count.
     Arguments as :func:`sight_classes`.
     """
-    highest = ndi.maximum_filter(np.where(measured, zmax, -np.inf), size=2 * near_px + 1, mode="constant", cval=-np.inf)
     inside = swaths.any(axis=0) if len(swaths) else np.zeros(zmax.shape, bool)
-    empty = ~measured & inside
-    ground = np.where(measured, zmin, ground_targets(zmin, measured, empty, step=step, pixel_size=pixel_size))
-    near_step = np.isfinite(ground) & (highest - np.nan_to_num(ground, nan=np.inf) > step) & inside
-    if within is not None:
-        near_step &= within
-    open_ground = measured & (zmax - zmin < step) & near_step
-    voids = empty & near_step
+    open_ground, voids = beside.open_ground & inside, beside.voids & inside
     classes = sight_classes(
         open_ground | voids,
         np.where(measured, zmax, np.nan),
-        ground,
+        beside.ground,
         swaths,
         tracks,
         origin_xy=origin_xy,

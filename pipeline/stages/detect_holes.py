@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -37,7 +38,9 @@ from ..rasterize import PixelStatistics
 from ..sensor.sight import (
     OUTSIDE_SWATHS,
     TARGET_RADII_M,
+    StepPixels,
     ground_targets,
+    pixels_beside_steps,
     shadow_contradictions,
     sight_classes,
     surface_tops,
@@ -190,7 +193,7 @@ def sensor_geometry(
     """
     sums = TrajectorySums.merged([t.trajectory for t in tiles])
     fov = config.sensor.nominal_fov_deg if fov_from_shadows is None else fov_from_shadows
-    lines = _fitted_lines(sums, plan, fov)
+    lines = _line_fitter(sums, plan)(fov)
     return SensorGeometry(
         lines=tuple(lines),
         swaths_wkb=tuple(shapely.to_wkb(swath_polygon(line)) for line in lines),
@@ -201,16 +204,18 @@ def sensor_geometry(
     )
 
 
-def _fitted_lines(sums: TrajectorySums, plan: SurveyPlan, nominal_fov_deg: float) -> list[FlightLine]:
+def _line_fitter(sums: TrajectorySums, plan: SurveyPlan) -> Callable[[float], list[FlightLine]]:
+    """The survey's flight lines fitted from ``sums`` for a given field of view (the extent made once)."""
     grid = plan.grid
-    return fit_flight_lines(
-        sums.lines,
-        sums.bins,
-        sums.values,
-        origin=(grid.x_left, grid.y_top, 0.0),
-        nominal_fov_deg=nominal_fov_deg,
-        extent=survey_extent([tile.bounds for tile in plan.survey.tiles], grid.resolution),
-    )
+    extent = survey_extent([tile.bounds for tile in plan.survey.tiles], grid.resolution)
+
+    def fit(nominal_fov_deg: float) -> list[FlightLine]:
+        origin = (grid.x_left, grid.y_top, 0.0)
+        return fit_flight_lines(
+            sums.lines, sums.bins, sums.values, origin=origin, nominal_fov_deg=nominal_fov_deg, extent=extent
+        )
+
+    return fit
 
 
 #: Fields of view tried for lines whose heights are assumed (degrees): airborne scanners sweep 20-75.
@@ -242,29 +247,27 @@ def fov_from_shadows(
     are off, as in an extract cut from inside the swaths on both sides).
     The squares do not depend on the cells, so neither does the field of view.
     """
-    sums = TrajectorySums.merged([t.trajectory for t in tiles])
+    fitted = _line_fitter(TrajectorySums.merged([t.trajectory for t in tiles]), plan)
     grid = plan.grid
     pixel_m = grid.resolution * plan.survey.horizontal_unit_m
     reach_px = max(1, math.ceil(config.sensor.sight_reach_m / pixel_m))
-    near_px = max(1, math.ceil(TARGET_RADII_M[-1] / pixel_m))
-    step = plan.hole_params.jump_threshold
-    windows = _step_windows(merged, plan, reach_px, near_px)
+    windows = _step_windows(merged, plan, reach_px, near_px=max(1, math.ceil(TARGET_RADII_M[-1] / pixel_m)))
     if not windows:
         return None
 
     def contradictions(fov: float) -> tuple[int, int]:
-        lines = _fitted_lines(sums, plan, fov)
+        lines = fitted(fov)
         swaths = [swath_polygon(line) for line in lines]
         contradicting = judged = 0
-        for window, zmax, zmin, measured, core in windows:
+        for window, zmax, measured, beside in windows:
             transform = grid.window_transform(window)
             masks = np.zeros((len(swaths), *window.shape), bool)
             for k, swath in enumerate(swaths):
                 masks[k] = geometry_mask(swath, transform, window.shape)
             blocked, seen, n = shadow_contradictions(
-                zmax, zmin, measured, masks, [line.sensor for line in lines],
+                zmax, measured, beside, masks, [line.sensor for line in lines],
                 origin_xy=(transform.c, transform.f), pixel_size=grid.resolution, reach=reach_px * grid.resolution,
-                step=step, near_px=near_px, max_scan_angles=[line.max_scan_angle_deg for line in lines], within=core,
+                max_scan_angles=[line.max_scan_angle_deg for line in lines],
             )  # fmt: skip
             contradicting, judged = contradicting + blocked + seen, judged + n
         return contradicting, judged
@@ -273,8 +276,11 @@ def fov_from_shadows(
     at_assumed, judged = contradictions(assumed)
     if judged < FOV_MIN_EVIDENCE_PX:
         return None
-    scores = {fov: contradictions(fov)[0] for fov in FOV_SEARCH_DEG}
-    coarse = min(scores, key=lambda f: (scores[f], abs(f - assumed)))
+    scores = {assumed: at_assumed}
+    for fov in FOV_SEARCH_DEG:
+        if fov not in scores:
+            scores[fov] = contradictions(fov)[0]
+    coarse = min(FOV_SEARCH_DEG, key=lambda f: (scores[f], abs(f - assumed)))
     if coarse in (FOV_SEARCH_DEG[0], FOV_SEARCH_DEG[-1]):
         # no airborne scanner's field of view fits: the tracks are off, not the heights (an extract
         # inside the swaths, cut on both sides: IGN's 50 m tile 77050_627755 fitted best at 17 degrees)
@@ -295,16 +301,16 @@ def fov_from_shadows(
 
 
 def _step_windows(
-    merged: list[CellResult], plan: SurveyPlan, reach_px: int, near_px: int
-) -> list[tuple[PixelWindow, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    merged: list[CellResult], plan: SurveyPlan, reach_px: int, *, near_px: int
+) -> list[tuple[PixelWindow, np.ndarray, np.ndarray, StepPixels]]:
     """The windows (a square grown by the reach) of the squares with most voids beside a step.
 
     The squares, ``FOV_SQUARE_M`` on the absolute pixel lattice, do not depend on the cells: an
     even sample of ``FOV_SAMPLE_SQUARES`` of those the grid meets is ranked by its empty pixels
     within ``near_px`` of a height jump, and the best ``FOV_EVIDENCE_SQUARES`` that hold any are read
-    whole: ``(window, zmax, zmin, measured, core)`` (``core``: the square's own pixels).
+    whole: ``(window, zmax, measured, beside)``, ``beside`` the square's own pixels beside a step.
     """
-    grid, cells = plan.grid, plan.cell_by_id()
+    grid, cells, step = plan.grid, plan.cell_by_id(), plan.hole_params.jump_threshold
     neighbours = tuple((cells[r.cell_id].window, r.statistics_path) for r in merged)
     side = max(1, math.ceil(FOV_SQUARE_M / (grid.resolution * plan.survey.horizontal_unit_m)))
     rows = range((grid.row_top - grid.height + 1) // side, grid.row_top // side + 1)  # absolute rows count upwards
@@ -320,7 +326,7 @@ def _step_windows(
     ranked = []
     for k, square in enumerate(sample):
         zmax, zmin, measured, _ = _read_window(neighbours, square)
-        jumps = height_jumps(zmax, zmin, jump_threshold=plan.hole_params.jump_threshold)
+        jumps = height_jumps(zmax, zmin, jump_threshold=step)
         near = ndi.binary_dilation(jumps, structure=structure, iterations=near_px) if jumps.any() else jumps
         ranked.append((int((near & ~measured).sum()), k))
     out = []
@@ -331,7 +337,10 @@ def _step_windows(
         zmax, zmin, measured, _ = _read_window(neighbours, window)
         core = np.zeros(window.shape, bool)
         core[sample[k].slices_within(window)] = True
-        out.append((window, zmax, zmin, measured, core))
+        beside = pixels_beside_steps(
+            zmax, zmin, measured, step=step, near_px=near_px, pixel_size=grid.resolution, within=core
+        )
+        out.append((window, zmax, measured, beside))
     return out
 
 

@@ -189,10 +189,11 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
     heights = np.full(window.shape, np.nan)
     codes = np.zeros(window.shape, np.uint8)
     filled_ids = np.zeros(window.shape, np.int64)
+    present = set(np.unique(hole_ids).tolist()) if task.water_neighbours else set()
     for kind, group in groups.items():
         # water holes are filled with the other cells' water holes beside them, each hole's level read
         # from the water returns nearest to it and its own ring: the same evidence whichever cell owns it
-        beside = [i for i in task.water_neighbours if kind == WATER and (hole_ids == i).any()]
+        beside = [i for i in task.water_neighbours if kind == WATER and i in present]
         in_call = sorted([hole.hole_id for hole in group] + beside)
         labels = _group_labels(hole_ids, in_call)
         outcome = fill_hole(zmax, zmin, measured, labels, kind, params, water, counts)
