@@ -240,6 +240,17 @@ def test_the_largest_scan_angle_from_the_swath_s_edges_where_none_is_recorded():
     assert recorded.max_scan_angle_deg == pytest.approx(20.0, abs=0.01)
 
 
+def test_a_side_with_no_return_of_its_own_does_not_measure_the_scanner_s_angle():
+    """Returns right of the track only, 20 m off it and beyond (the survey's edge, not given here):
+    the left side's farthest return lies across the track, which measures no angle (it made a
+    19.5 degree scanner 3.9 in a simulated scan); the right side alone gives 20 degrees."""
+    full = _scan(angles=False)
+    right = full["y"] <= ORIGIN[1] - 300.0 - 20.0
+    (line,) = _fit([{key: value[right] for key, value in full.items()}])
+    assert line.method == "multiple_returns"
+    assert abs(line.max_scan_angle_deg - 20.0) < 1.0
+
+
 @pytest.mark.parametrize("pairs", [True, False])
 def test_a_swath_cut_by_the_survey_s_edge_keeps_its_track_and_width(pairs):
     """Points north of a boundary 60 m left of line 7's track are not in the survey: the cut side

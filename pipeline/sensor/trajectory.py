@@ -439,7 +439,8 @@ def _edge_angle(values: np.ndarray, across: np.ndarray, sensor: np.ndarray, crop
     For each bin, the hull's point farthest across track on each side (a return), its distance
     from the track and its height; the angle from the vertical at the sensor. Sides the survey's
     edge crops (``cropped``, per bin left and right) are left out (every side is used where the
-    edge crops them all); a side without a bin of its own gives way to the other.
+    edge crops them all), and so are sides whose farthest return lies across the track; a side
+    without a bin of its own gives way to the other.
     The mean of the sides cancels an offset of the track; a median of each bin's wider side
     would not (it measured a 21.1 degree scanner 1 degree wide).
     """
@@ -449,7 +450,9 @@ def _edge_angle(values: np.ndarray, across: np.ndarray, sensor: np.ndarray, crop
     sides = []
     for column in range(2):
         rise = sensor[:, 2] - edge_z[:, column]
-        valid = use[:, column] & (rise > 0)
+        # a side whose farthest return lies across the track holds no return of its own: cut off
+        # (a line entering the survey at a slant: -48 m in a simulated scan, which made 19.5 degrees 3.9)
+        valid = use[:, column] & (rise > 0) & (distances[:, column] > 0)
         angles = np.degrees(np.arctan2(distances[valid, column], rise[valid]))
         sides.append(float(np.median(angles)) if len(angles) else math.nan)
     known = [a for a in sides if math.isfinite(a)]
