@@ -566,19 +566,28 @@ def _sight(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray) -> np
     """Per empty pixel of the core inside a swath's extent: outside every swath after all (by the
     scan angles), blocked from every line, or seen by one (over ``stats.window``).
 
-    Lines of sight are followed over the core grown by ``reach_px``, read from the cells it meets.
+    Lines of sight are followed over the empty pixels' box grown by ``reach_px``, read from the
+    cells it meets: it holds every square of the reach around them, as the core grown by the
+    reach does, so the classes are the same, and a cell whose voids lie inside reads no other.
     """
     sight, cell, grid = task.sight, task.cell, task.grid
     assert sight is not None
     out = np.zeros(stats.window.shape, np.uint8)
     core = cell.window.slices_within(stats.window)
     empty = (stats.count == 0) & (coverage == IN_SWATH)
-    if not empty[core].any():
+    rows, cols = np.nonzero(empty[core])
+    if len(rows) == 0:
         return out
-    window = cell.window.expand(sight.reach_px).intersection(grid.window)
+    voids = PixelWindow(
+        cell.window.row_off + int(rows.min()),
+        cell.window.col_off + int(cols.min()),
+        int(rows.max() - rows.min()) + 1,
+        int(cols.max() - cols.min()) + 1,
+    )
+    window = voids.expand(sight.reach_px).intersection(grid.window)
     zmax, zmin, measured, water = _read_window(sight.neighbours, window)
     candidates = np.zeros(window.shape, bool)
-    candidates[cell.window.slices_within(window)] = empty[core]
+    candidates[voids.slices_within(window)] = empty[voids.slices_within(stats.window)]
     targets = ground_targets(
         zmin,
         measured,
@@ -599,7 +608,7 @@ def _sight(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray) -> np
         max_scan_angles=list(sight.max_scan_angles),
         tops=surface_tops(zmax, measured, candidates, pixel_size=sight.pixel_m, water=water),
     )
-    out[core] = classes[cell.window.slices_within(window)]
+    out[voids.slices_within(stats.window)] = classes[voids.slices_within(window)]
     return out
 
 
