@@ -14,7 +14,7 @@ import shapely
 from affine import Affine
 
 from pipeline.flightplan import CoverageParams, FlightParams, HoleInput, plan_mission
-from pipeline.flightplan.takeoff import TakeoffParams, check_home, choose_takeoff, open_ground
+from pipeline.flightplan.takeoff import TakeoffParams, check_home, choose_takeoff, disc_filter, open_ground
 from pipeline.flightplan.takeoff_search import BoxGrid, GroundGrid
 from pipeline.io.vector import read_layer
 
@@ -117,6 +117,26 @@ def test_of_two_clusters_of_holes_the_take_off_is_the_open_ground_nearest_to_eit
     hx, hy = plan.home
     assert math.hypot(hx - 250.0, hy - 900.0) < 40.0
     assert plan.home_source == "ground points"
+
+
+@pytest.mark.parametrize("radius", [0.0, 1.0, 2.5, 4.0, 7.3, 10.0])
+def test_the_disc_filter_is_scipy_s_footprint_filter_with_a_disc(radius):
+    """Row by row, the same extremes as the footprint filter: NaN-free floats with infinities, both edge modes, bytes."""
+    rng = np.random.default_rng(int(radius * 10))
+    values = rng.normal(size=(37, 53))
+    values[rng.random(values.shape) < 0.1] = np.inf
+    values[rng.random(values.shape) < 0.1] = -np.inf
+    r = int(math.floor(radius))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    disc = xx * xx + yy * yy <= radius * radius + 1e-9
+    for mode, cval in (("nearest", 0.0), ("constant", np.inf), ("constant", -np.inf)):
+        got = disc_filter(values, radius, maximum=True, mode=mode, cval=cval)
+        np.testing.assert_array_equal(got, ndi.maximum_filter(values, footprint=disc, mode=mode, cval=cval))
+        got = disc_filter(values, radius, maximum=False, mode=mode, cval=cval)
+        np.testing.assert_array_equal(got, ndi.minimum_filter(values, footprint=disc, mode=mode, cval=cval))
+    wet = (rng.random(values.shape) < 0.02).astype(np.uint8)
+    got = disc_filter(wet, radius, maximum=True, mode="constant", cval=0)
+    np.testing.assert_array_equal(got, ndi.maximum_filter(wet, footprint=disc, mode="constant", cval=0))
 
 
 def test_open_ground_excludes_obstacles_water_slopes_and_voids():

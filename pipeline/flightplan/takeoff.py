@@ -32,7 +32,7 @@ import scipy.ndimage as ndi
 from .altitude import AffineLike, Surface, _inverse
 from .coverage import Point2
 
-__all__ = ["Takeoff", "TakeoffParams", "check_home", "choose_takeoff", "ground_height_at", "open_ground"]
+__all__ = ["Takeoff", "TakeoffParams", "check_home", "choose_takeoff", "disc_filter", "ground_height_at", "open_ground"]
 
 
 @dataclass(frozen=True)
@@ -62,12 +62,6 @@ class Takeoff:
     warning: str = ""
 
 
-def _disc(radius_px: float) -> np.ndarray:
-    r = max(0, int(math.floor(radius_px)))
-    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
-    return (xx * xx + yy * yy) <= radius_px * radius_px + 1e-9
-
-
 def _pixel_m(transform: AffineLike) -> float:
     return max(math.hypot(transform.a, transform.d), math.hypot(transform.b, transform.e))
 
@@ -91,17 +85,48 @@ def open_ground(
     """
     if dsm.shape != ground.shape:
         raise ValueError(f"dsm and ground must have the same shape, got {dsm.shape} and {ground.shape}")
-    disc = _disc(params.clear_radius_m / _pixel_m(transform))
+    radius = params.clear_radius_m / _pixel_m(transform)
     has_ground = np.isfinite(ground)
-    top = ndi.maximum_filter(np.where(np.isfinite(dsm), dsm, np.inf), footprint=disc, mode="constant", cval=np.inf)
+    top = disc_filter(np.where(np.isfinite(dsm), dsm, np.inf), radius, maximum=True, mode="constant", cval=np.inf)
     clear = top <= np.where(has_ground, ground, -np.inf) + params.obstacle_m
-    high = ndi.maximum_filter(np.where(has_ground, ground, -np.inf), footprint=disc, mode="nearest")
-    low = ndi.minimum_filter(np.where(has_ground, ground, np.inf), footprint=disc, mode="nearest")
+    high = disc_filter(np.where(has_ground, ground, -np.inf), radius, maximum=True, mode="nearest")
+    low = disc_filter(np.where(has_ground, ground, np.inf), radius, maximum=False, mode="nearest")
     level = (high - low) <= 2.0 * params.clear_radius_m * math.tan(math.radians(params.max_slope_deg))
     dry = np.ones_like(has_ground)
     if water is not None:
-        dry = ~ndi.maximum_filter(water > 0, footprint=disc, mode="constant", cval=False)
+        wet = (water > 0).astype(np.uint8)
+        dry = disc_filter(wet, radius, maximum=True, mode="constant", cval=0) == 0
     return has_ground & clear & level & dry
+
+
+def disc_filter(values: np.ndarray, radius_px: float, *, maximum: bool, mode: str, cval: float = 0.0) -> np.ndarray:
+    """The largest (``maximum``) or smallest value within a disc of ``radius_px`` around each pixel.
+
+    The same as ``scipy.ndimage.maximum_filter`` (``minimum_filter``) with the disc as footprint
+    (``mode`` and ``cval`` as there), made row by row: a disc is a stack of runs, one per row,
+    so a one-dimensional filter per run's width and a shift per row give it in ``2 r + 1``
+    passes of a running extreme instead of the disc's ``pi r^2`` pixels per pixel (21 passes
+    against 317 pixels for a 10 m radius at 1 m).
+    """
+    r = max(0, int(math.floor(radius_px)))
+    along_row = ndi.maximum_filter1d if maximum else ndi.minimum_filter1d
+    extreme = np.maximum if maximum else np.minimum
+    rows = values.shape[0]
+    runs: dict[int, np.ndarray] = {}
+    out = None
+    for dy in range(-r, r + 1):
+        half = int(math.floor(math.sqrt(max(radius_px * radius_px + 1e-9 - dy * dy, 0.0))))  # dx^2 + dy^2 <= r^2
+        if half not in runs:
+            runs[half] = along_row(values, size=2 * half + 1, axis=1, mode=mode, cval=cval)
+        run = runs[half]
+        if mode == "nearest":
+            shifted = run[np.clip(np.arange(rows) + dy, 0, rows - 1)]
+        else:  # rows beyond the edge hold cval
+            shifted = np.full(values.shape, cval, values.dtype)
+            shifted[max(0, -dy) : min(rows, rows - dy)] = run[max(0, dy) : min(rows, rows + dy)]
+        out = shifted if out is None else extreme(out, shifted, out=out)
+    assert out is not None
+    return out
 
 
 def ground_height_at(ground: Surface, transform: AffineLike, point: Point2, *, search_m: float) -> float:
