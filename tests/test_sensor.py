@@ -17,7 +17,7 @@ from pipeline.sensor.sight import (
     shadow_contradictions,
     sight_classes,
 )
-from pipeline.sensor.sums import TrajectorySums, trajectory_sums
+from pipeline.sensor.sums import COLUMNS, TrajectorySums, trajectory_sums
 from pipeline.sensor.trajectory import fit_flight_lines, swath_polygon
 
 ORIGIN = (1000.0, 2000.0, 0.0)
@@ -95,6 +95,24 @@ def test_sums_do_not_depend_on_how_the_points_are_cut():
     assert np.array_equal(whole.lines, cut.lines) and np.array_equal(whole.bins, cut.bins)
     # a pulse whose two returns are cut apart is lost to the rays; everything else adds up
     assert np.allclose(whole.values[:, 0], cut.values[:, 0])
+
+
+def test_pulses_whose_returns_are_stored_apart_are_paired_by_their_time():
+    """A file sorted in space (or read by octree node) keeps a pulse's returns apart: the same rays."""
+    scan = _scan(seed=4)
+    in_order = TrajectorySums(*trajectory_sums(**scan, origin=ORIGIN))
+    order = np.random.default_rng(1).permutation(len(scan["x"]))
+    shuffled = {key: value[order] for key, value in scan.items()}
+    apart = TrajectorySums(*trajectory_sums(**shuffled, origin=ORIGIN))
+    pair_n = list(COLUMNS).index("pair_n")
+    assert in_order.values[:, pair_n].sum() > 5000
+    np.testing.assert_array_equal(apart.values[:, pair_n], in_order.values[:, pair_n])
+    # every sum and the hull's extent (which of two returns on one extreme is kept follows their order)
+    summed = [i for i, name in enumerate(COLUMNS) if name[0] not in "xye"]
+    np.testing.assert_allclose(apart.values[:, summed], in_order.values[:, summed], rtol=1e-9, atol=1e-6)
+    (line,) = _fit([shuffled | {"scan_angle_deg": np.zeros(len(order), np.float32)}])
+    assert line.method == "multiple_returns"
+    assert abs(np.median(line.sensor[:, 2]) - 500.0) < 5.0
 
 
 def test_one_id_flown_twice_is_two_passes():
