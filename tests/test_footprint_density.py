@@ -238,3 +238,23 @@ def test_a_run_that_planned_again_resumes_on_the_counted_density(tmp_path):
     assert kept is not None and kept.pulses == 21 and np.array_equal(kept.blocks.count, blocks.count)
     resumed.keep_for_resume()
     assert Staging.create(tmp_path / "out", run_key="k").kept_footprint() is None  # a fresh run counts anew
+
+
+@pytest.mark.parametrize("first_only", [True, False])
+def test_blocks_counted_from_raw_records_are_the_blocks_of_their_coordinates(first_only):
+    """Stage 1 counts a chunk's records in one compiled pass; the pre-pass counts scaled coordinates."""
+    from pipeline.survey.footprint_density import BlockCounter
+
+    rng = np.random.default_rng(3)
+    scales, offsets = (0.01, 0.01, 0.01), (-2500.0, 84000.0, 0.0)
+    x = rng.integers(-60_000, 360_000, 50_000).astype(np.int32)  # beyond the box on both sides: its edge blocks
+    y = rng.integers(-60_000, 360_000, 50_000).astype(np.int32)
+    returns = rng.integers(1, 4, 50_000).astype(np.uint8)
+    bounds = (-2500.0, 84000.0, 500.0, 87000.0)
+    for block in (1.0, 0.7, 13.0):
+        expected, counted = BlockCounter(bounds, block), BlockCounter(bounds, block)
+        keep = returns == 1 if first_only else np.ones(len(x), bool)
+        expected.add(x[keep] * scales[0] + offsets[0], y[keep] * scales[1] + offsets[1])
+        counted.add_records(x, y, scales, offsets, returns if first_only else None)
+        assert all(np.array_equal(a, b) for a, b in zip(counted.counts(), expected.counts(), strict=True))
+        assert counted.counts()[2].sum() == keep.sum()

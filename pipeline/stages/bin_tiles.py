@@ -363,17 +363,16 @@ def _count_pulses(counter: BlockCounter, chunk: PointChunk, task: TileTask, tran
     (``X * scale + offset``, then the transformation) give the same blocks.
     """
     assert task.counting is not None
+    if task.counting.first_only and chunk.return_number is None:
+        raise ValueError(f"{task.path}: the reader gave no return numbers to count first returns by")
+    returns = chunk.return_number if task.counting.first_only else None
+    if transformer is None:
+        counter.add_records(chunk.X, chunk.Y, chunk.scales, chunk.offsets, returns)
+        return
     x, y = chunk.X, chunk.Y
-    if task.counting.first_only:
-        if chunk.return_number is None:
-            raise ValueError(f"{task.path}: the reader gave no return numbers to count first returns by")
-        first = chunk.return_number == 1
-        x, y = x[first], y[first]
-    x = x * chunk.scales[0] + chunk.offsets[0]
-    y = y * chunk.scales[1] + chunk.offsets[1]
-    if transformer is not None:
-        x, y = transformer.transform(x, y)
-    counter.add(x, y)
+    if returns is not None:
+        x, y = x[returns == 1], y[returns == 1]
+    counter.add(*transformer.transform(x * chunk.scales[0] + chunk.offsets[0], y * chunk.scales[1] + chunk.offsets[1]))
 
 
 def _count_left_out(

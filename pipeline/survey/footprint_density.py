@@ -47,6 +47,7 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numba
 import numpy as np
 import shapely
 from pyproj import CRS, Transformer
@@ -257,6 +258,29 @@ class BlockCounter:
         iy = np.clip(np.floor(y / self.block).astype(np.int64) - self.y0, 0, self.rows - 1)
         self.dense += np.bincount(ix * self.rows + iy, minlength=self.cols * self.rows)
 
+    def add_records(
+        self,
+        x: np.ndarray,
+        y: np.ndarray,
+        scales: tuple[float, float, float],
+        offsets: tuple[float, float, float],
+        return_number: np.ndarray | None = None,
+    ) -> None:
+        """Count points at a LAS record's integer ``x``, ``y`` (``X * scale + offset``, as :meth:`add` is given
+        them), the first returns alone where ``return_number`` is given: one compiled pass, no array per step."""
+        if self.dense is None:
+            if return_number is not None:
+                first = return_number == 1
+                x, y = x[first], y[first]
+            self.add(x * scales[0] + offsets[0], y * scales[1] + offsets[1])
+            return
+        first_only = return_number is not None
+        returns = return_number if return_number is not None else np.empty(0, np.uint8)
+        _count_dense(
+            self.dense, x, y, scales[0], offsets[0], scales[1], offsets[1], returns, first_only,
+            self.block, self.x0, self.y0, self.cols, self.rows,
+        )  # fmt: skip
+
     def counts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The occupied blocks ``(ix, iy, count)``."""
         if self.dense is None:
@@ -264,6 +288,19 @@ class BlockCounter:
             return merged.ix, merged.iy, merged.count
         keys = np.flatnonzero(self.dense)
         return keys // self.rows + self.x0, keys % self.rows + self.y0, self.dense[keys]
+
+
+@numba.njit(cache=True, nogil=True)
+def _count_dense(
+    dense, xs, ys, scale_x, offset_x, scale_y, offset_y, return_number, first_only, block, x0, y0, cols, rows
+):
+    """:meth:`BlockCounter.add` on raw records: the same expressions, point by point."""
+    for i in range(len(xs)):
+        if first_only and return_number[i] != 1:
+            continue
+        ix = min(max(np.int64(math.floor((xs[i] * scale_x + offset_x) / block)) - x0, 0), cols - 1)
+        iy = min(max(np.int64(math.floor((ys[i] * scale_y + offset_y) / block)) - y0, 0), rows - 1)
+        dense[ix * rows + iy] += 1
 
 
 def local_pulses_per_m2(blocks: BlockCounts, boxes: np.ndarray) -> np.ndarray:
