@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .density import Density
@@ -70,6 +71,15 @@ def merge_blocks(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], block: 
     if not parts:
         empty = np.zeros(0, np.int64)
         return BlockCounts(block, empty, empty, empty)
+    x0, x1 = min(int(p[0].min()) for p in parts), max(int(p[0].max()) for p in parts)
+    y0, y1 = min(int(p[1].min()) for p in parts), max(int(p[1].max()) for p in parts)
+    rows = y1 - y0 + 1
+    span = (x1 - x0 + 1) * rows
+    if span <= min(DENSE_SPAN_MAX, 4 * sum(len(p[0]) for p in parts) + (1 << 20)):
+        tally = np.zeros(span, np.int64)
+        for ix, iy, count in parts:  # added in place, part by part: no concatenated copy
+            _tally(tally, ix, iy, count, x0, y0, rows)
+        return BlockCounts(block, *_occupied(tally, x0, y0, rows))
     ix, iy, count = (np.concatenate([p[k] for p in parts]) for k in range(3))
     return BlockCounts(block, *_sum_by_block(ix, iy, count))
 
@@ -81,17 +91,41 @@ def _sum_by_block(ix: np.ndarray, iy: np.ndarray, count: np.ndarray) -> tuple[np
     rows = int(iy.max()) - y0 + 1
     span = (int(ix.max()) - x0 + 1) * rows
     # a dense tally beats sorting where the blocks' box is not much larger than their number (0.29 -> 0.07 s
-    # on the 42 M survey's 4 M blocks)
+    # on the 42 M survey's 4 M blocks; compiled, 0.55 -> 0.06 s for merging its 64 files' counts)
     if span <= min(DENSE_SPAN_MAX, 4 * len(ix) + (1 << 20)):
-        tally = np.bincount((ix - x0) * rows + (iy - y0), weights=count, minlength=span)  # exact below 2**53
-        unique = np.flatnonzero(tally)
-        sums = tally[unique].astype(np.int64)
-    else:  # blocks spread far apart: sort the keys
-        keys = (ix - x0) * rows + (iy - y0)
-        unique, inverse = np.unique(keys, return_inverse=True)
-        sums = np.bincount(inverse, weights=count, minlength=len(unique)).astype(np.int64)
+        tally = np.zeros(span, np.int64)
+        _tally(tally, ix, iy, count, x0, y0, rows)
+        return _occupied(tally, x0, y0, rows)
+    # blocks spread far apart: sort the keys
+    keys = (ix - x0) * rows + (iy - y0)
+    unique, inverse = np.unique(keys, return_inverse=True)
+    sums = np.bincount(inverse, weights=count, minlength=len(unique)).astype(np.int64)
     return unique // rows + x0, unique % rows + y0, sums
 
 
-#: :func:`_sum_by_block` tallies in a dense array where the blocks' box holds at most this many (128 MB of float64).
+@numba.njit(cache=True, nogil=True)
+def _tally(tally, ix, iy, count, x0, y0, rows):
+    """Add each block's count into a dense array over the box from ``(x0, y0)``, ``rows`` blocks tall."""
+    for i in range(len(ix)):
+        tally[(ix[i] - x0) * rows + (iy[i] - y0)] += count[i]
+
+
+@numba.njit(cache=True, nogil=True)
+def _occupied(tally, x0, y0, rows):
+    """The blocks of a dense tally that hold points: ``(ix, iy, count)``, in key order."""
+    n = 0
+    for k in range(len(tally)):
+        n += tally[k] != 0
+    ix = np.empty(n, np.int64)
+    iy = np.empty(n, np.int64)
+    count = np.empty(n, np.int64)
+    j = 0
+    for k in range(len(tally)):
+        if tally[k] != 0:
+            ix[j], iy[j], count[j] = k // rows + x0, k % rows + y0, tally[k]
+            j += 1
+    return ix, iy, count
+
+
+#: :func:`_sum_by_block` and :func:`merge_blocks` tally in a dense array where the blocks' box holds at most this many (128 MB of int64).
 DENSE_SPAN_MAX = 1 << 24
