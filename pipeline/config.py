@@ -265,7 +265,9 @@ class OutputConfig:
     compress_level: int = _opt(1, "Deflate/zstd level: 1 writes fastest, higher values make smaller files.", ge=1)
     blocksize: int = _opt(256, "COG internal tile size in pixels.", choices=(128, 256, 512, 1024))
     overview_resampling: str = _opt(
-        "average", "Resampling of COG overviews.", choices=("average", "nearest", "bilinear")
+        "average",
+        "Resampling of COG overviews (fill_mask's codes: always nearest).",
+        choices=("average", "nearest", "bilinear"),
     )
     keep_unfilled: bool = _opt(False, "Also write the DSM before filling (dsm_unfilled/ and dsm_unfilled.vrt).")
     keep_intermediate: bool = _opt(False, "Keep the per-tile and per-cell statistic rasters under OUT/work/.")

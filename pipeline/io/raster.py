@@ -50,6 +50,7 @@ def write_cog(
     nodata: float | None = NODATA,
     description: str = "",
     tags: dict[str, str] | None = None,
+    categorical: bool = False,
 ) -> Path:
     """Write one band as a Cloud-optimized GeoTIFF with overviews.
 
@@ -62,6 +63,10 @@ def write_cog(
         arrays are written as they are.
     transform, crs_wkt
         Georeferencing of the array's top-left pixel.
+    categorical : bool
+        The values are codes (a fill method, a cause): the overviews take the nearest pixel's
+        code, whatever ``options.overview_resampling`` says; averaged, codes 0 and 4 made a 2
+        that no pixel holds.
     """
     path = Path(path)
     data = np.asarray(array)
@@ -99,7 +104,7 @@ def write_cog(
                     BLOCKSIZE=options.blocksize,
                     OVERVIEWS="IGNORE_EXISTING" if overview_count else "NONE",
                     **({"OVERVIEW_COUNT": overview_count} if overview_count else {}),
-                    RESAMPLING=options.overview_resampling.upper(),
+                    RESAMPLING="NEAREST" if categorical else options.overview_resampling.upper(),
                     PREDICTOR="YES" if options.compress != "none" else "NO",
                     **({"LEVEL": options.compress_level} if options.compress in ("deflate", "zstd") else {}),
                     BIGTIFF="IF_SAFER",

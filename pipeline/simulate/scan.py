@@ -276,4 +276,5 @@ def write_truth(scan: ScanResult, resolution: float, path: str | os.PathLike) ->
         crs_wkt=pyproj.CRS.from_user_input(scan.terrain.crs).to_wkt(),
         nodata=None,
         description="0 none, 1 occlusion, 2 water, 3 missed coverage, 4 no return",
+        categorical=True,
     )

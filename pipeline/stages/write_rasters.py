@@ -156,6 +156,7 @@ def write_cell_rasters(task: WriteTask, *after: object) -> WriteResult:
             options=task.raster_options,
             nodata=NOT_FILLED if product == "fill_mask" else -9999.0,
             description=DESCRIPTIONS["dsm_filled" if product == "dsm" and task.fill else product],
+            categorical=product == "fill_mask",
         )
         written[product] = path
     return WriteResult(cell.id, written, filled_px)

@@ -330,6 +330,7 @@ def write_truth(survey: SyntheticSurvey, folder: str | os.PathLike) -> dict[str,
             crs_wkt=crs,
             nodata=None,
             description="0 none, 1 occlusion, 2 water, 3 missed coverage",
+            categorical=True,
         ),  # fmt: skip
         "survey_area": write_layer(
             folder / "survey_area.gpkg",
