@@ -97,6 +97,17 @@ def test_open_ground_farther_than_a_pilot_walks_from_the_holes_is_not_sought():
     )
     assert plan.home_source == "DSM (no ground points)"
     assert "no open ground" in plan.home_warning
+    # with no hole to re-fly there is no take-off to seek, and nothing to warn of
+    nothing = plan_mission(
+        [HoleInput(1, hole, "missed_coverage", hole.area)],
+        dsm,
+        TRANSFORM,
+        crs_wkt=CRS_2154,
+        params=FlightParams(coverage=PARAMS, min_area_m2=10 * hole.area),
+        ground=GroundGrid(ground),
+        snap_home=True,
+    )
+    assert not nothing.sorties and nothing.home_warning == ""
 
 
 def test_of_two_clusters_of_holes_the_take_off_is_the_open_ground_nearest_to_either():

@@ -398,7 +398,9 @@ def _choose_home(
         )
         if found is not None:
             return found
-    warning = "" if ground is None else "no open ground with ground points near the holes"
+    # warned only where a take-off was sought: with no hole to re-fly there is no flight to take off for
+    sought = home is None and ground is not None and bool(patterns)
+    warning = "no open ground with ground points near the holes" if sought else ""
     if home is None:
         home = _default_home(patterns, holes)
     if snap and not math.isfinite(height_at(dsm, transform, home)):
