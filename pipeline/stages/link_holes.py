@@ -80,6 +80,11 @@ def link_cells(
     gap_px = sampling_gap_px(plan.survey, plan.grid, catalog.stats, params.sampling_gap_px)
     catalog, gaps = mark_sampling_gaps(catalog, gap_px)
     causes = classify(catalog.stats)
+    if not plan.aoi_given:
+        catalog, steps = mark_sampling_gaps(
+            catalog, np.where(footprint_steps(catalog, causes, plan.block_px), np.inf, 0)
+        )
+        gaps |= steps
     if sight_known:
         assert geometry is not None
         # to 0.01 degree: the fit's last digits follow the order the reads summed in (a split COPC file)
@@ -96,6 +101,23 @@ def link_cells(
         sampling_gap_px=int(catalog.holes["area_px"][gaps].sum()),
         geometry=geometry,
     )
+
+
+def footprint_steps(catalog: HoleCatalog, causes: np.ndarray, block_px: int) -> np.ndarray:
+    """The holes outside every swath that are the footprint's block steps, not a missed strip.
+
+    Without a planned area the survey area is the data's footprint, made of blocks of
+    ``block_px`` (:mod:`pipeline.survey.footprint`): where the data's edge runs at a slant
+    across them, an empty corner of a block it crosses is inside the area and outside every
+    swath, though nothing was missed (the survey ends there: ``wires_quebec``, 22 triangles
+    of 4-13 m2 every 24 m along its diagonal strips). Such a hole opens onto the area's edge
+    and spans less than a block both ways; a missed strip spans the lines' gap across and
+    the survey along. They are settled like sampling gaps: not listed, filled.
+    """
+    stats = catalog.stats
+    within_block = (stats["row_max"] - stats["row_min"] < block_px) & (stats["col_max"] - stats["col_min"] < block_px)
+    outside_swaths = (causes["cause"] == "missed_coverage") & (causes["rule"] == "coverage_gap")
+    return outside_swaths & catalog.holes["touches_aoi_boundary"] & within_block & ~catalog.holes["is_small"]
 
 
 def keep_hole_set(holes: HoleSet, path: str) -> None:
