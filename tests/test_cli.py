@@ -113,3 +113,24 @@ def test_quiet_run_says_nothing_and_json_log_is_one_object_per_line(runner, tmp_
     assert failed.exit_code == 3
     [error] = [json.loads(line) for line in failed.stderr.splitlines()]
     assert error["level"] == "error" and error["exit_status"] == 3 and "nothing.laz" in error["message"]
+
+
+def test_the_script_exits_with_the_status_and_flushed_output(tmp_path):
+    """``python -m pipeline.cli`` leaves by os._exit: the status, the output and the exit handlers still hold."""
+    import subprocess
+    import sys
+
+    from pipeline import __version__
+
+    def command(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True, text=True, timeout=60)
+
+    done = command("--version")
+    assert done.returncode == 0 and __version__ in done.stdout
+    done = command("config", "--show")  # a page of stdout: written out in full before the process ends
+    assert done.returncode == 0 and done.stdout == CliRunner().invoke(main, ["config", "--show"]).output
+    done = command("run", str(tmp_path / "none.laz"), "--out", str(tmp_path / "o"))
+    assert done.returncode == 3 and "none.laz" in done.stderr and not (tmp_path / "o").exists()
+    done = command("--log-format", "json", "run", str(tmp_path), "--out", str(tmp_path / "o"), "--set", "grid.pixel=1")
+    assert done.returncode == 2
+    assert json.loads(done.stderr.strip().splitlines()[-1])["exit_status"] == 2

@@ -13,11 +13,11 @@ from __future__ import annotations
 from .config import config_command
 from .demo import demo_command
 from .evaluate import evaluate_command
-from .group import EXIT_CODES, EXIT_INTERRUPTED, EXIT_PARTIAL, main
+from .group import EXIT_CODES, EXIT_INTERRUPTED, EXIT_PARTIAL, console_main, main
 from .plan import plan_command
 from .run import run_command
 
 for _command in (run_command, demo_command, evaluate_command, plan_command, config_command):
     main.add_command(_command)
 
-__all__ = ["EXIT_CODES", "EXIT_INTERRUPTED", "EXIT_PARTIAL", "main"]
+__all__ = ["EXIT_CODES", "EXIT_INTERRUPTED", "EXIT_PARTIAL", "console_main", "main"]

@@ -1,6 +1,6 @@
 """``python -m pipeline.cli``: the ``holefill`` command."""
 
-from . import main
+from . import console_main
 
 if __name__ == "__main__":
-    main()
+    console_main()

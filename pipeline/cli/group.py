@@ -8,9 +8,13 @@ exceptions reach the group, which maps them to exit codes in one place
 
 from __future__ import annotations
 
+import atexit
+import os
 import signal
 import sys
+import threading
 from pathlib import Path
+from typing import NoReturn
 
 import click
 
@@ -85,3 +89,33 @@ def _is_the_command() -> bool:
 def main(verbose: int, quiet: int, log_format: str) -> None:
     """Complete DSMs from airborne lidar surveys: find, explain and fill the holes."""
     configure_logging(verbose, quiet, log_format)
+
+
+def console_main() -> NoReturn:
+    """The ``holefill`` script: the group, then an exit that skips Python's teardown of its modules.
+
+    After a run, Python's own shutdown (freeing the modules and heaps of numba, GDAL, pandas
+    and distributed) took 0.2 to 1 s on the 2-core VM, up to a tenth of a DSM-only run of 40 M
+    points. Everything a normal exit does for the outputs still happens, in its order: the
+    threads that must finish are joined, the exit handlers run (logging's flush, Dask's
+    clean-up), stdout and stderr are flushed; then the process leaves with its status. A
+    program calling :data:`main` in-process keeps Python's ordinary exit.
+    """
+    try:
+        main()  # click's standalone mode: always raises SystemExit
+        status: object = 0
+    except SystemExit as e:
+        status = e.code
+    if status is None:
+        status = 0
+    elif not isinstance(status, int):  # what Python prints and returns for sys.exit("text")
+        print(status, file=sys.stderr)
+        status = 1
+    threading._shutdown()  # what Python's exit does first: join the threads that are not daemons
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe (holefill ... | head): nothing more to say
+            pass
+    os._exit(status)
