@@ -134,3 +134,29 @@ def test_the_holes_layer_names_a_river():
     assert record.status == FILLED and record.method == "river" and record.detail.startswith("river: falls 3.")
     # its error: the spread of the bank heights its stations agreed on (2 cm noise, banks rising 0.4 m/m)
     assert 0.01 <= record.error_estimate <= 0.1, record.error_estimate
+
+
+def test_a_step_between_stations_is_told_from_their_noise():
+    """A weir stands out of the stations' falls; one noisy station (a fall too much, the next too little) does not."""
+    from pipeline.fill.hydro import _measured_steps
+
+    rng = np.random.default_rng(4)
+    centres = np.arange(30) * 18.0
+    errors = np.full(30, 0.007)  # 3 cm noise over ~18 water returns a station
+    for trial in range(20):
+        levels = 50.0 - 0.01 * centres + rng.normal(0, 0.007, 30)
+        assert not _measured_steps(centres, levels, errors).any(), trial
+        weir = levels - np.where(centres > 250, 0.3, 0.0)
+        steps = _measured_steps(centres, weir, errors)
+        assert steps.tolist() == [c == 234.0 for c in centres[:-1]], trial  # the gap from 234 to 252 only
+
+
+def test_a_weir_keeps_its_step_and_the_reaches_stay_smooth():
+    dsm, water, level, chainage, offset = river_scene(0.5)
+    weir = np.where(chainage > 160.0, 0.3, 0.0)  # the water and its banks drop 0.3 m past 160 m
+    dsm, level = dsm - weir, level - weir
+    heights = fill(dsm, water).heights
+    far = water & (np.abs(chainage - 160.0) > 20.0)
+    assert np.abs(heights[far] - level[far]).max() <= 0.06
+    above, below = water & (np.abs(chainage - 150.0) < 1.0), water & (np.abs(chainage - 170.0) < 1.0)
+    assert np.median(heights[above]) - np.median(heights[below]) >= 0.25

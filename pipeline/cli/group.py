@@ -111,7 +111,7 @@ def console_main() -> NoReturn:
     elif not isinstance(status, int):  # what Python prints and returns for sys.exit("text")
         print(status, file=sys.stderr)
         status = 1
-    threading._shutdown()  # what Python's exit does first: join the threads that are not daemons
+    getattr(threading, "_shutdown", lambda: None)()  # what Python's exit does first: join the non-daemon threads
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         try:

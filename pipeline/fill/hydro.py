@@ -25,7 +25,9 @@ along it and fits a surface that is flat across the river and never rises downst
    the chainage; the better fit says which end is upstream. Pooled stations make steps.
    The levels are then measured again with the fitted fall within each station taken
    out of its rim heights (else a low percentile leans to the station's lower end) and
-   fitted again.
+   fitted again; a last fit keeps the slope from changing between stations except beside
+   a gap where the stations measure a step (a weir), so that each station's noise does not
+   pass into the surface.
 5. **Surface.** Each pixel gets the fitted level interpolated linearly at its chainage
    between station centres, and beyond the end stations along the end slopes: monotone
    along the course, flat across it.
@@ -58,6 +60,9 @@ _STEPS = ((0, 1, 1.0), (1, 0, 1.0), (1, 1, math.sqrt(2.0)), (1, -1, math.sqrt(2.
 MIN_RIVER_PX = 16
 #: Rounds of re-measuring the stations with the fitted fall within each taken out.
 REFITS = 3
+#: A fall between two stations beyond the reach's slope by this many times its noise is a step (a
+#: weir, :func:`_measured_steps`): normal noise goes that far about once in 30,000 gaps.
+STEP_SIGMAS = 4.0
 
 
 @dataclass(frozen=True)
@@ -214,6 +219,9 @@ def _fit_one(
     for _ in range(REFITS):
         centres, levels, weights, spreads = evidence.stations(station_px, edge, (centres, fitted))
         fitted = _monotone(centres, levels, weights, edge)
+    # then with the slope kept from changing between stations but where they measure a step
+    steps = _measured_steps(centres, fitted, spreads / np.sqrt(np.maximum(weights, 1.0)))
+    fitted = _monotone(centres, levels, weights, edge, steps)
     drop = float(abs(fitted[0] - fitted[-1]))
     # the scatter of the edge heights about each station's level, and of the stations about the fit
     spread = math.hypot(float(np.median(spreads)), 1.4826 * float(np.median(np.abs(levels - fitted))))
@@ -410,37 +418,85 @@ class _Evidence:
         return np.array(centres), np.array(levels), np.array(weights), np.array(spreads)
 
 
-def _monotone(centres: np.ndarray, levels: np.ndarray, weights: np.ndarray, edge: WaterEdge) -> np.ndarray:
+def _measured_steps(centres: np.ndarray, fitted: np.ndarray, errors: np.ndarray) -> np.ndarray:
+    """Per gap between stations: whether the fitted levels step there (a weir, a fall), not slope.
+
+    A gap is a step where its fall exceeds the reach's median slope over the gap by more
+    than :data:`STEP_SIGMAS` times the larger of two noise measures: the standard error
+    of the two stations' level difference (``errors``: each station's spread over the
+    square root of its count of heights), and the robust scatter of every gap's excess
+    fall (1.4826 x their median absolute value). The second holds where the first is too
+    small: one station's level off by its noise makes the gap before it fall more and the
+    gap after it less (excesses of 4 to 5 standard errors in pairs on the synthetic
+    rivers, against 38 to 77 for 0.3 m and 1 m weirs).
+    """
+    gaps = np.diff(centres)
+    if not len(gaps):
+        return np.zeros(0, bool)
+    falls = np.abs(np.diff(fitted))
+    excess = falls - float(np.median(falls / np.maximum(gaps, 1e-9))) * gaps
+    scatter = 1.4826 * float(np.median(np.abs(excess)))
+    return excess > STEP_SIGMAS * np.maximum(np.hypot(errors[:-1], errors[1:]), scatter)
+
+
+def _monotone(
+    centres: np.ndarray,
+    levels: np.ndarray,
+    weights: np.ndarray,
+    edge: WaterEdge,
+    steps: np.ndarray | None = None,
+) -> np.ndarray:
     """The better of the falling and rising fits, each monotone with its slope capped at ``edge.max_slope``.
 
     A robust (soft L1, scale ``edge.tolerance``) weighted least-squares fit of the
     station levels under ``0 <= fall between stations <= max_slope * distance``: a
-    station whose edge is a bridge or a quay top stands out and pulls little.
+    station whose edge is a bridge or a quay top stands out and pulls little. With
+    ``steps`` (per gap between stations, :func:`_measured_steps`), a change of slope
+    between neighbouring gaps costs as much as a station's misfit of the level it makes
+    over one station spacing, except beside a gap the stations measure as a step: a
+    river's slope changes gradually along a reach, and the noise of each station's
+    level (its few water returns) otherwise passes into the surface as wobbles.
     """
     best, best_cost = levels, math.inf
     for sign in (1.0, -1.0):
-        fit, cost = _capped_fit(centres, sign * levels, weights, edge)
+        fit, cost = _capped_fit(centres, sign * levels, weights, edge, steps)
         if cost < best_cost:
             best, best_cost = sign * fit, cost
     return best
 
 
 def _capped_fit(
-    centres: np.ndarray, levels: np.ndarray, weights: np.ndarray, edge: WaterEdge
+    centres: np.ndarray,
+    levels: np.ndarray,
+    weights: np.ndarray,
+    edge: WaterEdge,
+    steps: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float]:
-    """Non-increasing levels, falling at most ``max_slope`` per pixel of chainage; the fit and its cost."""
+    """Non-increasing levels, falling at most ``max_slope`` per pixel of chainage; the fit and its cost.
+
+    ``steps``: see :func:`_monotone` (no slope term without it).
+    """
     n = len(levels)
-    gaps = np.diff(centres) * edge.max_slope
+    spacing = np.diff(centres)
+    gaps = spacing * edge.max_slope
     # unknowns: the first level and the n - 1 falls; level i = first - sum of the falls before it
     design = np.zeros((n, n))
     design[:, 0] = 1.0
     design[1:, 1:] = -np.tril(np.ones((n - 1, n - 1)))
     root = np.sqrt(weights / weights.max())
+    # the change of slope between gaps j and j + 1 (fall over spacing), over one mean spacing
+    bends = np.zeros((0, n))
+    if steps is not None and n >= 3:
+        smooth = [j for j in range(n - 2) if not (steps[j] or steps[j + 1])]
+        bends = np.zeros((len(smooth), n))
+        for row, j in enumerate(smooth):
+            bends[row, j + 1] = -np.mean(spacing) / max(spacing[j], 1e-9)
+            bends[row, j + 2] = np.mean(spacing) / max(spacing[j + 1], 1e-9)
     start = np.concatenate([[float(np.max(levels))], np.zeros(n - 1)])
     lower = np.concatenate([[-np.inf], np.zeros(n - 1)])
     upper = np.concatenate([[np.inf], gaps + 1e-12])
     found = least_squares(
-        lambda x: root * (design @ x - levels),
+        lambda x: np.concatenate([root * (design @ x - levels), bends @ x]),
         np.clip(start, lower, upper),
         bounds=(lower, upper),
         loss="soft_l1",
