@@ -495,9 +495,12 @@ def _capped_fit(
     start = np.concatenate([[float(np.max(levels))], np.zeros(n - 1)])
     lower = np.concatenate([[-np.inf], np.zeros(n - 1)])
     upper = np.concatenate([[np.inf], gaps + 1e-12])
+    # the residuals are linear in the unknowns: their Jacobian is one constant matrix
+    jacobian = np.vstack([root[:, None] * design, bends])
     found = least_squares(
         lambda x: np.concatenate([root * (design @ x - levels), bends @ x]),
         np.clip(start, lower, upper),
+        jac=lambda x: jacobian,
         bounds=(lower, upper),
         loss="soft_l1",
         f_scale=max(edge.tolerance, 1e-6),
