@@ -161,3 +161,30 @@ def test_a_pixel_of_water_returns_only_gives_its_mid_range():
     mid = fill_hole(zmax, zmin, ~hole, labels, WATER, params(), water, counts).heights[hole][0]
     low = fill_hole(zmax, zmin, ~hole, labels, WATER, params(), water).heights[hole][0]
     assert abs(mid - (-0.46)) <= 0.01 and low < -0.46 - 0.02
+
+
+def test_pixels_with_bank_returns_too_are_left_out_where_pure_ones_are_enough():
+    """A pixel of water and bank returns gives only its lowest (the lowest of its water returns): below the water."""
+    rng = np.random.default_rng(3)
+    hole = np.zeros((40, 40), bool)
+    hole[10:30, 10:30] = True
+    near = ~hole & (np.abs(np.indices(hole.shape) - 19.5).max(axis=0) < 13)  # 3 px of water returns round it
+    inner = ~hole & (np.abs(np.indices(hole.shape) - 19.5).max(axis=0) < 11)  # the 1 px band next to the hole
+    water_returns = -0.46 + rng.normal(0, 0.03, (3, *hole.shape))  # three water returns per pixel, 3 cm noise
+    # the outer two pixels of the band hold bank returns too (a metre up): only their lowest tells of the water
+    mixed = near & ~inner
+    zmin = np.where(near, water_returns.min(axis=0), 1.0)
+    zmax = np.where(inner, water_returns.max(axis=0), 1.0)
+    zmin, zmax = np.where(hole, np.nan, zmin), np.where(hole, np.nan, zmax)
+    water = np.where(near, 3, 0).astype(np.uint16)
+    counts = np.where(hole, 0, np.where(mixed, 5, 3)).astype(np.uint32)
+    labels = hole.astype(np.int32)
+    level = fill_hole(zmax, zmin, ~hole, labels, WATER, params(), water, counts).heights[hole][0]
+    assert abs(level - (-0.46)) <= 0.01  # from the pure pixels' mid-ranges alone
+    # without pure pixels enough (a hole with no band of water returns only), the mixed ones still count
+    water_only_mixed = np.where(inner, 0, water).astype(np.uint16)
+    counts_only_mixed = np.where(inner, 3, counts).astype(np.uint32)
+    zmin_only_mixed = np.where(inner, 1.0, zmin)
+    zmin_only_mixed[hole] = np.nan
+    level = fill_hole(zmax, zmin_only_mixed, ~hole, labels, WATER, params(), water_only_mixed, counts_only_mixed)
+    assert -0.46 - 0.06 < level.heights[hole][0] < -0.46 - 0.01  # the lowest of three: about 0.85 x 3 cm low

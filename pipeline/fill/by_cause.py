@@ -21,7 +21,7 @@ from .causes import clamp_to_rim, lower_side_support
 from .hydro import RiverFit, WaterEdge, river_surfaces
 from .region import fill_region
 from .settings import METHOD_CODES, METHOD_NAMES, ComponentFill, FillOutcome, FillSettings
-from .water_level import NO_LEVEL, EdgeLevel, edge_level, water_edge_heights
+from .water_level import MIN_WATER_PX, NO_LEVEL, EdgeLevel, edge_level, water_edge_heights
 
 __all__ = [
     "FILLED",
@@ -143,8 +143,8 @@ def fill_hole(
     heights = np.where(measured, zmax, np.nan)
     region = labels > 0
     if kind == WATER:
-        water_z = _water_heights(zmin, zmax, measured, water_points, counts)
-        return fill_water(np.where(measured, zmin, np.nan), labels, params, water_points, water_z)
+        water_z, water_pure = _water_heights(zmin, zmax, measured, water_points, counts)
+        return fill_water(np.where(measured, zmin, np.nan), labels, params, water_points, water_z, water_pure)
     support = None
     if kind == LOW_SIDE:
         # a small void at a step (a building's edge) is hidden ground like an occlusion; with
@@ -167,17 +167,37 @@ def fill_hole(
 
 def _water_heights(
     zmin: np.ndarray, zmax: np.ndarray, measured: np.ndarray, water_points: np.ndarray | None, counts: np.ndarray | None
-) -> np.ndarray | None:
-    """The height of the water returns of each pixel: mid-range of a pixel of water returns only, else its lowest.
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The height of the water returns of each pixel, and whether the pixel holds water returns only.
 
-    The lowest of several noisy returns from one surface lies below it (by about the
-    noise), the highest above; their mid-range does not. A pixel with land returns too
-    keeps its lowest (its highest is the bank).
+    The height is the mid-range of a pixel of water returns only, else its lowest return. The
+    lowest of several noisy returns from one surface lies below it (by about the noise), the
+    highest above; their mid-range does not. A pixel with land returns too keeps its lowest
+    (its highest is the bank), biased low: see :func:`_pure_where_enough`.
     """
     if water_points is None or counts is None:
-        return None
+        return None, None
     pure = measured & (water_points > 0) & (water_points == counts)
-    return np.where(pure, 0.5 * (zmin + zmax), np.where(measured, zmin, np.nan))
+    return np.where(pure, 0.5 * (zmin + zmax), np.where(measured, zmin, np.nan)), pure
+
+
+def _pure_where_enough(water_label: np.ndarray, pure: np.ndarray) -> np.ndarray:
+    """``water_label`` without the mixed pixels (water and bank returns) of holes with enough pure ones.
+
+    A mixed pixel gives only its lowest return: the lowest of its few water returns, below
+    the water by about the lidar's noise (the lowest of two returns by 0.56 standard deviations,
+    of three by 0.85). Where a hole has at least :data:`MIN_WATER_PX` pixels of water returns
+    only (unbiased, their mid-range), its level is read from those alone: on the synthetic river
+    falling 10 m/km (3 cm noise) the mixed pixels put its level 1 cm low along most of its course
+    (0.021 m at worst, 0.015 m without them).
+    """
+    n = int(water_label.max(initial=0))
+    if n == 0:
+        return water_label
+    pure_count = np.bincount(water_label[pure & (water_label > 0)], minlength=n + 1)
+    enough = pure_count >= MIN_WATER_PX
+    enough[0] = False
+    return np.where(~pure & enough[water_label], 0, water_label)
 
 
 def fill_water(
@@ -186,6 +206,7 @@ def fill_water(
     params: FillParams,
     water_points: np.ndarray | None = None,
     water_z: np.ndarray | None = None,
+    water_pure: np.ndarray | None = None,
 ) -> FillOutcome:
     """Water holes at the level of their edge: a lake one level, a river falling along its course.
 
@@ -194,7 +215,8 @@ def fill_water(
     its water meets the land (:func:`~pipeline.fill.water_level.edge_level`): its water
     returns near the ring when there are some, else the lowest consistent level of its
     ring's lowest returns (``water_z``: the height of each pixel's water returns, default
-    ``zmin``). Holes :func:`~pipeline.fill.river_surfaces` judges rivers
+    ``zmin``; ``water_pure``: the pixels of water returns only, which alone give the level of
+    a hole that has enough of them, :func:`_pure_where_enough`). Holes :func:`~pipeline.fill.river_surfaces` judges rivers
     (elongated, falling at least ``river_min_drop``) get their river surface instead,
     method ``river``, never falling faster than the water's steepest slope. The error
     estimate of a hole is the spread of the heights its level was read from.
@@ -205,6 +227,8 @@ def fill_water(
     )
     points = np.zeros(zmin.shape, np.uint16) if water_points is None else water_points
     ring_label, water_label = water_edge_heights(zmin, points, outcome.labels, reach_px=params.water_reach_px)
+    if water_pure is not None:
+        water_label = _pure_where_enough(water_label, water_pure)
     water_z = zmin if water_z is None else water_z
     levels = _edge_levels(zmin, water_z, ring_label, water_label, params.water_edge)
     heights = outcome.heights.copy()
