@@ -243,6 +243,7 @@ def test_a_run_that_planned_again_resumes_on_the_counted_density(tmp_path):
 @pytest.mark.parametrize("first_only", [True, False])
 def test_blocks_counted_from_raw_records_are_the_blocks_of_their_coordinates(first_only):
     """Stage 1 counts a chunk's records in one compiled pass; the pre-pass counts scaled coordinates."""
+    from pipeline.survey.blocks import BlockWindow
     from pipeline.survey.footprint_density import BlockCounter
 
     rng = np.random.default_rng(3)
@@ -256,5 +257,24 @@ def test_blocks_counted_from_raw_records_are_the_blocks_of_their_coordinates(fir
         keep = returns == 1 if first_only else np.ones(len(x), bool)
         expected.add(x[keep] * scales[0] + offsets[0], y[keep] * scales[1] + offsets[1])
         counted.add_records(x, y, scales, offsets, returns if first_only else None)
-        assert all(np.array_equal(a, b) for a, b in zip(counted.counts(), expected.counts(), strict=True))
-        assert counted.counts()[2].sum() == keep.sum()
+        occupied = [p.occupied() if isinstance(p, BlockWindow) else p for p in (counted.counts(), expected.counts())]
+        assert all(np.array_equal(a, b) for a, b in zip(*occupied, strict=True))
+        assert occupied[0][2].sum() == keep.sum()
+
+
+def test_dense_windows_and_listed_blocks_add_up_alike():
+    """A file's counts sent as a dense window add up with listed blocks exactly as the blocks they hold."""
+    from pipeline.survey.blocks import BlockWindow, merge_blocks
+
+    rng = np.random.default_rng(5)
+    window = BlockWindow.of(10, -4, 30, 20, rng.integers(0, 3, 600))  # zeros: empty blocks
+    assert window.counts.dtype == np.uint8
+    far = BlockWindow.of(10_000_000, 0, 2, 2, np.array([0, 70_000, 1, 0]))  # far apart: the sorted path
+    assert far.counts.dtype == np.uint32
+    listed = (np.array([12, 500, 12]), np.array([0, 7, 0]), np.array([4, 1, 2]))
+    for parts in ([window, listed], [window, listed, far]):
+        merged = merge_blocks(parts, 1.0)
+        as_listed = merge_blocks([p.occupied() if isinstance(p, BlockWindow) else p for p in parts], 1.0)
+        for a, b in ((merged.ix, as_listed.ix), (merged.iy, as_listed.iy), (merged.count, as_listed.count)):
+            assert np.array_equal(a, b)
+        assert merged.count.sum() == window.counts.sum() + 7 + (70_001 if len(parts) == 3 else 0)

@@ -38,6 +38,7 @@ from ..rasterize import (
 from ..reads import Node, cell_of
 from ..sensor.sums import TrajectorySums, trajectory_sums
 from ..staging import Staging, input_fingerprint
+from ..survey.blocks import BlockPart, BlockWindow
 from ..survey.footprint_density import BlockCounter, PulseCounting, pulse_counting
 from ..survey.ground_level import GROUND_CLASS, GroundLevel, count_ground_at_zero
 from ..survey.scan import source_crs_for_task
@@ -89,7 +90,7 @@ class TileResult:
     read_tasks: int = 1  # tasks the file was read by (after results_by_file)
     ground: GroundLevel = GroundLevel()  # ground-class points binned, and those at z = 0
     trajectory: TrajectorySums = field(default_factory=TrajectorySums.empty)  # per flight line and time bin
-    pulse_blocks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (ix, iy, count) when counting
+    pulse_blocks: BlockPart | None = None  # the footprint's block counts, when counting
 
 
 @dataclass(frozen=True)
@@ -463,12 +464,11 @@ def results_by_file(results: list[TileResult]) -> list[TileResult]:
     return list(by_file.values())
 
 
-def _joined_blocks(
-    a: tuple[np.ndarray, np.ndarray, np.ndarray] | None, b: tuple[np.ndarray, np.ndarray, np.ndarray] | None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def _joined_blocks(a: BlockPart | None, b: BlockPart | None) -> BlockPart | None:
     """The block counts of two read tasks of one file, listed together (added up when merged)."""
     if a is None or b is None:
         return a if b is None else b
+    a, b = (p.occupied() if isinstance(p, BlockWindow) else p for p in (a, b))
     return (np.concatenate([a[0], b[0]]), np.concatenate([a[1], b[1]]), np.concatenate([a[2], b[2]]))
 
 

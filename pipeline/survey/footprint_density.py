@@ -55,7 +55,7 @@ from pyproj import CRS, Transformer
 from ..errors import InputDataError
 from ..grid import Grid
 from ..io.las import iter_xy
-from .blocks import BlockCounts, FootprintDensity, block_histogram, merge_blocks
+from .blocks import BlockCounts, BlockPart, BlockWindow, FootprintDensity, block_histogram, merge_blocks
 from .density import BLOCK_PULSES, narrow_width, sampling_gap_width_m
 from .scan import Survey, source_crs_for_task
 
@@ -143,7 +143,7 @@ def measure_footprint(survey: Survey, *, workers: int | None = None) -> Survey:
 
 def footprint_from_counts(
     survey: Survey,
-    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    parts: list[BlockPart],
     started: float,
     *,
     how: str,
@@ -171,9 +171,7 @@ def footprint_from_counts(
     return measured
 
 
-def _count_files(
-    tasks: list[tuple], processes: int, *, threads: int
-) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _count_files(tasks: list[tuple], processes: int, *, threads: int) -> list[BlockPart]:
     """Each file's counts (:func:`_count_file_or_none` of each task): in ``processes`` processes
     where more than one, else on ``threads`` threads of this one.
 
@@ -201,7 +199,7 @@ def _count_file_or_none(
     bounds: tuple[float, float, float, float],
     block: float,
     first_only: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> BlockPart:
     """A file's counts; none for a file that cannot be decoded: stage 1 fails it or skips it
     (``survey.on_error``) with the same message, and the density comes from the others."""
     try:
@@ -219,7 +217,7 @@ def _count_file(
     bounds: tuple[float, float, float, float],
     block: float,
     first_only: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> BlockPart:
     """One file's occupied base blocks and counts (pure of the survey: runs in a worker process)."""
     transformer = (
         Transformer.from_crs(CRS.from_wkt(source_wkt), CRS.from_wkt(target_wkt), always_xy=True) if source_wkt else None
@@ -281,13 +279,12 @@ class BlockCounter:
             self.block, self.x0, self.y0, self.cols, self.rows,
         )  # fmt: skip
 
-    def counts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The occupied blocks ``(ix, iy, count)``."""
+    def counts(self) -> BlockPart:
+        """The counts: the dense box as a :class:`BlockWindow`, else the occupied blocks ``(ix, iy, count)``."""
         if self.dense is None:
             merged = merge_blocks(self.sparse, self.block)
             return merged.ix, merged.iy, merged.count
-        keys = np.flatnonzero(self.dense)
-        return keys // self.rows + self.x0, keys % self.rows + self.y0, self.dense[keys]
+        return BlockWindow.of(self.x0, self.y0, self.cols, self.rows, self.dense)
 
 
 @numba.njit(cache=True, nogil=True)
