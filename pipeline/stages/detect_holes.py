@@ -371,10 +371,13 @@ def sight_inputs(
     paths = {r.cell_id: r.statistics_path for r in merged}
     swaths = geometry.swaths
     boxes = shapely.STRtree(list(swaths))
-    cores = {cell_id: cells[cell_id].window for cell_id in paths}
     out = {}
     for cell_id in paths:
         window = cells[cell_id].halo_window.expand(reach_px).intersection(grid.window)
+        # the merged cells whose core the window meets, by grid arithmetic (a loop over every
+        # cell was 320 x 320 window intersections on the 211 M-point survey)
+        under = (grid.cell(ix, iy) for ix, iy in grid.cell_indices_under(window))
+        neighbours = tuple((cell.window, paths[cell.id]) for cell in under if cell.id in paths)
         x0, y0, x1, y1 = grid.window_bounds(window)
         near = sorted(int(i) for i in boxes.query(shapely.box(x0, y0, x1, y1)))
         out[cell_id] = SightInputs(
@@ -382,9 +385,7 @@ def sight_inputs(
             max_scan_angles=tuple(geometry.lines[i].max_scan_angle_deg for i in near),
             swaths=tuple(geometry.swaths_wkb[i] for i in near),
             reach_px=reach_px,
-            neighbours=tuple(
-                (core, paths[other]) for other, core in cores.items() if not core.intersection(window).is_empty
-            ),
+            neighbours=neighbours,
             pixel_m=pixel_m,
         )
     return out
