@@ -84,3 +84,22 @@ def test_only_the_windows_a_gap_reaches_are_checked():
     assert gaps.checked_near(PixelWindow(100, 158, 20, 20))  # its flank only
     assert not gaps.checked_near(PixelWindow(0, 0, 64, 64))
     assert not gaps.checked_near(PixelWindow(0, 170, 64, 64))
+
+
+def test_an_extent_strip_is_near_the_windows_it_meets(rng):
+    """checked_near's strips: every window that meets a strip or its flank, and no other (random boxes)."""
+    import dataclasses
+
+    def box() -> PixelWindow:
+        r, c = rng.integers(-50, 200, 2)
+        return PixelWindow(int(r), int(c), int(rng.integers(0, 40)), int(rng.integers(0, 40)))
+
+    gaps = dataclasses.replace(
+        coverage_gaps(line_moments(np.zeros((1, 1), np.int64) - 1, row_off=0, col_off=0)),
+        extent_strips=tuple((box(), box()) for _ in range(12)),
+    )
+    assert not gaps.gaps
+    for _ in range(500):
+        window = box()
+        meets = any(not region.intersection(window).is_empty for pair in gaps.extent_strips for region in pair)
+        assert gaps.checked_near(window) == meets

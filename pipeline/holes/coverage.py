@@ -18,6 +18,7 @@ See ``docs/holes.md``, "Coverage gaps".
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 
@@ -145,7 +146,23 @@ class CoverageGaps:
                 and across.min() <= hi + GAP_FLANK_PX
             ):
                 return True
-        return any(not region.intersection(window).is_empty for pair in self.extent_strips for region in pair)
+        boxes = self._strip_boxes
+        return bool(
+            np.any(
+                (np.maximum(boxes[:, 0], window.row_off) < np.minimum(boxes[:, 2], window.row_end))
+                & (np.maximum(boxes[:, 1], window.col_off) < np.minimum(boxes[:, 3], window.col_end))
+            )
+        )
+
+    @functools.cached_property
+    def _strip_boxes(self) -> np.ndarray:
+        """``(row_off, col_off, row_end, col_end)`` of every extent strip and flank, for :meth:`checked_near`.
+
+        Built once: :meth:`checked_near` runs for every cell, and a loop over the strips per
+        cell was 1.6 M window intersections (6.4 s on the client) for 1,536 tiles.
+        """
+        regions = [region for pair in self.extent_strips for region in pair]
+        return np.array([(r.row_off, r.col_off, r.row_end, r.col_end) for r in regions], np.int64).reshape(-1, 4)
 
     def void_counts(self, window: PixelWindow, empty: np.ndarray) -> np.ndarray:
         """Per gap and per extent strip, for it and its flanks: the pixels of ``window`` and the empty ones.
