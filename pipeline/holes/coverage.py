@@ -127,7 +127,7 @@ class CoverageGaps:
             if not overlap.is_empty:
                 out[overlap.slices_within(window)] = IN_MISSING_TILE
         if self.extent_strips:
-            strips = [strip for strip, _ in self.extent_strips]
+            strips = [self.extent_strips[i][0] for i in meeting(self._strip_boxes[0::2], window)]
             extents = [self.tile_extents[i] for i in meeting(self._extent_boxes, window)]
             uncovered = window_union_mask(window, strips) & ~window_union_mask(window, extents)
             out[uncovered & (out < IN_GAP)] = OUTSIDE_TILE_EXTENTS
@@ -156,7 +156,7 @@ class CoverageGaps:
 
     @functools.cached_property
     def _strip_boxes(self) -> np.ndarray:
-        """``(row_off, col_off, row_end, col_end)`` of every extent strip and flank, for :meth:`checked_near`.
+        """``(row_off, col_off, row_end, col_end)`` of every extent strip and its flank (rows 2k, 2k + 1).
 
         Built once: :meth:`checked_near` runs for every cell, and a loop over the strips per
         cell was 1.6 M window intersections (6.4 s on the client) for 1,536 tiles.

@@ -79,8 +79,8 @@ class BlockWindow:
 
     def occupied(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The occupied blocks ``(ix, iy, count)``, int64, in key order."""
-        keys = np.flatnonzero(self.counts)
-        return keys // self.rows + self.x0, keys % self.rows + self.y0, self.counts[keys].astype(np.int64)
+        ix, iy, count = _occupied(self.counts, self.x0, self.y0, self.rows)
+        return ix, iy, count.astype(np.int64)
 
 
 #: One file's block counts, as a reader sends them: the occupied blocks, or a dense window of them.
