@@ -201,6 +201,19 @@ class Grid:
         r1 = self.row_top - _lattice_index(miny, r, o)
         return PixelWindow(r0, c0, r1 - r0 + 1, c1 - c0 + 1).intersection(self.window)
 
+    def window_of_centres(self, minx: float, miny: float, maxx: float, maxy: float) -> PixelWindow:
+        """The pixels whose centres lie in a world box (edges included), clipped to the grid.
+
+        Unlike :meth:`window_of_bounds`, a pixel the box only grazes (a point exactly on the
+        box's max edge lands in the pixel beyond it) is left out.
+        """
+        r, o = self.resolution, self.offset
+        c0 = math.ceil(minx / r + o - 0.5) - self.col_min
+        c1 = math.floor(maxx / r + o - 0.5) - self.col_min
+        r0 = self.row_top - math.floor(maxy / r + o - 0.5)
+        r1 = self.row_top - math.ceil(miny / r + o - 0.5)
+        return PixelWindow(r0, c0, max(r1 - r0 + 1, 0), max(c1 - c0 + 1, 0)).intersection(self.window)
+
     # -- cells --------------------------------------------------------------------
     def cells(self) -> list[Cell]:
         """All cells overlapping the grid, west to east within north to south."""

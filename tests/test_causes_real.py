@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import shapely
 from pyproj import CRS
 
 from pipeline.config import load_config
@@ -141,3 +142,25 @@ def test_the_footprint_s_steps_along_a_slanted_strip_edge_are_no_missed_coverage
     bounds = missed.geometry.bounds
     steps = missed[(bounds.maxx - bounds.minx <= block_m) & (bounds.maxy - bounds.miny <= block_m)]
     assert steps.empty, steps[["hole_id", "area_m2", "cause_rule"]]
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_a_canal_the_extract_cuts_is_water_filled_to_the_cut(shared_data, tmp_path, dask_client):
+    """ahn3_delft_1's canal runs out through the extract's north edge, between houses whose data
+    reaches the cut on both banks: the void the cut opens is inside the survey area (swept by the
+    lines), one water hole with the rest of the canal, filled at the class-9 level."""
+    out = tmp_path / "out"
+    config = load_config(overrides=["survey.crs=EPSG:28992"])
+    run_survey([str(shared_data / "ahn3_delft_1.laz")], out, config, client=dask_client)
+    holes = read_layer(out / "holes.gpkg", "holes")
+    heights, transform, _ = read_raster(out / "dsm.vrt")
+    top = transform.f
+    col = int((84955.0 - transform.c) / transform.a)
+    # the canal's pixels 4-10 m before the cut; the last 3 m lie beyond the swath modelled from the
+    # lines' cropped edges and stay exterior (docs/holes.md, "Voids the survey area's cut opens")
+    column = heights[4:10, col]
+    assert np.isfinite(column).all()
+    canal = holes[holes.contains(shapely.Point(84955.0, top - 5.0))]
+    assert len(canal) == 1 and canal["cause"].iloc[0] == "water", canal[["hole_id", "cause", "cause_rule"]]
+    assert np.abs(column - (-0.46)).max() <= 0.15  # the canal's water returns (class 9) lie at -0.46 m

@@ -7,6 +7,7 @@ import json
 import laspy
 import numpy as np
 import pytest
+import shapely
 
 from pipeline.config import load_config
 from pipeline.io.vector import read_layer
@@ -61,7 +62,8 @@ def test_a_canal_with_water_at_its_edge_is_water(shared_data, tmp_path, dask_cli
         client=dask_client,
     )  # fmt: skip
     holes = read_layer(out / "holes.gpkg", "holes")
-    canal = holes[(holes["area_m2"] > 1000) & (holes["area_m2"] < 1100)]
+    # the canal between two rows of houses (1,118 m2 with the part the extract's east edge cuts open)
+    canal = holes[holes.contains(shapely.Point(84901.5, 447488.5))]
     assert list(canal["cause"]) == ["water"], holes[["area_m2", "cause", "cause_rule"]]
     assert (holes[holes["area_m2"] >= 40]["cause"] != "occlusion").all()
 

@@ -246,10 +246,11 @@ def _window_inside(transform: Affine, bounds: Bounds | None, width: int, height:
     return Window(c0, r0, max(1, c1 - c0), max(1, r1 - r0))
 
 
-def geometry_mask(geometry, transform: Affine, shape: tuple[int, int]) -> np.ndarray:
-    """Pixels whose centre lies inside ``geometry`` (a shapely geometry in the raster's CRS)."""
+def geometry_mask(geometry, transform: Affine, shape: tuple[int, int], *, all_touched: bool = False) -> np.ndarray:
+    """Pixels whose centre lies inside ``geometry`` (a shapely geometry in the raster's CRS); every pixel it
+    touches with ``all_touched``."""
     from rasterio.features import geometry_mask as _geometry_mask
 
     if geometry is None or geometry.is_empty:
         return np.zeros(shape, bool)
-    return _geometry_mask([geometry], out_shape=shape, transform=transform, invert=True)
+    return _geometry_mask([geometry], out_shape=shape, transform=transform, invert=True, all_touched=all_touched)

@@ -83,6 +83,7 @@ class DetectTask:
     gaps_inside: bool = False  # coverage gaps and missing tiles in the survey area are inside the AOI
     sight: SightInputs | None = None  # the flight lines' swaths and trajectories, where they are known
     planned: bool = False  # the survey area is the --aoi: its pixels beyond every tile were planned, not delivered
+    tile_cores: tuple[PixelWindow, ...] = ()  # the pixels whose centres lie in a tile's extent (of tile_windows)
 
 
 @dataclass(frozen=True)
@@ -424,6 +425,11 @@ def detect_tasks(
                 labels_path=str(staging.cell_labels(cell.id)),
                 blocks=blocks.slice_for(plan.grid, cell.halo_window),
                 tile_windows=tuple(plan.tile_windows[i] for i in plan.tiles_of_cell[cell.id] if i not in failed),
+                tile_cores=tuple(
+                    plan.grid.window_of_centres(*plan.survey.tiles[i].bounds)
+                    for i in plan.tiles_of_cell[cell.id]
+                    if i not in failed
+                ),
                 survey_area_wkb=area_wkb,
                 water_wkb=water_wkb,
                 params=params,
@@ -470,6 +476,8 @@ def detect_cell(task: DetectTask) -> DetectResult:
     coverage = task.gaps.classes(stats.window) if task.gaps is not None else None
     if task.sight is not None:
         coverage = _with_swaths(task.sight, grid, stats.window, coverage)
+    # swept by a line's swath (or band): where the area's cut, not the data, bounds the footprint, inside
+    swept = None if coverage is None else coverage == IN_SWATH
     sight = None
     if task.sight is not None:
         assert coverage is not None
@@ -477,7 +485,7 @@ def detect_cell(task: DetectTask) -> DetectResult:
         coverage = np.where(sight == OUTSIDE_SWATHS, IN_GAP, coverage).astype(np.int8)
     if task.planned:
         coverage = _with_undelivered(task, stats.window, coverage)
-    aoi = _aoi(task, stats, coverage)
+    aoi = _aoi(task, stats, coverage, swept)
     holes = _cell_holes(task, stats, aoi, coverage, sight)
     labels = holes.labels if holes.labels is not None else np.zeros(cell.window.shape, np.int32)
     save_labels(task.labels_path, labels, cell.window)
@@ -514,20 +522,28 @@ def detect_cell(task: DetectTask) -> DetectResult:
     )
 
 
-def _aoi(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray | None) -> np.ndarray:
+def _aoi(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray | None, swept: np.ndarray | None) -> np.ndarray:
     """Where an empty pixel of the cell and its halo is a hole: survey area x data footprint.
 
     With a tile grid, the survey area's coverage gaps and missing tiles are inside
     whatever the footprint says: a missed flight line open at the survey's ends lies
-    between two flown lines, a missing tile among the tiles.
+    between two flown lines, a missing tile among the tiles. ``swept`` (pixels a line's
+    swath covers) takes in the voids the area's cut opens between data
+    (:func:`pipeline.survey.footprint.aoi_mask`).
     """
     window = stats.window
     transform = task.grid.window_transform(window)
     if task.survey_area_wkb is not None:
         survey_area = geometry_mask(shapely.from_wkb(task.survey_area_wkb), transform, window.shape)
+        centres = survey_area
     else:
         survey_area = window_union_mask(window, task.tile_windows)
-    aoi = aoi_mask(window, task.grid, task.blocks, count=stats.count, survey_area=survey_area)
+        centres = window_union_mask(window, task.tile_cores)
+    if swept is not None:
+        # beside the area's cut, a swept pixel counts where the area holds it, not where a point on
+        # the extent's edge merely lands in it (a row of pixels beyond a tile's max edge)
+        swept = swept & centres
+    aoi = aoi_mask(window, task.grid, task.blocks, count=stats.count, survey_area=survey_area, swept=swept)
     if task.gaps_inside and coverage is not None:
         aoi |= survey_area & ((coverage == IN_GAP) | (coverage == IN_MISSING_TILE))
     return aoi

@@ -7,18 +7,22 @@ footprint (:func:`footprint_blocks`), which hole detection needs.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import logging
 import math
 from dataclasses import dataclass
 
 import numpy as np
+import shapely
+from affine import Affine
 
 from ..config import Config
 from ..grid import Cell, Grid, PixelWindow
 from ..holes.coverage import CoverageGaps, coverage_gaps, keep_void_gaps
 from ..holes.flight_lines import line_moments, merge_line_moments
 from ..io.intermediate import load_cell_statistics, load_tile_shared_keys, load_tile_statistics, save_cell_statistics
+from ..io.raster import geometry_mask
 from ..plan import SurveyPlan
 from ..rasterize import merge_statistics, shared_pixel_mask
 from ..staging import Staging
@@ -142,13 +146,46 @@ def footprint_blocks(results: list[CellResult], plan: SurveyPlan, config: Config
     one, the data footprint decides what is exterior.
     """
     holes = config.holes
+    failed = sorted({i for r in results for i in r.failed_tiles})
     return footprint_map(
         [r.occupied_blocks for r in results],
         plan.grid,
         plan.block_px,
         closing_blocks=math.ceil(holes.footprint_closing_m / holes.footprint_block_m),
         everything=plan.aoi_given,
+        area_blocks=functools.partial(survey_area_blocks, plan, tuple(failed)),
     )
+
+
+def survey_area_blocks(
+    plan: SurveyPlan, failed: tuple[int, ...], left: int, top: int, shape: tuple[int, int]
+) -> np.ndarray:
+    """Which footprint blocks (first column ``left``, first row ``top``, counting up) meet the survey area.
+
+    The area is the one hole detection uses (``detect_holes.detect_tasks``): the tile
+    grid's squares as a polygon, else the tiles' windows, less the tiles stage 1 skipped.
+    """
+    grid, block_px = plan.grid, plan.block_px
+    out = np.zeros(shape, bool)
+    if plan.tile_grid is not None:
+        size = block_px * grid.resolution
+        x0 = (left * block_px - grid.offset) * grid.resolution
+        y0 = ((top + 1) * block_px - grid.offset) * grid.resolution
+        # a block the area merely touches along its edge is not in it
+        area = shapely.buffer(plan.area_without(failed), -1e-3 * grid.resolution, join_style="mitre")
+        return geometry_mask(area, Affine(size, 0, x0, 0, -size, y0), shape, all_touched=True)
+    lost = set(failed)
+    for i, window in enumerate(plan.tile_windows):
+        if i in lost or window.is_empty:
+            continue
+        b_left = (grid.col_min + window.col_off) // block_px - left
+        b_right = (grid.col_min + window.col_end - 1) // block_px - left
+        b_top = top - (grid.row_top - window.row_off) // block_px
+        b_bottom = top - (grid.row_top - (window.row_end - 1)) // block_px
+        rows = slice(max(b_top, 0), max(min(b_bottom + 1, shape[0]), 0))
+        cols = slice(max(b_left, 0), max(min(b_right + 1, shape[1]), 0))
+        out[rows, cols] = True
+    return out
 
 
 def survey_line_moments(results: list[CellResult]) -> np.ndarray:

@@ -20,6 +20,7 @@ Pure: arrays in, arrays out.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -80,6 +81,9 @@ class BlockMap:
     inside: np.ndarray  # bool (rows, cols): in the footprint
     border: np.ndarray  # bool: in the footprint with a 4-neighbour outside it
     everywhere: bool = False  # a given AOI is authoritative: every block counts as inside, none as border
+    # bool: border blocks whose only outside neighbours lie beyond the survey area (the area's cut bounds them,
+    # not the data: their empty pixels that a swath swept are inside); None: not known (all-False)
+    cut: np.ndarray | None = None
 
     def slice_for(self, grid: Grid, window: PixelWindow) -> BlockMap:
         """The blocks under a window (with one block of margin), small enough to ship to a task."""
@@ -95,6 +99,7 @@ class BlockMap:
             self.top - rows.start,
             self.inside[rows, cols].copy(),
             self.border[rows, cols].copy(),
+            cut=None if self.cut is None else self.cut[rows, cols].copy(),
         )
 
 
@@ -114,13 +119,23 @@ def occupied_blocks(count: np.ndarray, window: PixelWindow, grid: Grid, block_px
 
 
 def footprint_map(
-    keys: list[np.ndarray], grid: Grid, block_px: int, *, closing_blocks: int, everything: bool = False
+    keys: list[np.ndarray],
+    grid: Grid,
+    block_px: int,
+    *,
+    closing_blocks: int,
+    everything: bool = False,
+    area_blocks: Callable[[int, int, tuple[int, int]], np.ndarray] | None = None,
 ) -> BlockMap:
     """Close and fill the survey's block occupancy into its footprint (``everything``: the whole grid).
 
     The map covers only the bounding box of the occupied blocks (nothing outside
-    it can be inside a closing of them), so its size follows the data, never the
-    survey's bounding box; with ``everything`` no map is built at all.
+    it can be inside a closing of them, nor a void cut open between them), so its
+    size follows the data, never the survey's bounding box; with ``everything`` no
+    map is built at all. ``area_blocks(left, top, shape)`` says which blocks of a
+    map (first column ``left``, first row ``top``, counting up) lie in the survey
+    area; with it, the voids the area's edge cuts open between data
+    (:func:`edge_voids`) are inside.
     """
     packed = np.concatenate(keys) if keys else np.empty(0, np.int64)
     if everything or len(packed) == 0:
@@ -132,8 +147,82 @@ def footprint_map(
     occupied = np.zeros((top - bottom + 1, right - left + 1), bool)
     occupied[top - block_rows, block_cols - left] = True
     inside = data_footprint(occupied, closing_px=closing_blocks)
+    # blocks with an outside neighbour: their pixels are inside only where the data's own closing reaches
     border = inside & ~ndi.binary_erosion(inside, border_value=0)
-    return BlockMap(block_px, left, top, inside, border)
+    cut = None
+    if area_blocks is not None:
+        # one block of margin all round: whether the area goes on beyond the data's blocks
+        in_area = area_blocks(left - 1, top + 1, (inside.shape[0] + 2, inside.shape[1] + 2))
+        cut_open = edge_voids(np.pad(inside, 1), in_area)[1:-1, 1:-1]
+        inside = inside | cut_open
+        border |= cut_open
+        # where the footprint meets the area's end (or a void the cut opens), the cut bounds it,
+        # not the data: there the pixels a swath swept are inside too (aoi_mask)
+        empty_in_area = in_area & ~np.pad(inside, 1)
+        beside_empty = empty_in_area[:-2, 1:-1] | empty_in_area[2:, 1:-1] | empty_in_area[1:-1, :-2]
+        cut = border & ~(beside_empty | empty_in_area[1:-1, 2:])
+    return BlockMap(block_px, left, top, inside, border, cut=cut)
+
+
+def edge_voids(footprint: np.ndarray, in_area: np.ndarray) -> np.ndarray:
+    """Voids that one straight edge of the survey area cuts open, with data on both sides of the cut.
+
+    A survey delivered as tiles (or cut to an extract) ends at straight lines that
+    run through whatever lies there: a canal or a lake crossing the cut is a void
+    open to the outside, and the footprint's closing (which counts the outside as
+    empty land) leaves it exterior. The evidence that the survey went on across it
+    is the data on both sides *along the cut*: a void whose contact with the area's
+    edge is one stretch of one straight side (one row or one column of blocks,
+    beyond which the area ends), with footprint blocks at both ends of the stretch
+    on the same line, lies between data the survey holds on both sides, as a void
+    enclosed by data does. The empty corner of a tile beside a diagonal strip meets
+    two sides (it turns the tile's corner) and the margin beside the survey's last
+    line has data at one end only: both stay exterior.
+
+    Parameters
+    ----------
+    footprint : ndarray of bool, shape (M, N)
+        The data footprint (:func:`data_footprint`) on a block lattice.
+    in_area : ndarray of bool, shape (M, N)
+        Blocks inside the survey area. A void reaching the array's outer ring inside
+        the area is not judged (the area goes on beyond what the arrays show).
+
+    Returns
+    -------
+    ndarray of bool, shape (M, N)
+        The blocks of the voids cut open by the area's edge.
+    """
+    footprint = np.asarray(footprint, dtype=bool)
+    in_area = np.asarray(in_area, dtype=bool)
+    if footprint.shape != in_area.shape or footprint.ndim != 2:
+        raise ValueError(f"footprint {footprint.shape} and in_area {in_area.shape} must be one 2-d shape")
+    exterior = in_area & ~footprint
+    labels, count = ndi.label(exterior)
+    out = np.zeros(footprint.shape, bool)
+    if count == 0:
+        return out
+    beyond = np.pad(~in_area, 1, constant_values=False)
+    # contact with the area's edge, per side: the neighbour up / down / left / right lies beyond the area
+    sides = (beyond[:-2, 1:-1], beyond[2:, 1:-1], beyond[1:-1, :-2], beyond[1:-1, 2:])
+    rim = np.zeros(footprint.shape, bool)
+    rim[[0, -1], :] = True
+    rim[:, [0, -1]] = True
+    unjudged = np.unique(labels[rim & exterior])
+    touches = np.stack([np.bincount(labels[exterior & side], minlength=count + 1) > 0 for side in sides])
+    for label in np.flatnonzero(touches.sum(axis=0) == 1):
+        if label == 0 or label in unjudged:
+            continue
+        side = int(np.flatnonzero(touches[:, label])[0])
+        rows, cols = np.nonzero((labels == label) & sides[side])
+        along, across = (cols, rows) if side < 2 else (rows, cols)
+        if len(np.unique(across)) != 1:
+            continue  # the area's edge steps along the void: no straight cut
+        line = int(across[0])
+        ends = (int(along.min()) - 1, int(along.max()) + 1)
+        cells = [(line, e) if side < 2 else (e, line) for e in ends]
+        if all(0 <= r < footprint.shape[0] and 0 <= c < footprint.shape[1] and footprint[r, c] for r, c in cells):
+            out |= labels == label
+    return out
 
 
 def aoi_mask(
@@ -143,6 +232,7 @@ def aoi_mask(
     *,
     count: np.ndarray,
     survey_area: np.ndarray,
+    swept: np.ndarray | None = None,
 ) -> np.ndarray:
     """Which pixels of ``window`` are inside the AOI.
 
@@ -156,6 +246,11 @@ def aoi_mask(
         Points per pixel.
     survey_area : ndarray of bool, shape of ``window``
         The tile windows or the ``--aoi`` polygon.
+    swept : ndarray of bool, shape of ``window``, optional
+        Pixels some flight line's swath covers. In blocks the area's cut bounds
+        (``blocks.cut``), an empty pixel beyond the data's own closing is inside where
+        a swath swept it: the survey went on across it (a canal crossing an extract's
+        edge); outside every swath it is the scanner's edge wobbling short of the cut.
     """
     if blocks.everywhere:
         return survey_area.copy()
@@ -172,6 +267,8 @@ def aoi_mask(
     valid = valid_r[:, None] & valid_c[None, :]
     inside = blocks.inside[np.ix_(br, bc)] & valid
     border = blocks.border[np.ix_(br, bc)] & valid
+    if swept is not None and blocks.cut is not None:
+        border &= ~(blocks.cut[np.ix_(br, bc)] & swept)
     occupied = count > 0
     disc = _disc(EDGE_CLOSING_PX)
     padded = np.pad(occupied, EDGE_CLOSING_PX * 2, mode="edge")
