@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 
 import numpy as np
@@ -201,3 +202,44 @@ def test_tiles_left_out_over_a_lake_are_water_filled_at_its_level(tmp_path, dask
     assert hole_masks(other, survey) == hole_masks(holes, survey)
     assert list(other["fill_note"]) == list(holes["fill_note"])
     assert np.array_equal(read_raster(tmp_path / "cells250" / "dsm.vrt")[0], dsm, equal_nan=True)
+
+
+@pytest.mark.parametrize("limit_px", [60 * 60, 25 * 25])
+def test_a_lake_wider_than_a_fill_window_is_filled_over_a_coarser_lattice(tmp_path, dask_client, monkeypatch, limit_px):
+    """A water hole whose window is over ``MAX_WINDOW_PX`` (here made small: the lake's 4.6 ha
+    window) is filled over coarse pixels and painted into its own pixels: every pixel of the
+    lake holds a height at its level, as the window filled whole gives it."""
+    from pipeline.io.raster import read_raster
+    from pipeline.stages import fill_holes
+    from pipeline.synth import build_scene, draw
+    from pipeline.synth.scenes import cause_scene
+
+    monkeypatch.setattr(draw, "LAKE_SIZE_M", (150.0, 150.0))
+    base = cause_scene("lakes")
+    spec = base.__class__(**{
+        **base.__dict__, "width_m": 250.0, "height_m": 250.0, "lakes": 1, "building_density": 0.0,
+        "tree_density": 5.0, "missed_line": None,
+    })  # fmt: skip
+    survey = generate_survey(tmp_path / "tiles", spec)
+    whole = run(tmp_path / "tiles", tmp_path / "whole", dask_client)
+    monkeypatch.setattr(fill_holes, "MAX_WINDOW_PX", limit_px)
+    coarse = run(tmp_path / "tiles", tmp_path / "coarse", dask_client)
+    lake = coarse[coarse["cause"] == "water"]
+    assert len(lake) == 1 and lake["fill_status"].iloc[0] == "filled", coarse[["area_m2", "cause", "fill_status"]]
+    factor = int(re.search(r"filled over (\d+) x", lake["fill_note"].iloc[0]).group(1))
+    assert factor >= (2 if limit_px == 60 * 60 else 3)
+    assert "filled over" not in " ".join(whole["fill_note"].fillna(""))
+    dsm, _, _ = read_raster(tmp_path / "coarse" / "dsm.vrt")
+    reference, _, _ = read_raster(tmp_path / "whole" / "dsm.vrt")
+    rows, cols = np.indices(dsm.shape)
+    is_water, level = build_scene(spec).water_level(
+        (cols + 0.5) * spec.resolution, spec.height_m - (rows + 0.5) * spec.resolution
+    )
+    voids = is_water & (survey.hole_cause == HoleCause.WATER)
+    assert voids.sum() > 3_000
+    assert np.isfinite(dsm[voids]).all()
+    assert np.abs(dsm[voids] - level[voids]).max() < 0.02
+    assert np.abs(dsm[voids] - reference[voids]).max() < 0.01
+    # the other pixels are the same: measured, or filled by their own (small) holes' tasks
+    others = ~voids
+    assert np.array_equal(dsm[others], reference[others], equal_nan=True)

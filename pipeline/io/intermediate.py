@@ -117,8 +117,13 @@ def save_task_fill(
     heights: np.ndarray,
     codes: np.ndarray,
     distance: np.ndarray,
+    *,
+    factor: int = 1,
 ) -> None:
-    """Store a fill task's holes over its window: which hole each pixel filled, heights, method codes, distances."""
+    """Store a fill task's holes over its window: which hole each pixel filled, heights, method codes, distances.
+
+    With ``factor`` > 1 the arrays are over coarse pixels of ``factor`` x ``factor`` from the window's corner.
+    """
     _save_npz(
         path,
         window=_window_array(window),
@@ -126,14 +131,18 @@ def save_task_fill(
         heights=heights.astype(np.float32),
         codes=codes.astype(np.uint8),
         distance=distance.astype(np.float32),
+        factor=np.array(int(factor)),
     )
 
 
-def load_task_fill(path: str | os.PathLike) -> tuple[PixelWindow, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(window, hole_ids, heights, codes, distance)`` as :func:`save_task_fill` stored them."""
+def load_task_fill(path: str | os.PathLike) -> tuple[PixelWindow, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """``(window, hole_ids, heights, codes, distance, factor)`` as :func:`save_task_fill` stored them."""
     with np.load(path) as data:
         window = PixelWindow(*(int(v) for v in data["window"]))
-        return window, data["hole_ids"], data["heights"], data["codes"], data["distance"]
+        factor = int(data["factor"]) if "factor" in data.files else 1
+        if factor < 1 or data["heights"].shape != (-(-window.height // factor), -(-window.width // factor)):
+            raise ValueError(f"{path}: fill arrays of shape {data['heights'].shape} do not match their window")
+        return window, data["hole_ids"], data["heights"], data["codes"], data["distance"], factor
 
 
 def save_object(path: str | os.PathLike, value: Any) -> None:

@@ -12,10 +12,16 @@ cells (docs/filling.md, "Cells and layers").
 Holes are chosen for filling on the client (:func:`~pipeline.fill.by_cause.unfilled_reason`):
 every void is filled but missed coverage (unless ``fill.missed_coverage``), and holes over the
 limits a user set (``fill.max_area_m2``, ``fill.max_distance_m``; water never).
+
+A water hole whose box is wider than :data:`MAX_WINDOW_PX` (a river across a large survey)
+is filled over a coarser lattice of its window, ``factor`` pixels a side
+(:func:`coarse_factor`): a water surface is level, or falls gently along its course, so a
+coarser pixel keeps its level, and the writer paints that surface into the hole's own pixels.
 """
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from dataclasses import dataclass, replace
 
@@ -47,8 +53,15 @@ from .link_holes import LINK_HOLES, HoleSet
 from .merge_cells import MERGE_CELLS
 from .stage import RunState, Stage
 
-#: Largest window (pixels) a hole is filled over; a hole spread wider is a strip for the flight plan.
+#: Largest window (pixels) a hole is filled over at the grid's pixel (about 0.5 GB of a task's arrays);
+#: a water hole spread wider is filled over a coarser lattice, other holes stay nodata (too large).
 MAX_WINDOW_PX = 4096 * 4096
+
+
+def coarse_factor(window_px: int, limit_px: int | None = None) -> int:
+    """Pixels a side of the coarser lattice that brings a window of ``window_px`` within ``limit_px``
+    (:data:`MAX_WINDOW_PX` by default; 1: none)."""
+    return max(1, math.ceil(math.sqrt(window_px / (limit_px or MAX_WINDOW_PX))))
 
 
 @dataclass(frozen=True)
@@ -67,6 +80,7 @@ class HoleToFill:
     hole_id: int
     cause: str
     window: PixelWindow  # the hole's bounding box grown by the margin, clipped to the grid
+    factor: int = 1  # filled over a lattice of factor x factor pixels (a water hole wider than MAX_WINDOW_PX)
 
 
 @dataclass(frozen=True)
@@ -122,6 +136,7 @@ def fill_tasks(
     catalog, stats = holes.catalog, holes.catalog.stats
     margin = config.fill.margin_px
     owned: dict[str, list[HoleToFill]] = defaultdict(list)
+    coarse: list[tuple[str, HoleToFill]] = []  # one task each: their windows are read coarser
     skipped = []
     for i, hole in enumerate(catalog.holes):
         hole_id = int(hole["hole_id"])
@@ -133,35 +148,44 @@ def fill_tasks(
             continue
         row0, col0 = int(stats["row_min"][i]), int(stats["col_min"][i])
         box = PixelWindow(row0, col0, int(stats["row_max"][i]) - row0 + 1, int(stats["col_max"][i]) - col0 + 1)
-        if box.height * box.width > MAX_WINDOW_PX:
+        window = box.expand(margin).intersection(grid.window)
+        factor = coarse_factor(window.height * window.width)
+        if factor > 1 and fill_kind(cause, params) != WATER:
             skipped.append(HoleFill(hole_id, TOO_LARGE, detail=f"spread over {box.height} x {box.width} pixels"))
             continue
         owner = _cell_of_pixel(grid, int(stats["first_row"][i]), int(stats["first_col"][i]))
-        owned[owner].append(
-            HoleToFill(
-                hole_id=hole_id,
-                cause=cause,
-                window=box.expand(margin).intersection(grid.window),
-            )
-        )
+        hole_to_fill = HoleToFill(hole_id=hole_id, cause=cause, window=window, factor=factor)
+        if factor > 1:
+            coarse.append((owner, hole_to_fill))
+        else:
+            owned[owner].append(hole_to_fill)
     water = [h for holes_of_cell in owned.values() for h in holes_of_cell if fill_kind(h.cause, params) == WATER]
     tasks = []
     for owner, to_fill in owned.items():
-        needed: dict[str, CellSource] = {}
-        for hole in to_fill:
-            for ix, iy in grid.cell_indices_under(hole.window):
-                cell_id = grid.cell(ix, iy).id
-                if cell_id in sources:
-                    needed[cell_id] = sources[cell_id]
         window = _union([hole.window for hole in to_fill])
         own = {hole.hole_id for hole in to_fill}
         neighbours = tuple(
             sorted(h.hole_id for h in water if h.hole_id not in own and not h.window.intersection(window).is_empty)
         )
+        needed = _sources_under(grid, sources, to_fill)
+        tasks.append(FillTask(owner, tuple(to_fill), needed, params, str(staging.cell_fill(owner)), neighbours))
+    for owner, hole in coarse:
+        name = f"{owner}_water{hole.hole_id}"
         tasks.append(
-            FillTask(owner, tuple(to_fill), tuple(needed.values()), params, str(staging.cell_fill(owner)), neighbours)
+            FillTask(name, (hole,), _sources_under(grid, sources, [hole]), params, str(staging.cell_fill(name)))
         )
     return tasks, skipped
+
+
+def _sources_under(grid: Grid, sources: dict[str, CellSource], holes: list[HoleToFill]) -> tuple[CellSource, ...]:
+    """The kept cells whose cores meet the holes' windows."""
+    needed: dict[str, CellSource] = {}
+    for hole in holes:
+        for ix, iy in grid.cell_indices_under(hole.window):
+            cell_id = grid.cell(ix, iy).id
+            if cell_id in sources:
+                needed[cell_id] = sources[cell_id]
+    return tuple(needed.values())
 
 
 def fill_cell_holes(task: FillTask) -> list[HoleFill]:
@@ -173,8 +197,9 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
     components independent), so batching changes no height, only the cost.
     """
     window = _union([hole.window for hole in task.holes])
-    zmax, zmin, measured, hole_ids, water, counts = _WindowReader(task.sources).read(window)
-    params = task.params
+    factor = max(hole.factor for hole in task.holes)
+    zmax, zmin, measured, hole_ids, water, counts = _WindowReader(task.sources).read(window, factor=factor)
+    params = task.params if factor == 1 else coarse_params(task.params, factor)
     distance = fill_distance(measured, pixel_size=params.pixel_size)
     ids = np.array([hole.hole_id for hole in task.holes], dtype=np.int64)
     farthest = ndi.maximum(distance, labels=hole_ids, index=ids) if len(ids) else np.empty(0)
@@ -186,9 +211,9 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
             results[hole.hole_id] = HoleFill(hole.hole_id, *reason, max_distance=float(far))
         else:
             groups[fill_kind(hole.cause, params)].append(hole)
-    heights = np.full(window.shape, np.nan)
-    codes = np.zeros(window.shape, np.uint8)
-    filled_ids = np.zeros(window.shape, np.int64)
+    heights = np.full(zmax.shape, np.nan)
+    codes = np.zeros(zmax.shape, np.uint8)
+    filled_ids = np.zeros(zmax.shape, np.int64)
     present = set(np.unique(hole_ids).tolist()) if task.water_neighbours else set()
     for kind, group in groups.items():
         # water holes are filled with the other cells' water holes beside them, each hole's level read
@@ -200,6 +225,10 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
         for hole in group:
             k = in_call.index(hole.hole_id) + 1
             record = hole_record(hole.hole_id, k, labels, outcome, distance, task.result_path)
+            if factor > 1 and record.status == FILLED:
+                note = f"filled over {factor} x {factor} pixels (its window is over {MAX_WINDOW_PX:,} pixels)"
+                detail = "; ".join(d for d in (record.detail, note) if d)
+                record = replace(record, pixels=record.pixels * factor**2, detail=detail)
             missed = hole.cause == "missed_coverage" and record.status == FILLED  # filled on request: flagged
             results[hole.hole_id] = replace(record, detail=MISSED_NOTE) if missed else record
         if beside:
@@ -208,8 +237,24 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
         heights[done], codes[done] = outcome.heights[done], outcome.method_code[done]
         filled_ids[done] = hole_ids[done]
     if filled_ids.any():
-        save_task_fill(task.result_path, window, filled_ids, heights, codes, distance)
+        if factor > 1:
+            # every coarse pixel takes its nearest filled one's values: a fine pixel of the hole whose
+            # coarse pixel also held data (the shore) is painted from the water beside it
+            nearest = ndi.distance_transform_edt(filled_ids == 0, return_distances=False, return_indices=True)
+            filled_ids, heights, codes, distance = (a[tuple(nearest)] for a in (filled_ids, heights, codes, distance))
+        save_task_fill(task.result_path, window, filled_ids, heights, codes, distance, factor=factor)
     return [results[hole.hole_id] for hole in task.holes]
+
+
+def coarse_params(params: FillParams, factor: int) -> FillParams:
+    """The fill's settings on a lattice of ``factor`` x ``factor`` pixels: the lengths in pixels shrink, a pixel grows."""
+    edge = params.water_edge
+    return replace(
+        params,
+        pixel_size=params.pixel_size * factor,
+        water_reach_px=max(1.0, params.water_reach_px / factor),
+        water_edge=replace(edge, max_slope=edge.max_slope * factor),
+    )
 
 
 def _group_labels(hole_ids: np.ndarray, group: list[int]) -> np.ndarray:
@@ -239,15 +284,24 @@ class _WindowReader:
         self._sources = sources
         self._loaded: dict[str, tuple] = {}
 
-    def _cell(self, source: CellSource) -> tuple:
-        if source.cell_id not in self._loaded:
-            core = load_cell_statistics(source.statistics_path, ("zmax", "zmin", "count", "water")).crop(source.core)
-            labels, _ = load_labels(source.labels_path)
-            hole_ids = hole_ids_of_labels(labels, source.hole_of_label)
-            self._loaded[source.cell_id] = (core.zmax, core.zmin, core.count, hole_ids, core.water)
-        return self._loaded[source.cell_id]
+    def _cell(self, source: CellSource, *, keep: bool = True) -> tuple:
+        """A cell's core rasters, kept for the next window unless ``keep`` is False (a coarse read
+        passes over many cells once: keeping them all would gather the fine window after all)."""
+        if source.cell_id in self._loaded:
+            return self._loaded[source.cell_id]
+        core = load_cell_statistics(source.statistics_path, ("zmax", "zmin", "count", "water")).crop(source.core)
+        labels, _ = load_labels(source.labels_path)
+        hole_ids = hole_ids_of_labels(labels, source.hole_of_label)
+        rasters = (core.zmax, core.zmin, core.count, hole_ids, core.water)
+        if keep:
+            self._loaded[source.cell_id] = rasters
+        return rasters
 
-    def read(self, window: PixelWindow) -> tuple[np.ndarray, ...]:
+    def read(self, window: PixelWindow, *, factor: int = 1) -> tuple[np.ndarray, ...]:
+        """The window's rasters, or with ``factor`` > 1 those of a lattice of ``factor`` x ``factor``
+        pixels from the window's corner (:meth:`read_coarse`)."""
+        if factor > 1:
+            return self.read_coarse(window, factor)
         zmax = np.full(window.shape, np.nan, np.float64)
         zmin = np.full(window.shape, np.nan, np.float64)
         measured = np.zeros(window.shape, bool)
@@ -267,6 +321,56 @@ class _WindowReader:
             hole_ids[inside] = cell_holes[within]
             water[inside] = cell_water[within]
         return zmax, zmin, measured, hole_ids, water, counts
+
+    def read_coarse(self, window: PixelWindow, factor: int) -> tuple[np.ndarray, ...]:
+        """The window's rasters over coarse pixels of ``factor`` x ``factor``, one cell at a time.
+
+        A coarse pixel holds the highest and the lowest return of its pixels, their points and
+        water returns; it is measured where any of its pixels is, and part of a hole (the
+        largest hole id among its pixels) where none is. The fine window is never gathered.
+        """
+        shape = (-(-window.height // factor), -(-window.width // factor))
+        zmax = np.full(shape, np.nan)
+        zmin = np.full(shape, np.nan)
+        counts = np.zeros(shape, np.uint64)
+        water = np.zeros(shape, np.uint64)
+        hole_ids = np.zeros(shape, np.int64)
+        for source in self._sources:
+            overlap = source.core.intersection(window)
+            if overlap.is_empty:
+                continue
+            within = overlap.slices_within(source.core)
+            cell_zmax, cell_zmin, cell_counts, cell_holes, cell_water = self._cell(source, keep=False)
+            row, col = overlap.row_off - window.row_off, overlap.col_off - window.col_off
+            blocks, put = _coarse_blocks(row, col, overlap.shape, factor)
+            zmax[blocks] = np.fmax(zmax[blocks], put(cell_zmax[within], np.nan, np.fmax))
+            zmin[blocks] = np.fmin(zmin[blocks], put(cell_zmin[within], np.nan, np.fmin))
+            counts[blocks] += put(cell_counts[within].astype(np.uint64), 0, np.add)
+            water[blocks] += put(cell_water[within].astype(np.uint64), 0, np.add)
+            hole_ids[blocks] = np.maximum(hole_ids[blocks], put(cell_holes[within].astype(np.int64), 0, np.maximum))
+        measured = counts > 0
+        hole_ids[measured] = 0
+        return (
+            zmax, zmin, measured, hole_ids,
+            np.minimum(water, np.iinfo(np.uint16).max).astype(np.uint16),
+            np.minimum(counts, np.iinfo(np.uint32).max).astype(np.uint32),
+        )  # fmt: skip
+
+
+def _coarse_blocks(row: int, col: int, shape: tuple[int, int], factor: int):
+    """The coarse pixels a fine block at (``row``, ``col``) of a window meets, and how to reduce it onto them."""
+    r0, c0 = row // factor, col // factor
+    r1, c1 = (row + shape[0] - 1) // factor + 1, (col + shape[1] - 1) // factor + 1
+
+    def put(values: np.ndarray, empty, reduce) -> np.ndarray:
+        buffer = np.full(((r1 - r0) * factor, (c1 - c0) * factor), empty, dtype=values.dtype)
+        buffer[row - r0 * factor : row - r0 * factor + shape[0], col - c0 * factor : col - c0 * factor + shape[1]] = (
+            values
+        )
+        blocks = buffer.reshape(r1 - r0, factor, c1 - c0, factor)
+        return reduce.reduce(reduce.reduce(blocks, axis=3), axis=1)
+
+    return (slice(r0, r1), slice(c0, c1)), put
 
 
 # -- the stage's records ---------------------------------------------------------------------
