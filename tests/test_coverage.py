@@ -103,3 +103,40 @@ def test_an_extent_strip_is_near_the_windows_it_meets(rng):
         window = box()
         meets = any(not region.intersection(window).is_empty for pair in gaps.extent_strips for region in pair)
         assert gaps.checked_near(window) == meets
+
+
+def test_a_task_s_slice_of_the_gaps_classes_and_counts_its_window_as_the_whole(rng):
+    """CoverageGaps.near: the gaps, bands, missing tiles, extents and strips a window needs give its
+    classes and (scattered back by the strips' indices) its void counts as the survey's do."""
+    import dataclasses
+
+    def box(size: int = 60) -> PixelWindow:
+        r, c = rng.integers(-20, 240, 2)
+        return PixelWindow(int(r), int(c), int(rng.integers(1, size)), int(rng.integers(1, size)))
+
+    ids = _lines()
+    whole = dataclasses.replace(
+        coverage_gaps(line_moments(ids, row_off=0, col_off=0)),
+        missing_tiles=tuple(box(30) for _ in range(5)),
+        tile_extents=tuple(box() for _ in range(30)),
+        extent_strips=tuple((box(20), box(20)) for _ in range(25)),
+    )
+    assert whole.gaps
+    for _ in range(60):
+        window = box(90)
+        if window.is_empty:
+            continue
+        part, strips = whole.near(window)
+        assert len(part.extent_strips) == len(strips) < len(whole.extent_strips)
+        assert np.array_equal(part.classes(window), whole.classes(window))
+        inner = PixelWindow(window.row_off + 1, window.col_off + 1, max(window.height - 2, 0), max(window.width - 2, 0))
+        if not inner.is_empty:
+            assert np.array_equal(part.classes(inner), whole.classes(inner))
+        empty = rng.random(window.shape) < 0.5
+        full = whole.void_counts(window, empty)
+        sliced = part.void_counts(window, empty)
+        n = len(whole.gaps)
+        assert np.array_equal(sliced[:n], full[:n])
+        assert np.array_equal(sliced[n:], full[n + strips])
+        others = np.setdiff1d(np.arange(len(whole.extent_strips)), strips)
+        assert not full[n + others].any()  # the strips left out count nothing in the window

@@ -205,25 +205,35 @@ class GapVoidTask:
     cell_id: str
     window: PixelWindow  # the cell's core
     statistics_path: str
-    gaps: CoverageGaps
+    gaps: CoverageGaps  # the survey's gaps near the core (CoverageGaps.near)
+    strip_index: np.ndarray  # the indices of its extent strips among the survey's
 
 
 def gap_void_tasks(results: list[CellResult], plan: SurveyPlan, gaps: CoverageGaps) -> list[GapVoidTask]:
     """One task per merged cell a gap or strip reaches: they are checked before detection splits holes at them."""
     cells = plan.cell_by_id()
-    tasks = [GapVoidTask(r.cell_id, cells[r.cell_id].window, r.statistics_path, gaps) for r in results]
-    return [task for task in tasks if gaps.checked_near(task.window)]
+    tasks = []
+    for r in results:
+        window = cells[r.cell_id].window
+        if gaps.checked_near(window):
+            tasks.append(GapVoidTask(r.cell_id, window, r.statistics_path, *gaps.near(window)))
+    return tasks
 
 
-def count_gap_voids(task: GapVoidTask) -> np.ndarray:
-    """Per gap: the core's pixels inside it and the empty ones (:meth:`CoverageGaps.void_counts`)."""
+def count_gap_voids(task: GapVoidTask) -> tuple[np.ndarray, np.ndarray]:
+    """Per gap, then per extent strip near the core: its pixels and the empty ones (:meth:`CoverageGaps.void_counts`),
+    with the strips' indices among the survey's."""
     count = load_cell_statistics(task.statistics_path, names=("count",)).crop(task.window).count
-    return task.gaps.void_counts(task.window, count == 0)
+    return task.strip_index, task.gaps.void_counts(task.window, count == 0)
 
 
-def survey_void_gaps(gaps: CoverageGaps, counts: list[np.ndarray]) -> CoverageGaps:
+def survey_void_gaps(gaps: CoverageGaps, counts: list[tuple[np.ndarray, np.ndarray]]) -> CoverageGaps:
     """Gather: the gaps mostly empty over the survey (the cells' :func:`count_gap_voids` summed)."""
-    total = np.sum(counts, axis=0) if counts else np.zeros((len(gaps.gaps) + len(gaps.extent_strips), 3, 2), np.int64)
+    total = np.zeros((len(gaps.gaps) + len(gaps.extent_strips), 3, 2), np.int64)
+    n_gaps = len(gaps.gaps)
+    for strips, cell_counts in counts:
+        total[:n_gaps] += cell_counts[:n_gaps]
+        np.add.at(total, n_gaps + np.asarray(strips, np.int64), cell_counts[n_gaps:])
     logger.debug("coverage gaps, then extent strips: (pixels, empty) in each and its flanks: %s", total.tolist())
     return keep_void_gaps(gaps, total)
 
