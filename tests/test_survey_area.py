@@ -165,6 +165,28 @@ def test_planned_area_beyond_the_tiles_is_missed_coverage(shared_data, tmp_path,
     assert planned.iloc[0]["area_m2"] == pytest.approx(150**2 - 50**2, rel=0.01)
 
 
+def _one_lake(folder, monkeypatch, *, lake_m: float, scene_m: float):
+    """The cause scene ``lakes`` with one lake ``lake_m`` across in a square of ``scene_m``, a few trees."""
+    from pipeline.synth import draw
+    from pipeline.synth.scenes import cause_scene
+
+    monkeypatch.setattr(draw, "LAKE_SIZE_M", (lake_m, lake_m))
+    base = cause_scene("lakes")
+    spec = base.__class__(**{
+        **base.__dict__, "width_m": scene_m, "height_m": scene_m, "lakes": 1, "building_density": 0.0,
+        "tree_density": 5.0, "missed_line": None,
+    })  # fmt: skip
+    return spec, generate_survey(folder, spec)
+
+
+def _lake_level(spec, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Where the scene's water is on the DSM's pixels, and its true level there."""
+    from pipeline.synth import build_scene
+
+    rows, cols = np.indices(shape)
+    return build_scene(spec).water_level((cols + 0.5) * spec.resolution, spec.height_m - (rows + 0.5) * spec.resolution)
+
+
 def test_tiles_left_out_over_a_lake_are_water_filled_at_its_level(tmp_path, dask_client, monkeypatch):
     """A lake wider than a tile: the delivery leaves out the tiles nothing came back from.
 
@@ -174,25 +196,14 @@ def test_tiles_left_out_over_a_lake_are_water_filled_at_its_level(tmp_path, dask
     ``missing_tile``, nodata awaiting a re-flight over open water).
     """
     from pipeline.io.raster import read_raster
-    from pipeline.synth import build_scene, draw
-    from pipeline.synth.scenes import cause_scene
 
-    monkeypatch.setattr(draw, "LAKE_SIZE_M", (300.0, 300.0))
-    base = cause_scene("lakes")
-    spec = base.__class__(**{
-        **base.__dict__, "width_m": 420.0, "height_m": 420.0, "lakes": 1, "building_density": 0.0,
-        "tree_density": 5.0, "missed_line": None,
-    })  # fmt: skip
-    survey = generate_survey(tmp_path / "tiles", spec)
+    spec, survey = _one_lake(tmp_path / "tiles", monkeypatch, lake_m=300.0, scene_m=420.0)
     names = {p.name for p in (tmp_path / "tiles").glob("*.laz")}
     assert len(names) < 25  # some tiles over the lake returned nothing and were not written
     holes = run(tmp_path / "tiles", tmp_path / "out", dask_client, "grid.cell_size_m=100")
     assert (holes["cause"] == "water").all(), holes[["area_m2", "cause", "cause_rule"]]
     dsm, _, _ = read_raster(tmp_path / "out" / "dsm.vrt")
-    rows, cols = np.indices(dsm.shape)
-    is_water, level = build_scene(spec).water_level(
-        (cols + 0.5) * spec.resolution, spec.height_m - (rows + 0.5) * spec.resolution
-    )
+    is_water, level = _lake_level(spec, dsm.shape)
     voids = is_water & (survey.hole_cause == HoleCause.WATER)
     assert voids.sum() > 15_000
     assert np.isfinite(dsm[voids]).all()  # every void on the lake holds a height, in cells without a point too
@@ -211,16 +222,8 @@ def test_a_lake_wider_than_a_fill_window_is_filled_over_a_coarser_lattice(tmp_pa
     lake holds a height at its level, as the window filled whole gives it."""
     from pipeline.io.raster import read_raster
     from pipeline.stages import fill_holes
-    from pipeline.synth import build_scene, draw
-    from pipeline.synth.scenes import cause_scene
 
-    monkeypatch.setattr(draw, "LAKE_SIZE_M", (150.0, 150.0))
-    base = cause_scene("lakes")
-    spec = base.__class__(**{
-        **base.__dict__, "width_m": 250.0, "height_m": 250.0, "lakes": 1, "building_density": 0.0,
-        "tree_density": 5.0, "missed_line": None,
-    })  # fmt: skip
-    survey = generate_survey(tmp_path / "tiles", spec)
+    spec, survey = _one_lake(tmp_path / "tiles", monkeypatch, lake_m=150.0, scene_m=250.0)
     whole = run(tmp_path / "tiles", tmp_path / "whole", dask_client)
     monkeypatch.setattr(fill_holes, "MAX_WINDOW_PX", limit_px)
     coarse = run(tmp_path / "tiles", tmp_path / "coarse", dask_client)
@@ -231,10 +234,7 @@ def test_a_lake_wider_than_a_fill_window_is_filled_over_a_coarser_lattice(tmp_pa
     assert "filled over" not in " ".join(whole["fill_note"].fillna(""))
     dsm, _, _ = read_raster(tmp_path / "coarse" / "dsm.vrt")
     reference, _, _ = read_raster(tmp_path / "whole" / "dsm.vrt")
-    rows, cols = np.indices(dsm.shape)
-    is_water, level = build_scene(spec).water_level(
-        (cols + 0.5) * spec.resolution, spec.height_m - (rows + 0.5) * spec.resolution
-    )
+    is_water, level = _lake_level(spec, dsm.shape)
     voids = is_water & (survey.hole_cause == HoleCause.WATER)
     assert voids.sum() > 3_000
     assert np.isfinite(dsm[voids]).all()
