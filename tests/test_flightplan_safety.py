@@ -378,3 +378,20 @@ def test_take_off_windows_labelled_by_box_groups_are_the_whole_grid_labelling(se
     ]  # fmt: skip
     grouped = target_windows(targets, reach, area_boxes(areas, shape, transform))
     assert grouped == merged_boxes(whole)  # the merge is shared: the labelling is what differs
+
+
+@pytest.mark.parametrize("density", [0.0005, 0.01, 0.2, 0.7])
+def test_the_take_off_s_rounded_distances_are_scipy_s(density):
+    """rounded_distance: the whole-pixel distance to the nearest target, as scipy's EDT rounded, on
+    random windows (single rows and columns, sparse and dense targets, a window with none)."""
+    from pipeline.flightplan.takeoff_search import rounded_distance
+
+    rng = np.random.default_rng(int(density * 1e4))
+    for _ in range(80):
+        shape = tuple(int(n) for n in rng.integers(1, 70, 2))
+        targets = rng.random(shape) < density
+        if not targets.any():
+            assert np.isinf(rounded_distance(targets)).all()
+            targets[rng.integers(shape[0]), rng.integers(shape[1])] = True
+        expected = np.round(ndi.distance_transform_edt(~targets)).astype(np.float32)
+        assert np.array_equal(rounded_distance(targets), expected)
