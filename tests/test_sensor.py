@@ -337,7 +337,7 @@ def test_a_side_beside_a_boundary_near_the_track_is_not_cut():
 
 def test_the_survey_extent_closes_the_seams_between_tiles():
     """Header boxes end at their outermost points: neighbours 0.01 m apart are one extent, a real gap stays."""
-    from pipeline.stages.detect_holes import survey_extent
+    from pipeline.stages.sensor_geometry import survey_extent
 
     tiles = [(0.0, 0.0, 99.99, 99.99), (100.0, 0.0, 199.99, 99.99), (0.0, 100.0, 99.99, 199.99)]
     extent = survey_extent(tiles, 1.0)
@@ -349,7 +349,7 @@ def test_the_survey_extent_closes_the_seams_between_tiles():
 
 def test_a_void_the_tiles_enclose_is_no_edge_of_the_survey():
     """A missed strip whose tiles' data stops at its edges leaves a hole in their boxes: not the survey's edge."""
-    from pipeline.stages.detect_holes import survey_extent
+    from pipeline.stages.sensor_geometry import survey_extent
 
     # 100 m tiles around the middle square, cut into two 50 m tiles whose data stops 10 m short of their border
     boxes = [

@@ -167,7 +167,7 @@ def classify_causes(
     heights_assumed : bool
         Whether the sensor's heights are assumed (``nominal``: single returns and no scan angles)
         from a field of view nothing measured (the survey's shadows did not settle it,
-        :func:`pipeline.stages.detect_holes.fov_from_shadows`): the swaths stand, but the lines of
+        :func:`pipeline.stages.sensor_geometry.fov_from_shadows`): the swaths stand, but the lines of
         sight lean as the assumed field of view makes them, and the rim's occlusion rules (``jumps``,
         ``shadow``) speak too.
 

@@ -22,7 +22,8 @@ from ..io.intermediate import save_object
 from ..parameters import HoleParams, cause_rules
 from ..plan import SurveyPlan
 from ..survey.footprint_density import sampling_gap_px
-from .detect_holes import COVERAGE, DETECT_HOLES, DetectResult, SensorGeometry, finds_holes
+from .detect_holes import COVERAGE, DETECT_HOLES, DetectResult, finds_holes
+from .sensor_geometry import SensorGeometry
 from .stage import RunState, Stage
 
 
