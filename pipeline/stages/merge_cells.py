@@ -26,7 +26,7 @@ from ..io.raster import geometry_mask
 from ..plan import SurveyPlan
 from ..rasterize import merge_statistics, shared_pixel_mask
 from ..staging import Staging
-from ..survey.footprint import BlockMap, footprint_map, occupied_blocks
+from ..survey.footprint import BlockMap, block_of, footprint_map, occupied_blocks
 from .bin_tiles import BIN_TILES, READ_TASKS, TileFailure, TileResult, TileTask, result_folder
 from .stage import RunState, Stage, in_plan_order
 
@@ -178,12 +178,10 @@ def survey_area_blocks(
     for i, window in enumerate(plan.tile_windows):
         if i in lost or window.is_empty:
             continue
-        b_left = (grid.col_min + window.col_off) // block_px - left
-        b_right = (grid.col_min + window.col_end - 1) // block_px - left
-        b_top = top - (grid.row_top - window.row_off) // block_px
-        b_bottom = top - (grid.row_top - (window.row_end - 1)) // block_px
-        rows = slice(max(b_top, 0), max(min(b_bottom + 1, shape[0]), 0))
-        cols = slice(max(b_left, 0), max(min(b_right + 1, shape[1]), 0))
+        first_col, first_row = block_of(grid, window.row_off, window.col_off, block_px)
+        last_col, last_row = block_of(grid, window.row_end - 1, window.col_end - 1, block_px)
+        rows = slice(max(top - first_row, 0), max(min(top - last_row + 1, shape[0]), 0))
+        cols = slice(max(first_col - left, 0), max(min(last_col - left + 1, shape[1]), 0))
         out[rows, cols] = True
     return out
 

@@ -87,8 +87,8 @@ class BlockMap:
 
     def slice_for(self, grid: Grid, window: PixelWindow) -> BlockMap:
         """The blocks under a window (with one block of margin), small enough to ship to a task."""
-        c0, r0 = _block_of(grid, window.row_off + window.height - 1, window.col_off, self.block_px)
-        c1, r1 = _block_of(grid, window.row_off, window.col_off + window.width - 1, self.block_px)
+        c0, r0 = block_of(grid, window.row_off + window.height - 1, window.col_off, self.block_px)
+        c1, r1 = block_of(grid, window.row_off, window.col_off + window.width - 1, self.block_px)
         rows = slice(max(0, self.top - (r1 + 1)), max(0, self.top - (r0 - 1) + 1))
         cols = slice(max(0, c0 - 1 - self.left), max(0, c1 + 1 - self.left + 1))
         if self.everywhere:
@@ -158,9 +158,8 @@ def footprint_map(
         border |= cut_open
         # where the footprint meets the area's end (or a void the cut opens), the cut bounds it,
         # not the data: there the pixels a swath swept are inside too (aoi_mask)
-        empty_in_area = in_area & ~np.pad(inside, 1)
-        beside_empty = empty_in_area[:-2, 1:-1] | empty_in_area[2:, 1:-1] | empty_in_area[1:-1, :-2]
-        cut = border & ~(beside_empty | empty_in_area[1:-1, 2:])
+        beside_empty = ndi.binary_dilation(in_area & ~np.pad(inside, 1))[1:-1, 1:-1]  # a 4-neighbour
+        cut = border & ~beside_empty
     return BlockMap(block_px, left, top, inside, border, cut=cut)
 
 
@@ -278,7 +277,8 @@ def aoi_mask(
     return survey_area & inside & (~border | closed | occupied)
 
 
-def _block_of(grid: Grid, row: int, col: int, block_px: int) -> tuple[int, int]:
+def block_of(grid: Grid, row: int, col: int, block_px: int) -> tuple[int, int]:
+    """The absolute block (column, row counting up) of a grid pixel."""
     return (grid.col_min + col) // block_px, (grid.row_top - row) // block_px
 
 
