@@ -14,7 +14,16 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["LOGISTIC_NODES", "bounded_least_squares", "soft_l1_cost", "step_jacobian", "step_residuals"]
+__all__ = [
+    "LOGISTIC_NODES",
+    "bounded_least_squares",
+    "forward_difference_jacobian",
+    "jacobian_at",
+    "soft_l1_cost",
+    "square_share_slopes",
+    "step_jacobian",
+    "step_residuals",
+]
 
 
 #: Equal-weight quadrature nodes of the standard logistic distribution (its deciles 1, 3,
@@ -54,11 +63,75 @@ def step_residuals(
 def step_jacobian(
     params, lower, upper, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
 ):  # pragma: no cover - compiled
-    """Forward-difference Jacobian of :func:`step_residuals` in one compiled call.
+    """Jacobian of :func:`step_residuals` (see :func:`jacobian_at`), in one compiled call."""
+    base = step_residuals(params, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes)
+    return jacobian_at(
+        params, base, lower, upper, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
+    )
 
-    The step is scipy's "2-point" rule (sqrt of machine epsilon, relative to the
-    parameter), taken backwards where a forward step would leave the bounds.
+
+@numba.njit(cache=True)
+def jacobian_at(
+    params, base, lower, upper, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
+):  # pragma: no cover - compiled
+    """Jacobian of :func:`step_residuals` in one compiled call: analytic but for the wall's direction.
+
+    ``low`` and ``high`` enter linearly; ``rho`` and ``log_width`` move every pixel's
+    signed distance, whose effect on its share is the S-curve-smoothed trapezoid's
+    density (:func:`square_share_slopes`). The direction ``phi`` also reshapes the
+    trapezoid (``|cos phi|``, ``|sin phi|``): a forward difference, scipy's "2-point" rule
+    (sqrt of machine epsilon, relative to the parameter), taken backwards where a forward
+    step would leave the bounds. ``base``: the residuals at ``params``. One residual
+    evaluation and the shares' slopes instead of five evaluations.
     """
+    phi, rho, low, high, log_width = params[0], params[1], params[2], params[3], params[4]
+    c, s = math.cos(phi), math.sin(phi)
+    u, v, width, step = abs(c), abs(s), math.exp(log_width), high - low
+    n_high, n_low, n_empty = len(x_high), len(x_low), len(x_empty)
+    jacobian = np.empty((n_high + n_low + n_empty, 5))
+    share, slope, node_slope = square_share_slopes(x_high * c + y_high * s - rho, u, v, width, nodes)
+    for i in range(n_high):
+        k = k_high[i]
+        below = (1.0 - share[i]) ** (k - 1.0)  # d/da of 1 - (1 - a)^k is k (1 - a)^(k - 1)
+        d_share = step * k * below
+        jacobian[i, 1] = -d_share * slope[i]
+        jacobian[i, 2] = below * (1.0 - share[i])
+        jacobian[i, 3] = 1.0 - jacobian[i, 2]
+        jacobian[i, 4] = d_share * width * node_slope[i]
+    share, slope, node_slope = square_share_slopes(x_low * c + y_low * s - rho, u, v, width, nodes)
+    for i in range(n_low):
+        k = k_low[i]
+        below = share[i] ** (k - 1.0)
+        d_share = step * k * below
+        row = n_high + i
+        jacobian[row, 1] = -d_share * slope[i]
+        jacobian[row, 3] = below * share[i]
+        jacobian[row, 2] = 1.0 - jacobian[row, 3]
+        jacobian[row, 4] = d_share * width * node_slope[i]
+    share, slope, node_slope = square_share_slopes(x_empty * c + y_empty * s - rho, u, v, width, nodes)
+    for i in range(n_empty):
+        row = n_high + n_low + i
+        jacobian[row, 1] = -step * slope[i]
+        jacobian[row, 2] = -share[i]
+        jacobian[row, 3] = share[i]
+        jacobian[row, 4] = step * width * node_slope[i]
+    h = 1.4901161193847656e-08 * max(1.0, abs(phi))
+    if phi + h > upper[0]:
+        h = -h
+    shifted = params.copy()
+    shifted[0] += h
+    h = shifted[0] - phi  # the step actually taken, after rounding
+    moved = step_residuals(shifted, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes)
+    for i in range(len(base)):
+        jacobian[i, 0] = (moved[i] - base[i]) / h
+    return jacobian
+
+
+@numba.njit(cache=True)
+def forward_difference_jacobian(
+    params, lower, upper, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
+):  # pragma: no cover - compiled
+    """Forward-difference Jacobian of :func:`step_residuals` (every parameter): the reference of :func:`step_jacobian`."""
     base = step_residuals(params, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes)
     jacobian = np.empty((len(base), len(params)))
     for j in range(len(params)):
@@ -169,8 +242,8 @@ def bounded_least_squares(
         return x, fun, cost, -1
     nfev, damping = 1, _DAMPING_START
     while nfev < max_nfev:
-        jacobian = step_jacobian(
-            x, lower, upper, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
+        jacobian = jacobian_at(
+            x, fun, lower, upper, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
         )
         weights = loss_weights(fun, f_scale)
         normal = np.zeros((n, n))
@@ -275,3 +348,42 @@ def square_share_kernel(d, u, v, width, nodes):  # pragma: no cover - compiled
             total += min(max(value, 0.0), 1.0)
         out[i] = total / len(nodes)
     return out
+
+
+@numba.njit(cache=True)
+def square_share_slopes(d, u, v, width, nodes):  # pragma: no cover - compiled
+    """:func:`square_share_kernel` and its derivatives: ``(share, d share / d d, mean of node x slope)``.
+
+    The share's derivative in the signed distance is the trapezoid's density (the length
+    of the line ``x u + y v = t`` inside the unit square), averaged over the quadrature
+    nodes as the share is; the third array is the same average weighted by each node
+    (a node moves ``t`` by ``width * node``), from which the derivative in the width follows.
+    Zero where the share is clipped.
+    """
+    big, small = max(u, v), min(u, v)
+    half_diff, half_sum = 0.5 * (big - small), 0.5 * (big + small)
+    n = len(d)
+    share, slope, node_slope = np.empty(n), np.empty(n), np.empty(n)
+    for i in range(n):
+        total, total_slope, total_node = 0.0, 0.0, 0.0
+        for q in nodes:
+            t = d[i] + width * q
+            if small < 1e-9:
+                value, density = t / big + 0.5, 1.0 / big
+            elif t <= -half_diff:
+                x = t + half_sum
+                value, density = (x * x / (2 * big * small), x / (big * small)) if x > 0 else (0.0, 0.0)
+            elif t < half_diff:
+                value, density = (t + 0.5 * big) / big, 1.0 / big
+            else:
+                x = -t + half_sum
+                value, density = (1.0 - x * x / (2 * big * small), x / (big * small)) if x > 0 else (1.0, 0.0)
+            if value <= 0.0 or value >= 1.0:
+                value, density = min(max(value, 0.0), 1.0), 0.0
+            total += value
+            total_slope += density
+            total_node += density * q
+        share[i] = total / len(nodes)
+        slope[i] = total_slope / len(nodes)
+        node_slope[i] = total_node / len(nodes)
+    return share, slope, node_slope
