@@ -160,3 +160,27 @@ def test_straight_outline_in_world_units():
     world = O.to_world(O.mask_outline(mask), grid.transform)
     straight = O.straight_outline(world, pixel_size=0.5)
     assert len(straight.exterior.coords) - 1 == 6 and straight.area == pytest.approx(world.area)
+
+
+def test_label_polygons_keep_islands_of_every_size_as_gdal_gives_them():
+    """Rings of unequal lengths (islands of 1, 4 and 12 pixels in one label) come through as
+    GDAL's polygonize gives them, the same as shapely.geometry.shape builds them."""
+    from affine import Affine
+    from rasterio.features import shapes
+
+    labels = np.zeros((20, 30), np.int32)
+    labels[1:19, 1:29] = 3
+    labels[3, 3] = 0
+    labels[6:8, 6:8] = 0
+    labels[10:13, 12:16] = 0
+    labels[15:17, 20:22] = 5  # another label inside
+    transform = Affine(0.5, 0, 100.0, 0, -0.5, 200.0)
+    got = O.label_polygons(labels, transform)
+    expected = {
+        int(value): shapely.geometry.shape(geometry)
+        for geometry, value in shapes(labels, mask=labels > 0, transform=transform, connectivity=4)
+    }
+    assert sorted(got) == [3, 5]
+    assert len(got[3].interiors) == 4
+    for label, polygon in expected.items():
+        assert shapely.to_wkb(got[label]) == shapely.to_wkb(polygon)

@@ -125,7 +125,7 @@ def _polygon(geojson: dict) -> Polygon:
     ``shapely.geometry.shape`` hands the rings over as lists of tuples, read vertex by
     vertex in Python (two thirds of the vertical holes' outlines); the same coordinates.
     """
-    rings = [np.asarray(ring, dtype=np.float64) for ring in geojson["coordinates"]]
+    rings = [shapely.linearrings(np.asarray(ring, dtype=np.float64)) for ring in geojson["coordinates"]]
     return shapely.polygons(rings[0], holes=rings[1:] or None)
 
 
