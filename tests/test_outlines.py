@@ -163,7 +163,7 @@ def test_straight_outline_in_world_units():
 
 
 def test_label_polygons_keep_islands_of_every_size_as_gdal_gives_them():
-    """Rings of unequal lengths (islands of 1, 4 and 12 pixels in one label) come through as
+    """Rings of unequal lengths (islands of 1, 4 and 15 pixels in one label, one of them an L) come through as
     GDAL's polygonize gives them, the same as shapely.geometry.shape builds them."""
     from affine import Affine
     from rasterio.features import shapes
@@ -173,6 +173,7 @@ def test_label_polygons_keep_islands_of_every_size_as_gdal_gives_them():
     labels[3, 3] = 0
     labels[6:8, 6:8] = 0
     labels[10:13, 12:16] = 0
+    labels[10, 16:19] = 0  # an L: a ring of 7 vertices beside squares of 5
     labels[15:17, 20:22] = 5  # another label inside
     transform = Affine(0.5, 0, 100.0, 0, -0.5, 200.0)
     got = O.label_polygons(labels, transform)
