@@ -232,3 +232,60 @@ def test_analytic_jacobian_matches_forward_differences(seed):
     # forward differences are accurate to about sqrt(eps) relative, worse at the trapezoid's kinks
     assert np.abs(analytic - reference).max(axis=0) / scale == pytest.approx(np.zeros(5), abs=1e-5)
     np.testing.assert_array_equal(analytic[:, 0], reference[:, 0])
+
+
+def _segments_one_by_one(jumps, zmax, *, min_pixels=6, min_length_px=4.0, angle_tolerance_deg=20.0, thickness=2.0):
+    """The segments as the groups were judged one at a time (eigh of each group's covariance): the reference."""
+    from pipeline.holes import walls as W
+
+    gx, gy = W._uphill(np.asarray(zmax, dtype=np.float64))
+    rows, cols = np.nonzero(jumps)
+    gxs, gys = gx[rows, cols], gy[rows, cols]
+    tol = math.radians(angle_tolerance_deg)
+    n_groups, group = W._group_jump_pixels(jumps, rows, cols, gxs, gys, tol)
+    found = {}
+    for g in range(n_groups):
+        members = np.flatnonzero(group == g)
+        if len(members) < min_pixels:
+            continue
+        pts = np.stack([cols[members] + 0.5, rows[members] + 0.5], axis=1)
+        centred = pts - pts.mean(axis=0)
+        evals, evecs = np.linalg.eigh(centred.T @ centred / len(pts))
+        along = evecs[:, 1]
+        if math.sqrt(max(evals[0], 0.0)) > thickness or math.sqrt(12 * evals[1]) < min_length_px:
+            continue
+        normal = np.array([-along[1], along[0]])
+        unit = np.stack([gxs[members], gys[members]], axis=1)
+        uphill = (unit / np.linalg.norm(unit, axis=1, keepdims=True)).mean(axis=0)
+        if np.linalg.norm(uphill) < math.cos(tol) or abs(normal @ uphill) < math.cos(tol) * np.linalg.norm(uphill):
+            continue
+        found[tuple(sorted(zip(rows[members].tolist(), cols[members].tolist())))] = (
+            normal if normal @ uphill > 0 else -normal
+        )
+    return found
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_segments_judged_together_as_one_by_one(seed):
+    """All groups judged at once (closed-form 2 x 2 eigenvalues, bincount sums) give the segments
+    and normals of judging each group alone, on a roofscape of random boxes and noise."""
+    rng = np.random.default_rng(seed)
+    z = rng.normal(0.0, 0.3, (120, 120))
+    for _ in range(25):
+        r, c = rng.integers(0, 110, 2)
+        h, w = rng.integers(4, 30, 2)
+        z[r : r + h, c : c + w] += rng.uniform(3, 15)
+    z = ndi_rotate(z, float(rng.uniform(0, 90)))
+    jumps = height_jumps(z, z, jump_threshold=2.0)
+    reference = _segments_one_by_one(jumps, z)
+    got = {tuple(sorted(zip(s.rows.tolist(), s.cols.tolist()))): np.array(s.normal) for s in wall_segments(jumps, z)}
+    assert len(reference) > 5
+    assert got.keys() == reference.keys()
+    for key, normal in reference.items():
+        np.testing.assert_allclose(got[key], normal, atol=1e-9)
+
+
+def ndi_rotate(z: np.ndarray, angle: float) -> np.ndarray:
+    from scipy import ndimage
+
+    return ndimage.rotate(z, angle, reshape=False, order=0, mode="nearest")

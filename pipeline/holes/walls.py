@@ -162,24 +162,17 @@ def wall_segments(
     gxs, gys = gx[rows, cols], gy[rows, cols]
     tol = math.radians(angle_tolerance_deg)
     n_groups, group = _group_jump_pixels(jumps, rows, cols, gxs, gys, tol)
+    normals = _straight_groups(
+        group, n_groups, rows, cols, gxs, gys, tol,
+        min_pixels=min_pixels, min_length_px=min_length_px, max_thickness_px=max_thickness_px,
+    )  # fmt: skip
     order = np.argsort(group, kind="stable")
     bounds = np.searchsorted(group[order], np.arange(n_groups + 1))
     segments = []
-    for g in range(n_groups):
+    for g in np.flatnonzero(np.isfinite(normals[:, 0])):
         members = order[bounds[g] : bounds[g + 1]]
-        if len(members) < min_pixels:
-            continue
-        segment = _straight_segment(
-            rows[members],
-            cols[members],
-            gxs[members],
-            gys[members],
-            tol,
-            min_length_px=min_length_px,
-            max_thickness_px=max_thickness_px,
-        )
-        if segment is not None:
-            segments.append(segment)
+        normal = (float(normals[g, 0]), float(normals[g, 1]))
+        segments.append(WallSegment(rows[members].astype(np.int64), cols[members].astype(np.int64), normal))
     segments.sort(key=lambda s: -s.n_pixels)
     return segments
 
@@ -211,33 +204,56 @@ def _group_jump_pixels(
     return csgraph.connected_components(graph, directed=False)
 
 
-def _straight_segment(
-    r: np.ndarray,
-    c: np.ndarray,
-    gx: np.ndarray,
-    gy: np.ndarray,
+def _straight_groups(
+    group: np.ndarray,
+    n_groups: int,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    gxs: np.ndarray,
+    gys: np.ndarray,
     tol: float,
     *,
+    min_pixels: int,
     min_length_px: float,
     max_thickness_px: float,
-) -> WallSegment | None:
-    """The group as a wall segment, or None: too thick, too short, or its uphill directions disagree."""
-    pts = np.stack([c + 0.5, r + 0.5], axis=1)
-    centred = pts - pts.mean(axis=0)
-    evals, evecs = np.linalg.eigh(centred.T @ centred / len(pts))
-    along = evecs[:, 1]
-    if math.sqrt(max(evals[0], 0.0)) > max_thickness_px or math.sqrt(12 * evals[1]) < min_length_px:
-        return None
-    normal = np.array([-along[1], along[0]])
-    unit = np.stack([gx, gy], axis=1)
-    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
-    uphill = unit.mean(axis=0)
-    # a wall: the uphill directions agree and cross the segment's main axis
-    if np.linalg.norm(uphill) < math.cos(tol) or abs(normal @ uphill) < math.cos(tol) * np.linalg.norm(uphill):
-        return None
-    if normal @ uphill < 0:
-        normal = -normal
-    return WallSegment(r.astype(np.int64), c.astype(np.int64), (float(normal[0]), float(normal[1])))
+) -> np.ndarray:
+    """Each group's uphill unit normal (NaN where it is no wall segment), for all groups at once.
+
+    A group is a segment when it has ``min_pixels``, its pixel centres' spread across their
+    main axis (the smaller eigenvalue of their covariance, in closed form for 2 x 2) is at most
+    ``max_thickness_px``, its length (``sqrt(12 x`` the larger eigenvalue``)``, a uniform run's)
+    at least ``min_length_px``, and its pixels' uphill directions agree (their mean unit
+    vector at least ``cos(tol)`` long) and cross the main axis (within ``tol`` of its normal).
+    """
+    size = np.bincount(group, minlength=n_groups).astype(np.float64)
+    x, y = cols + 0.5, rows + 0.5
+    mean_x = np.bincount(group, x, minlength=n_groups) / size
+    mean_y = np.bincount(group, y, minlength=n_groups) / size
+    dx, dy = x - mean_x[group], y - mean_y[group]
+    cxx = np.bincount(group, dx * dx, minlength=n_groups) / size
+    cxy = np.bincount(group, dx * dy, minlength=n_groups) / size
+    cyy = np.bincount(group, dy * dy, minlength=n_groups) / size
+    half_sum, half_diff = (cxx + cyy) / 2, (cxx - cyy) / 2
+    radius = np.hypot(half_diff, cxy)
+    smaller, larger = half_sum - radius, half_sum + radius
+    # the main axis: angle 0.5 atan2(2 cxy, cxx - cyy); its normal points across the group
+    axis = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
+    normal = np.stack([-np.sin(axis), np.cos(axis)], axis=1)
+    length = np.hypot(gxs, gys)
+    with np.errstate(invalid="ignore", divide="ignore"):  # a flat pixel (no uphill) joins no group of two
+        ux = np.bincount(group, gxs / length, minlength=n_groups) / size
+        uy = np.bincount(group, gys / length, minlength=n_groups) / size
+    uphill_norm = np.hypot(ux, uy)
+    across = normal[:, 0] * ux + normal[:, 1] * uy
+    wall = (
+        (size >= min_pixels)
+        & (np.sqrt(np.maximum(smaller, 0.0)) <= max_thickness_px)
+        & (np.sqrt(12 * larger) >= min_length_px)
+        & (uphill_norm >= math.cos(tol))
+        & (np.abs(across) >= math.cos(tol) * uphill_norm)
+    )
+    normal = np.where((across < 0)[:, None], -normal, normal)
+    return np.where(wall[:, None], normal, np.nan)
 
 
 def fit_wall(
