@@ -252,7 +252,7 @@ def _segments_one_by_one(jumps, zmax, *, min_pixels=6, min_length_px=4.0, angle_
         centred = pts - pts.mean(axis=0)
         evals, evecs = np.linalg.eigh(centred.T @ centred / len(pts))
         along = evecs[:, 1]
-        if math.sqrt(max(evals[0], 0.0)) > thickness or math.sqrt(12 * evals[1]) < min_length_px:
+        if math.sqrt(max(evals[0], 0.0)) > thickness + 1e-9 or math.sqrt(12 * evals[1]) < min_length_px - 1e-9:
             continue
         normal = np.array([-along[1], along[0]])
         unit = np.stack([gxs[members], gys[members]], axis=1)
@@ -281,6 +281,7 @@ def test_segments_judged_together_as_one_by_one(seed):
     got = {tuple(sorted(zip(s.rows.tolist(), s.cols.tolist()))): np.array(s.normal) for s in wall_segments(jumps, z)}
     assert len(reference) > 5
     assert got.keys() == reference.keys()
+
     for key, normal in reference.items():
         np.testing.assert_allclose(got[key], normal, atol=1e-9)
 
@@ -289,3 +290,15 @@ def ndi_rotate(z: np.ndarray, angle: float) -> np.ndarray:
     from scipy import ndimage
 
     return ndimage.rotate(z, angle, reshape=False, order=0, mode="nearest")
+
+
+def test_a_group_exactly_as_long_as_the_limit_is_a_segment():
+    """Nine jump pixels of a diagonal wall in williams_az_urban_norm are exactly 4 px long
+    (sqrt(12 x 4/3)); eigh made it 3.9999999999999996 and dropped the wall. Ties meet the limit."""
+    tie = np.zeros((12, 12), bool)
+    for r, c in ((3, 3), (3, 4), (4, 3), (4, 4), (4, 5), (5, 4), (5, 5), (6, 4), (6, 5)):
+        tie[r, c] = True
+    rows, cols = np.mgrid[:12, :12]
+    ramp = 10.0 * (cols - 0.5 * rows)  # uphill across the group (east-north-east), the same at every pixel
+    segments = wall_segments(tie, ramp, min_pixels=6, min_length_px=4.0)
+    assert len(segments) == 1 and segments[0].n_pixels == 9

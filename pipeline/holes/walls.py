@@ -204,6 +204,10 @@ def _group_jump_pixels(
     return csgraph.connected_components(graph, directed=False)
 
 
+#: Lengths and thicknesses of a group within this of a limit meet it (floating-point rounding of exact ties).
+_ROUNDING_PX = 1e-9
+
+
 def _straight_groups(
     group: np.ndarray,
     n_groups: int,
@@ -245,10 +249,11 @@ def _straight_groups(
         uy = np.bincount(group, gys / length, minlength=n_groups) / size
     uphill_norm = np.hypot(ux, uy)
     across = normal[:, 0] * ux + normal[:, 1] * uy
+    # pixel centres make exact ties (a run of 4 x 2 pixels is 4 long): judged within rounding
     wall = (
         (size >= min_pixels)
-        & (np.sqrt(np.maximum(smaller, 0.0)) <= max_thickness_px)
-        & (np.sqrt(12 * larger) >= min_length_px)
+        & (np.sqrt(np.maximum(smaller, 0.0)) <= max_thickness_px + _ROUNDING_PX)
+        & (np.sqrt(12 * larger) >= min_length_px - _ROUNDING_PX)
         & (uphill_norm >= math.cos(tol))
         & (np.abs(across) >= math.cos(tol) * uphill_norm)
     )
