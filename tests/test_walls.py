@@ -295,10 +295,10 @@ def ndi_rotate(z: np.ndarray, angle: float) -> np.ndarray:
 def test_a_group_exactly_as_long_as_the_limit_is_a_segment():
     """Nine jump pixels of a diagonal wall in williams_az_urban_norm are exactly 4 px long
     (sqrt(12 x 4/3)); eigh made it 3.9999999999999996 and dropped the wall. Ties meet the limit."""
-    tie = np.zeros((12, 12), bool)
-    for r, c in ((3, 3), (3, 4), (4, 3), (4, 4), (4, 5), (5, 4), (5, 5), (6, 4), (6, 5)):
+    tie = np.zeros((110, 160), bool)  # where it lay in its cell: the rounding depends on it
+    for r, c in ((97, 143), (97, 144), (98, 143), (98, 144), (98, 145), (99, 144), (99, 145), (100, 144), (100, 145)):
         tie[r, c] = True
-    rows, cols = np.mgrid[:12, :12]
+    rows, cols = np.mgrid[:110, :160]
     ramp = 10.0 * (cols - 0.5 * rows)  # uphill across the group (east-north-east), the same at every pixel
     segments = wall_segments(tie, ramp, min_pixels=6, min_length_px=4.0)
     assert len(segments) == 1 and segments[0].n_pixels == 9
