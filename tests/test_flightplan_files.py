@@ -273,14 +273,17 @@ def test_holefill_plan_replans_into_a_folder_and_replaces_older_sorties(survey, 
     assert not (tmp_path / "o").exists()
 
 
-def test_the_dsm_read_block_by_block_is_the_dsm_read_whole(tmp_path, monkeypatch):
+@pytest.mark.parametrize("nodata", [-9999.0, float("nan"), None])
+def test_the_dsm_read_block_by_block_is_the_dsm_read_whole(tmp_path, monkeypatch, nodata):
     """The planner reads the DSM of a wide survey block by block as it needs it (DsmWindows):
     pixels, windows and index arrays hold what one read of the span holds, evicted blocks read
-    again the same, NaN where the DSM has no data."""
+    again the same, NaN where the DSM has no data (its nodata value, NaN as nodata, or none)."""
     rng = np.random.default_rng(5)
     heights = rng.normal(100, 5, (300, 420)).astype(np.float32)
     heights[rng.random(heights.shape) < 0.05] = np.nan
-    path = write_cog(tmp_path / "dsm.tif", heights, transform=Affine(0.5, 0, 1000, 0, -0.5, 2000), crs_wkt="EPSG:2154")
+    path = write_cog(
+        tmp_path / "dsm.tif", heights, transform=Affine(0.5, 0, 1000, 0, -0.5, 2000), crs_wkt="EPSG:2154", nodata=nodata
+    )
     bounds = (1010.0, 1880.0, 1190.0, 1990.0)
     with rasterio.open(path) as src:  # one read of the span: columns 20-380, rows 20-240 at 0.5 m
         window = rasterio.windows.Window(20, 20, 360, 220)
@@ -288,7 +291,7 @@ def test_the_dsm_read_block_by_block_is_the_dsm_read_whole(tmp_path, monkeypatch
         whole[src.read_masks(1, window=window) == 0] = np.nan
         transform = src.transform @ Affine.translation(20, 20)
     monkeypatch.setattr(DsmWindows, "BLOCK", 64)
-    monkeypatch.setattr(DsmWindows, "CACHE_BYTES", 3 * 64 * 64 * 8)  # three blocks: most reads evict
+    monkeypatch.setattr(DsmWindows, "CACHE_BYTES", 3 * 64 * 64 * 4)  # three float32 blocks: most reads evict
     with open_dsm(path, bounds) as (dsm, same_transform, _):
         assert same_transform == transform and dsm.shape == whole.shape
         for _ in range(20):
@@ -301,3 +304,4 @@ def test_the_dsm_read_block_by_block_is_the_dsm_read_whole(tmp_path, monkeypatch
             assert np.array_equal(dsm[r, c], whole[r, c], equal_nan=True)
         assert np.array_equal(np.asarray(dsm), whole, equal_nan=True)
         assert np.isnan(whole).any()
+        assert dsm[0:5, 0:5].dtype == np.float64

@@ -9,7 +9,7 @@ import pytest
 from pyproj import CRS
 
 from pipeline.errors import CRSError, InputDataError
-from pipeline.io.las import decode_only, read_header
+from pipeline.io.las import decode_only, header_bounds, read_header
 from pipeline.survey.scan import find_inputs, scan_survey
 
 from .lasfiles import random_points, write_points
@@ -31,6 +31,7 @@ def test_headers_of_las_and_laz_12_and_14(tmp_path, points, version, suffix):
     assert header.point_count == len(points[0])
     assert CRS.from_wkt(header.crs_wkt).to_epsg() == 2154
     assert decode_only(path, 1000) == len(points[0])
+    assert header_bounds(path) == header.bounds  # the bytes alone, for the flight plan's ground points
 
 
 def test_inputs_from_files_folders_and_globs(tmp_path, points):
@@ -86,6 +87,8 @@ def test_not_a_las_file(tmp_path):
     path.write_bytes(b"PK\x03\x04 this is a zip file")
     with pytest.raises(InputDataError, match=r"fake\.laz: not a LAS/LAZ file"):
         scan_survey([str(path)])
+    with pytest.raises(InputDataError, match=r"fake\.laz: not a LAS/LAZ file"):
+        header_bounds(path)
 
 
 def test_truncated_laz_fails_on_decoding(tmp_path, rng):

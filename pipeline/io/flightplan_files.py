@@ -22,12 +22,13 @@ from typing import Any
 import numpy as np
 import pyogrio
 import rasterio
+from rasterio.enums import MaskFlags
 from shapely.geometry import LineString, Point
 
 from ..errors import CRSError, InputDataError, OutputError
 from ..flightplan.mission import FlightPlan, HoleInput
 from .flightplan_formats import write_kml, write_kmz, write_plan, write_waypoints
-from .las import iter_point_chunks, read_header
+from .las import header_bounds, iter_point_chunks
 from .vector import write_layer
 
 __all__ = ["DsmWindows", "open_dsm", "read_ground", "read_holes", "sortie_file_names", "write_flightplan"]
@@ -126,6 +127,12 @@ class DsmWindows:
         self._row_off, self._col_off = int(window.row_off), int(window.col_off)
         self.shape = (int(window.height), int(window.width))
         self._blocks: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self._cached_bytes = 0
+        # float32 rasters (holefill's DSMs) are kept as they are: twice the blocks in the cache, the same values
+        self._dtype = np.float32 if np.dtype(source.dtypes[0]) == np.float32 else np.float64
+        # a mask that only says "nodata" is the nodata value itself: no second read of the block for it
+        flags = source.mask_flag_enums[0]
+        self._nodata = source.nodata if list(flags) == [MaskFlags.nodata] else None
 
     @property
     def size(self) -> int:
@@ -173,21 +180,21 @@ class DsmWindows:
         b = self.BLOCK
         height, width = min(b, self.shape[0] - bi * b), min(b, self.shape[1] - bj * b)
         window = rasterio.windows.Window(self._col_off + bj * b, self._row_off + bi * b, width, height)
-        block = self._source.read(1, window=window).astype(np.float64)
-        block[self._source.read_masks(1, window=window) == 0] = np.nan
+        block = self._source.read(1, window=window).astype(self._dtype)
+        if self._nodata is not None:
+            block[np.isnan(block) if math.isnan(self._nodata) else block == self._dtype(self._nodata)] = np.nan
+        else:
+            block[self._source.read_masks(1, window=window) == 0] = np.nan
         self._blocks[key] = block
-        while sum(v.nbytes for v in self._blocks.values()) > self.CACHE_BYTES and len(self._blocks) > 1:
-            self._blocks.popitem(last=False)
+        self._cached_bytes += block.nbytes
+        while self._cached_bytes > self.CACHE_BYTES and len(self._blocks) > 1:
+            self._cached_bytes -= self._blocks.popitem(last=False)[1].nbytes
         return block
 
 
 def file_bounds(point_files: list[str | os.PathLike]) -> list[tuple[float, float, float, float]]:
     """Each file's header bounds (minx, miny, maxx, maxy): read once for every window :func:`read_ground` reads."""
-    bounds = []
-    for path in point_files:
-        b = read_header(path).bounds
-        bounds.append((float(b[0]), float(b[1]), float(b[2]), float(b[3])))
-    return bounds
+    return [header_bounds(path) for path in point_files]
 
 
 def read_ground(
