@@ -15,6 +15,7 @@ from pipeline.fill import METHOD_CODES, NOT_FILLED, FillSettings
 from pipeline.fill.by_cause import (
     FILLED,
     LOW_SIDE,
+    NO_RETURN,
     NO_SUPPORT,
     OCCLUSION,
     RIM,
@@ -152,3 +153,45 @@ def test_hole_ids_of_labels():
     ids = hole_ids_of_labels(labels, hole_of_label)
     expected = np.where(labels == 1, 7, np.where(labels == 2, 9, np.where(labels == -1, -1, 0)))
     assert (ids == expected).all()  # label 3 lies beyond the lookup: no hole
+
+
+def test_settled_voids_the_sensor_saw_unobstructed(tmp_path):
+    """A cell's settled small voids (label -1) count as seen where a line of sight reached some of
+    their pixels and none was blocked; they are kept beside the labels for the writer, which fills
+    them from their whole rim (a no-return void) instead of the low side of a step."""
+    from pipeline.grid import PixelWindow
+    from pipeline.io.intermediate import load_labels, load_seen_voids, save_labels
+    from pipeline.sensor.sight import BLOCKED, SEEN
+    from pipeline.stages.detect_holes import seen_small_voids
+
+    labels = np.zeros((8, 12), np.int32)
+    labels[1:3, 1:3] = -1  # seen everywhere
+    labels[5:7, 1:3] = -1  # seen, but one line of sight blocked: may hide ground behind a step
+    labels[1:3, 6:9] = -1  # not judged (no class)
+    labels[5:7, 6:9] = 4  # a listed hole's part: not a settled void
+    sight = np.zeros(labels.shape, np.int8)
+    sight[1:3, 1:3] = SEEN
+    sight[5:7, 1:3] = SEEN
+    sight[6, 2] = BLOCKED
+    sight[5:7, 6:9] = SEEN
+    seen = seen_small_voids(labels, sight)
+    expected = np.zeros(labels.shape, bool)
+    expected[1:3, 1:3] = True
+    assert np.array_equal(seen, expected)
+    path = tmp_path / "labels.npz"
+    save_labels(path, labels, PixelWindow(0, 0, 8, 12), seen_voids=seen)
+    assert np.array_equal(load_labels(path)[0], labels)
+    assert np.array_equal(load_seen_voids(path), expected)
+    save_labels(path, labels, PixelWindow(0, 0, 8, 12))  # not judged: none kept
+    assert load_seen_voids(path) is None
+
+
+def test_a_small_void_seen_unobstructed_is_filled_from_its_whole_rim():
+    """At a step in a canopy a settled void is filled from the low side as an occlusion; seen
+    unobstructed (a no-return void) from its whole rim: the crowns around it, not the gap below."""
+    heights, labels = beside_a_building()
+    measured = labels == 0
+    hidden = fill_hole(heights, heights, measured, labels, fill_kind(SMALL_VOID, params()), params())
+    seen = fill_hole(heights, heights, measured, labels, fill_kind(NO_RETURN, params()), params())
+    assert np.allclose(hidden.heights[labels > 0], 0.0)
+    assert seen.heights[labels > 0].min() > 1.0

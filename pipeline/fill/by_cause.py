@@ -28,6 +28,7 @@ __all__ = [
     "LOW_SIDE",
     "MISSED",
     "MISSED_NOTE",
+    "NO_RETURN",
     "NO_SUPPORT",
     "OCCLUSION",
     "RIM",
@@ -45,9 +46,11 @@ __all__ = [
     "unfilled_reason",
 ]
 
-#: The cause a small void is filled as (it is not classified when a cell settles it).
+#: The cause a small void is filled as (it is not classified when a cell settles it), unless the
+#: sensor saw it unobstructed: then as a void that returned nothing (``NO_RETURN``), from its whole rim.
 SMALL_VOID = "small void"
 OCCLUSION = "occlusion"
+NO_RETURN = "no_return"
 
 #: How a hole is filled (:func:`fill_kind`).
 WATER, LOW_SIDE, RIM = "water", "low", "rim"

@@ -99,15 +99,30 @@ def load_cell_statistics(path: str | os.PathLike, names: tuple[str, ...] = STATI
         )
 
 
-def save_labels(path: str | os.PathLike, labels: np.ndarray, window: PixelWindow) -> None:
-    """Store a cell core's part labels (0 no hole, -1 a settled small void, n > 0 part n)."""
-    _save_npz(path, window=_window_array(window), labels=labels.astype(np.int32))
+def save_labels(
+    path: str | os.PathLike, labels: np.ndarray, window: PixelWindow, *, seen_voids: np.ndarray | None = None
+) -> None:
+    """Store a cell core's part labels (0 no hole, -1 a settled small void, n > 0 part n).
+
+    ``seen_voids``: the settled small voids' pixels the sensor saw unobstructed (where the
+    lines of sight were judged), kept beside the labels.
+    """
+    arrays = {"window": _window_array(window), "labels": labels.astype(np.int32)}
+    if seen_voids is not None:
+        arrays["seen_voids"] = np.asarray(seen_voids, bool)
+    _save_npz(path, **arrays)
 
 
 def load_labels(path: str | os.PathLike) -> tuple[np.ndarray, PixelWindow]:
     """A cell core's part labels and the window they cover."""
     with np.load(path) as data:
         return data["labels"], PixelWindow(*(int(v) for v in data["window"]))
+
+
+def load_seen_voids(path: str | os.PathLike) -> np.ndarray | None:
+    """The settled small voids' pixels the sensor saw unobstructed (None: not judged)."""
+    with np.load(path) as data:
+        return data["seen_voids"] if "seen_voids" in data.files else None
 
 
 def save_task_fill(

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
+import scipy.ndimage as ndi
 import shapely
 
 from ..config import HOLE_CONTEXT_PX, Config
@@ -34,7 +35,9 @@ from ..io.raster import geometry_mask
 from ..plan import HoleParams, SurveyPlan
 from ..rasterize import PixelStatistics
 from ..sensor.sight import (
+    BLOCKED,
     OUTSIDE_SWATHS,
+    SEEN,
     ground_targets,
     sight_classes,
     surface_tops,
@@ -256,8 +259,9 @@ def detect_cell(task: DetectTask) -> DetectResult:
     aoi = _aoi(task, stats, coverage, swept)
     holes = _cell_holes(task, stats, aoi, coverage, sight)
     labels = holes.labels if holes.labels is not None else np.zeros(cell.window.shape, np.int32)
-    save_labels(task.labels_path, labels, cell.window)
     core_rows, core_cols = cell.window.slices_within(stats.window)
+    seen = None if sight is None else seen_small_voids(labels, sight[core_rows, core_cols])
+    save_labels(task.labels_path, labels, cell.window, seen_voids=seen)
     # float64, as find_walls compares heights: one jump raster serves the count and the walls
     jumps = height_jumps(stats.zmax.astype(np.float64), stats.zmin, jump_threshold=params.jump_threshold)
     vertical = vertical_holes(
@@ -288,6 +292,28 @@ def detect_cell(task: DetectTask) -> DetectResult:
         jump_px=int(jumps[core_rows, core_cols].sum()),
         aoi_px=int(aoi[core_rows, core_cols].sum()),
     )
+
+
+def seen_small_voids(labels: np.ndarray, sight: np.ndarray) -> np.ndarray:
+    """The pixels of the small voids a cell settled (label -1) that the sensor saw unobstructed.
+
+    A settled void (4-connected, as the writer fills it) counts as seen where some of its
+    pixels are ``SEEN`` and none ``BLOCKED`` (:func:`pipeline.sensor.sight.sight_classes`): no
+    line of sight into it was blocked, so it hides no ground behind a wall or a crown, and is
+    filled from its whole rim as a ``no_return`` void is, not from the low side of a step as an
+    occlusion (docs/filling.md, "Small voids").
+    """
+    components, n = ndi.label(labels == -1, structure=_CROSS)
+    if n == 0:
+        return np.zeros(labels.shape, bool)
+    seen_px = np.bincount(components.ravel(), (sight == SEEN).ravel(), minlength=n + 1)
+    blocked_px = np.bincount(components.ravel(), (sight == BLOCKED).ravel(), minlength=n + 1)
+    seen = (seen_px > 0) & (blocked_px == 0)
+    seen[0] = False
+    return seen[components]
+
+
+_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
 
 
 def _aoi(task: DetectTask, stats: PixelStatistics, coverage: np.ndarray | None, swept: np.ndarray | None) -> np.ndarray:

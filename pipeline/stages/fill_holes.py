@@ -33,6 +33,7 @@ from ..fill import fill_distance
 from ..fill.by_cause import (
     FILLED,
     MISSED_NOTE,
+    NO_RETURN,
     SMALL_VOID,
     TOO_LARGE,
     WATER,
@@ -140,8 +141,11 @@ def fill_tasks(
     skipped = []
     for i, hole in enumerate(catalog.holes):
         hole_id = int(hole["hole_id"])
-        # a small void is filled alike whether a cell settled it or it crossed cells
-        cause = SMALL_VOID if hole["is_small"] else str(holes.causes["cause"][i])
+        # a small void is filled alike whether a cell settled it or it crossed cells: as an occlusion,
+        # unless the sensor saw it unobstructed (a no-return void, filled from its whole rim)
+        cause = str(holes.causes["cause"][i])
+        if hole["is_small"] and cause != NO_RETURN:
+            cause = SMALL_VOID
         reason = unfilled_reason(cause, area_m2=float(hole["area_px"]) * plan.pixel_area_m2, farthest=0, params=params)
         if reason:
             skipped.append(HoleFill(hole_id, reason[0], detail=reason[1]))

@@ -24,9 +24,18 @@ import scipy.ndimage as ndi
 
 from ..config import Config
 from ..fill import NOT_FILLED, fill_distance
-from ..fill.by_cause import FILLED, SMALL_VOID, FillParams, HoleFill, fill_hole, fill_kind, hole_ids_of_labels
+from ..fill.by_cause import (
+    FILLED,
+    NO_RETURN,
+    SMALL_VOID,
+    FillParams,
+    HoleFill,
+    fill_hole,
+    fill_kind,
+    hole_ids_of_labels,
+)
 from ..grid import Cell, Grid
-from ..io.intermediate import load_cell_statistics, load_labels, load_task_fill
+from ..io.intermediate import load_cell_statistics, load_labels, load_seen_voids, load_task_fill
 from ..io.raster import RasterOptions, write_cog
 from ..parameters import raster_options
 from ..plan import SurveyPlan
@@ -198,11 +207,20 @@ def _paint_fills(task: WriteTask, stats: PixelStatistics, core: PixelStatistics)
         distance[here] = np.where(paint, hole_distance * fill.unit_m, distance[here])
     settled = cell_holes == -1
     if settled.any():
-        _fill_settled_voids(fill, stats, window, settled, dsm, codes, distance)
+        seen = load_seen_voids(fill.labels_path)
+        seen = np.zeros(settled.shape, bool) if seen is None else seen & settled
+        # seen unobstructed: no ground hidden behind a step, filled from the whole rim as a no-return void
+        for voids, cause in ((settled & ~seen, SMALL_VOID), (seen, NO_RETURN)):
+            if voids.any():
+                _fill_settled_voids(
+                    fill, stats, window, voids, dsm, codes, distance, kind=fill_kind(cause, fill.params)
+                )
     return dsm, codes, distance
 
 
-def _fill_settled_voids(fill: CellFill, stats: PixelStatistics, window, settled, dsm, codes, distance) -> None:
+def _fill_settled_voids(
+    fill: CellFill, stats: PixelStatistics, window, settled, dsm, codes, distance, *, kind: str
+) -> None:
     """Small closed voids of the core, filled from the cell and its halo (they never cross a cell)."""
     halo = stats.window
     rows, cols = window.slices_within(halo)
@@ -210,7 +228,7 @@ def _fill_settled_voids(fill: CellFill, stats: PixelStatistics, window, settled,
     region[rows, cols] = settled
     measured = stats.count > 0
     labels, _ = ndi.label(region, structure=[[0, 1, 0], [1, 1, 1], [0, 1, 0]])
-    outcome = fill_hole(stats.zmax, stats.zmin, measured, labels, fill_kind(SMALL_VOID, fill.params), fill.params)
+    outcome = fill_hole(stats.zmax, stats.zmin, measured, labels, kind, fill.params)
     near = fill_distance(measured, pixel_size=fill.params.pixel_size)[rows, cols]
     done = settled & np.isfinite(outcome.heights[rows, cols])
     dsm[done] = outcome.heights[rows, cols][done]
