@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+import scipy.ndimage as ndi
 
 from pipeline.fill import (
     METHOD_CODES,
@@ -350,3 +351,33 @@ def test_clamp_to_rim_keeps_fills_within_each_components_rim():
     low_side[0, 1:3] = low_side[2, 1:3] = low_side[1, 0] = True  # only the 1 m rim supports the left hole
     out = clamp_to_rim(filled, heights, region, support=low_side)
     assert out[1, 1] == 1.0 and out[1, 2] == 1.0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_low_side_of_a_step_but_the_whole_rim_of_a_slope(seed):
+    """An occlusion is filled from the low side of the step beside it; on a hillside the rim spans
+    more than a step without one, and the whole rim is the support (``pdal_alirt_afghan``: a cut
+    void on a 48 degree slope was filled 10 m low from its lower rim). A shadow band along a wall,
+    whose rim a tilted plane fits exactly, and a one-pixel void at a wall's foot keep the low side."""
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[:40, :40].astype(float)
+    angle = rng.uniform(0, 2 * np.pi)
+    slope = 1.1 * (np.cos(angle) * cols + np.sin(angle) * rows) + rng.normal(0, 0.8, (40, 40))  # 48 deg, rough
+    hole = np.zeros((40, 40), bool)
+    hole[15:25, 14:26] = True
+    support = lower_side_support(np.where(hole, np.nan, slope), hole, jump_threshold=2.5)
+    rim = ndi.binary_dilation(hole, structure=np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)) & ~hole
+    assert support[rim].all()
+
+    street = rng.normal(0, 0.05, (40, 40))
+    band = street.copy()
+    band[:, :14] += 12.0  # a roof west of a wall at column 14
+    shadow = np.zeros((40, 40), bool)
+    shadow[5:35, 14:20] = True  # its 6 px scan shadow along the wall
+    support = lower_side_support(np.where(shadow, np.nan, band), shadow, jump_threshold=2.5)
+    assert not support[5:35, 13].any() and support[5:35, 20].all()
+
+    foot = np.zeros((40, 40), bool)
+    foot[20, 14] = True
+    support = lower_side_support(np.where(foot, np.nan, band), foot, jump_threshold=2.5)
+    assert not support[20, 13] and support[20, 15] and support[19, 14] and support[21, 14]

@@ -54,7 +54,8 @@ def lower_side_support(
     For each component of ``region`` the low rim level is the ``quantile`` of its rim
     heights (rim = finite pixels 4-adjacent to it; a low quantile rather than the
     minimum, so that one stray low point does not exclude the ground); rim pixels
-    higher than that level plus ``jump_threshold`` (roof, wall top) are dropped.
+    higher than that level plus ``jump_threshold`` (roof, wall top) are dropped, unless
+    the rim lies on a slope, not at a step (:func:`_slope_not_step`): then all of it is kept.
 
     Parameters
     ----------
@@ -91,10 +92,56 @@ def lower_side_support(
     for k in np.unique(pl):
         low[k] = np.quantile(z[bounds[k] : bounds[k + 1]], quantile)
     keep = z <= low[pl] + jump_threshold
+    for k in np.unique(pl[~keep]):  # a rim spanning more than a step: a wall, or a slope?
+        rim = pi[bounds[k] : bounds[k + 1]]
+        if _slope_not_step(heights, lab == k, rim):
+            keep[bounds[k] : bounds[k + 1]] = True
     out.ravel()[pi[keep]] = True
     # a pixel judged high for any neighbouring hole is not support
     out.ravel()[pi[~keep]] = False
     return out
+
+
+#: How far beyond a hole's rim (pixels) the surface is checked against the rim's plane.
+SLOPE_CHECK_PX = 4
+#: A rim is a slope where the surface up to ``SLOPE_CHECK_PX`` beyond it departs from the rim's
+#: plane by at most this share of the rim's height range (RMS).
+SLOPE_MAX_DEPARTURE = 0.25
+
+
+def _slope_not_step(heights: np.ndarray, hole: np.ndarray, rim: np.ndarray) -> bool:
+    """Whether a hole's rim, spanning more than a height step, lies on a slope rather than at a step.
+
+    Beside a wall the rim holds two levels, ground and roof: a plane through them tilts across
+    the wall, and beyond the rim the surface stays flat (the roof, the street) while the plane
+    runs on, up and down (a 6 px shadow beside a 12 m wall: 5 m off 3 px out). On a hillside
+    the rim's plane is the hill's, and the ground beyond the rim follows it to within its
+    roughness (``pdal_alirt_afghan``: a 18 m cut void on a 48 degree mountainside, the rim 2.2 m
+    about its plane). The plane is fitted to the rim's pixels (``rim``: flat indices) and
+    checked on the measured pixels 2 to ``SLOPE_CHECK_PX`` pixels from the hole: only the
+    hole's own surroundings, whichever other holes the window holds.
+    """
+    h, w = heights.shape
+    rows, cols = np.divmod(rim, w)
+    z = heights.ravel()[rim]
+    if len(z) < 4:
+        return False
+    rim_range = float(np.quantile(z, 0.9) - np.quantile(z, 0.1))
+    r_idx, c_idx = np.nonzero(hole)
+    r0, r1 = max(int(r_idx.min()) - SLOPE_CHECK_PX, 0), min(int(r_idx.max()) + SLOPE_CHECK_PX + 1, h)
+    c0, c1 = max(int(c_idx.min()) - SLOPE_CHECK_PX, 0), min(int(c_idx.max()) + SLOPE_CHECK_PX + 1, w)
+    box = hole[r0:r1, c0:c1]
+    near = ndi.binary_dilation(box, iterations=1, structure=np.ones((3, 3), bool))
+    within = ndi.binary_dilation(box, iterations=SLOPE_CHECK_PX, structure=np.ones((3, 3), bool))
+    around = within & ~near & np.isfinite(heights[r0:r1, c0:c1])
+    if not around.any() or not rim_range > 0:
+        return False
+    design = np.column_stack([np.ones(len(z)), cols - c0, rows - r0]).astype(np.float64)
+    plane, *_ = np.linalg.lstsq(design, z, rcond=None)
+    ar, ac = np.nonzero(around)
+    predicted = plane[0] + plane[1] * ac + plane[2] * ar
+    departure = heights[r0:r1, c0:c1][ar, ac] - predicted
+    return bool(np.sqrt(np.mean(departure**2)) <= SLOPE_MAX_DEPARTURE * rim_range)
 
 
 def rim_level(
