@@ -126,14 +126,14 @@ def _slope_not_step(heights: np.ndarray, hole: np.ndarray, rim: np.ndarray) -> b
     z = heights.ravel()[rim]
     if len(z) < 4:
         return False
-    rim_range = float(np.quantile(z, 0.9) - np.quantile(z, 0.1))
+    low, high = np.quantile(z, (0.1, 0.9))
+    rim_range = float(high - low)
     r_idx, c_idx = np.nonzero(hole)
     r0, r1 = max(int(r_idx.min()) - SLOPE_CHECK_PX, 0), min(int(r_idx.max()) + SLOPE_CHECK_PX + 1, h)
     c0, c1 = max(int(c_idx.min()) - SLOPE_CHECK_PX, 0), min(int(c_idx.max()) + SLOPE_CHECK_PX + 1, w)
-    box = hole[r0:r1, c0:c1]
-    near = ndi.binary_dilation(box, iterations=1, structure=np.ones((3, 3), bool))
-    within = ndi.binary_dilation(box, iterations=SLOPE_CHECK_PX, structure=np.ones((3, 3), bool))
-    around = within & ~near & np.isfinite(heights[r0:r1, c0:c1])
+    # pixels 2 to SLOPE_CHECK_PX from the hole (chessboard distance), measured
+    steps = ndi.distance_transform_cdt(~hole[r0:r1, c0:c1], metric="chessboard")
+    around = (steps >= 2) & (steps <= SLOPE_CHECK_PX) & np.isfinite(heights[r0:r1, c0:c1])
     if not around.any() or not rim_range > 0:
         return False
     design = np.column_stack([np.ones(len(z)), cols - c0, rows - r0]).astype(np.float64)

@@ -17,7 +17,7 @@ hole record; they are filled here from the cell's halo.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.ndimage as ndi
@@ -209,27 +209,32 @@ def _paint_fills(task: WriteTask, stats: PixelStatistics, core: PixelStatistics)
     if settled.any():
         seen = load_seen_voids(fill.labels_path)
         seen = np.zeros(settled.shape, bool) if seen is None else seen & settled
+        near = fill_distance(stats.count > 0, pixel_size=fill.params.pixel_size)[window.slices_within(stats.window)]
         # seen unobstructed: no ground hidden behind a step, filled from the whole rim as a no-return void
         for voids, cause in ((settled & ~seen, SMALL_VOID), (seen, NO_RETURN)):
             if voids.any():
-                _fill_settled_voids(
-                    fill, stats, window, voids, dsm, codes, distance, kind=fill_kind(cause, fill.params)
-                )
+                kind = fill_kind(cause, fill.params)
+                _fill_settled_voids(fill, stats, window, voids, (dsm, codes, distance), near, kind=kind)
     return dsm, codes, distance
 
 
 def _fill_settled_voids(
-    fill: CellFill, stats: PixelStatistics, window, settled, dsm, codes, distance, *, kind: str
+    fill: CellFill, stats: PixelStatistics, window, settled, rasters: tuple, near: np.ndarray, *, kind: str
 ) -> None:
-    """Small closed voids of the core, filled from the cell and its halo (they never cross a cell)."""
+    """Small closed voids of the core, filled from the cell and its halo (they never cross a cell).
+
+    ``rasters``: the core's DSM, method codes and distances, painted in place; ``near``: each core
+    pixel's distance to measured data (pixels). No error estimate: these voids are not listed.
+    """
+    dsm, codes, distance = rasters
     halo = stats.window
     rows, cols = window.slices_within(halo)
     region = np.zeros(halo.shape, bool)
     region[rows, cols] = settled
     measured = stats.count > 0
     labels, _ = ndi.label(region, structure=[[0, 1, 0], [1, 1, 1], [0, 1, 0]])
-    outcome = fill_hole(stats.zmax, stats.zmin, measured, labels, kind, fill.params)
-    near = fill_distance(measured, pixel_size=fill.params.pixel_size)[rows, cols]
+    params = replace(fill.params, settings=replace(fill.params.settings, estimate_error=False))
+    outcome = fill_hole(stats.zmax, stats.zmin, measured, labels, kind, params)
     done = settled & np.isfinite(outcome.heights[rows, cols])
     dsm[done] = outcome.heights[rows, cols][done]
     codes[done] = outcome.method_code[rows, cols][done]
