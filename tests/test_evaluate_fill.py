@@ -337,6 +337,26 @@ def test_fill_benchmark_on_a_real_tile(shared_data, tmp_path, dask_client):
     assert survey.points_removed > 0
 
 
+@pytest.mark.slow
+@pytest.mark.realdata
+def test_cut_voids_on_mountain_slopes_are_filled_like_the_slope(shared_data, tmp_path, dask_client):
+    """pdal_alirt_afghan (2 m pixels, slopes up to 48 degrees): a cut void on a slope, called an
+    occlusion from the jumps of its rim, was filled from its lower rim, 10.6 m low; the slope's
+    whole rim now fills it. The default within 1.2 x linear TIN on the benchmark's own cut voids
+    (DSM 1.76 against 1.83 m, DTM 0.65 against 0.69; it was 4.92 and 2.52)."""
+    benchmark = ef.evaluate_fill(
+        [[str(shared_data / "pdal_alirt_afghan.las")]],
+        tmp_path,
+        _config(),
+        plan=ef.BenchmarkPlan(models=("dsm", "dtm"), methods=("default",), alternatives=("tin_linear",)),
+        client=dask_client,
+    )
+    for survey in benchmark.surveys:
+        default, linear = survey.methods["default"].errors, survey.alternatives["tin_linear"].errors
+        assert default is not None and linear is not None and default.n_px > 100
+        assert default.rmse <= 1.2 * linear.rmse, survey.model
+
+
 def _config():
     from pipeline.config import load_config
 
