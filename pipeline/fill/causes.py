@@ -92,9 +92,11 @@ def lower_side_support(
     for k in np.unique(pl):
         low[k] = np.quantile(z[bounds[k] : bounds[k + 1]], quantile)
     keep = z <= low[pl] + jump_threshold
-    for k in np.unique(pl[~keep]):  # a rim spanning more than a step: a wall, or a slope?
+    stepped = np.unique(pl[~keep])
+    boxes = ndi.find_objects(lab) if len(stepped) else []
+    for k in stepped:  # a rim spanning more than a step: a wall, or a slope?
         rim = pi[bounds[k] : bounds[k + 1]]
-        if _slope_not_step(heights, lab == k, rim):
+        if _slope_not_step(heights, lab, int(k), boxes[k - 1], rim):
             keep[bounds[k] : bounds[k + 1]] = True
     out.ravel()[pi[keep]] = True
     # a pixel judged high for any neighbouring hole is not support
@@ -109,7 +111,9 @@ SLOPE_CHECK_PX = 4
 SLOPE_MAX_DEPARTURE = 0.25
 
 
-def _slope_not_step(heights: np.ndarray, hole: np.ndarray, rim: np.ndarray) -> bool:
+def _slope_not_step(
+    heights: np.ndarray, labels: np.ndarray, label: int, box: tuple[slice, slice], rim: np.ndarray
+) -> bool:
     """Whether a hole's rim, spanning more than a height step, lies on a slope rather than at a step.
 
     Beside a wall the rim holds two levels, ground and roof: a plane through them tilts across
@@ -118,8 +122,9 @@ def _slope_not_step(heights: np.ndarray, hole: np.ndarray, rim: np.ndarray) -> b
     the rim's plane is the hill's, and the ground beyond the rim follows it to within its
     roughness (``pdal_alirt_afghan``: a 18 m cut void on a 48 degree mountainside, the rim 2.2 m
     about its plane). The plane is fitted to the rim's pixels (``rim``: flat indices) and
-    checked on the measured pixels 2 to ``SLOPE_CHECK_PX`` pixels from the hole: only the
-    hole's own surroundings, whichever other holes the window holds.
+    checked on the measured pixels 2 to ``SLOPE_CHECK_PX`` pixels from the hole (``label`` of
+    ``labels``, within ``box``): only the hole's own surroundings, whichever other holes the
+    window holds.
     """
     h, w = heights.shape
     rows, cols = np.divmod(rim, w)
@@ -128,11 +133,10 @@ def _slope_not_step(heights: np.ndarray, hole: np.ndarray, rim: np.ndarray) -> b
         return False
     low, high = np.quantile(z, (0.1, 0.9))
     rim_range = float(high - low)
-    r_idx, c_idx = np.nonzero(hole)
-    r0, r1 = max(int(r_idx.min()) - SLOPE_CHECK_PX, 0), min(int(r_idx.max()) + SLOPE_CHECK_PX + 1, h)
-    c0, c1 = max(int(c_idx.min()) - SLOPE_CHECK_PX, 0), min(int(c_idx.max()) + SLOPE_CHECK_PX + 1, w)
+    r0, r1 = max(box[0].start - SLOPE_CHECK_PX, 0), min(box[0].stop + SLOPE_CHECK_PX, h)
+    c0, c1 = max(box[1].start - SLOPE_CHECK_PX, 0), min(box[1].stop + SLOPE_CHECK_PX, w)
     # pixels 2 to SLOPE_CHECK_PX from the hole (chessboard distance), measured
-    steps = ndi.distance_transform_cdt(~hole[r0:r1, c0:c1], metric="chessboard")
+    steps = ndi.distance_transform_cdt(labels[r0:r1, c0:c1] != label, metric="chessboard")
     around = (steps >= 2) & (steps <= SLOPE_CHECK_PX) & np.isfinite(heights[r0:r1, c0:c1])
     if not around.any() or not rim_range > 0:
         return False

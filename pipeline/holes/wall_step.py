@@ -17,7 +17,6 @@ import numpy as np
 __all__ = [
     "LOGISTIC_NODES",
     "bounded_least_squares",
-    "forward_difference_jacobian",
     "jacobian_at",
     "soft_l1_cost",
     "square_share_slopes",
@@ -124,28 +123,6 @@ def jacobian_at(
     moved = step_residuals(shifted, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes)
     for i in range(len(base)):
         jacobian[i, 0] = (moved[i] - base[i]) / h
-    return jacobian
-
-
-@numba.njit(cache=True)
-def forward_difference_jacobian(
-    params, lower, upper, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
-):  # pragma: no cover - compiled
-    """Forward-difference Jacobian of :func:`step_residuals` (every parameter): the reference of :func:`step_jacobian`."""
-    base = step_residuals(params, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes)
-    jacobian = np.empty((len(base), len(params)))
-    for j in range(len(params)):
-        h = 1.4901161193847656e-08 * max(1.0, abs(params[j]))
-        if params[j] + h > upper[j]:
-            h = -h
-        shifted = params.copy()
-        shifted[j] += h
-        h = shifted[j] - params[j]  # the step actually taken, after rounding
-        moved = step_residuals(
-            shifted, x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty, nodes
-        )
-        for i in range(len(base)):
-            jacobian[i, j] = (moved[i] - base[i]) / h
     return jacobian
 
 
@@ -334,20 +311,24 @@ def square_share_kernel(d, u, v, width, nodes):  # pragma: no cover - compiled
     for i in range(len(d)):
         total = 0.0
         for q in nodes:
-            t = d[i] + width * q
-            if small < 1e-9:
-                value = t / big + 0.5
-            elif t <= -half_diff:
-                x = t + half_sum
-                value = x * x / (2 * big * small) if x > 0 else 0.0
-            elif t < half_diff:
-                value = (t + 0.5 * big) / big
-            else:
-                x = -t + half_sum
-                value = 1.0 - (x * x / (2 * big * small) if x > 0 else 0.0)
+            value, _ = _trapezoid(d[i] + width * q, big, small, half_diff, half_sum)
             total += min(max(value, 0.0), 1.0)
         out[i] = total / len(nodes)
     return out
+
+
+@numba.njit(cache=True, inline="always")
+def _trapezoid(t, big, small, half_diff, half_sum):  # pragma: no cover - compiled
+    """The unit square's share on the low side of the line at ``t`` (unclipped) and its density, d share / d t."""
+    if small < 1e-9:
+        return t / big + 0.5, 1.0 / big
+    if t <= -half_diff:
+        x = t + half_sum
+        return (x * x / (2 * big * small), x / (big * small)) if x > 0 else (0.0, 0.0)
+    if t < half_diff:
+        return (t + 0.5 * big) / big, 1.0 / big
+    x = -t + half_sum
+    return (1.0 - x * x / (2 * big * small), x / (big * small)) if x > 0 else (1.0, 0.0)
 
 
 @numba.njit(cache=True)
@@ -367,17 +348,7 @@ def square_share_slopes(d, u, v, width, nodes):  # pragma: no cover - compiled
     for i in range(n):
         total, total_slope, total_node = 0.0, 0.0, 0.0
         for q in nodes:
-            t = d[i] + width * q
-            if small < 1e-9:
-                value, density = t / big + 0.5, 1.0 / big
-            elif t <= -half_diff:
-                x = t + half_sum
-                value, density = (x * x / (2 * big * small), x / (big * small)) if x > 0 else (0.0, 0.0)
-            elif t < half_diff:
-                value, density = (t + 0.5 * big) / big, 1.0 / big
-            else:
-                x = -t + half_sum
-                value, density = (1.0 - x * x / (2 * big * small), x / (big * small)) if x > 0 else (1.0, 0.0)
+            value, density = _trapezoid(d[i] + width * q, big, small, half_diff, half_sum)
             if value <= 0.0 or value >= 1.0:
                 value, density = min(max(value, 0.0), 1.0), 0.0
             total += value

@@ -32,9 +32,7 @@ from ..sensor.sight import (
 from ..sensor.sums import TrajectorySums
 from ..sensor.trajectory import FlightLine, fit_flight_lines, swath_polygon
 from .bin_tiles import TileResult
-from .merge_cells import (
-    CellResult,
-)
+from .merge_cells import CellResult
 
 logger = logging.getLogger(__name__)
 
