@@ -126,3 +126,18 @@ def test_a_straight_void_is_no_strip_where_the_flight_lines_bands_are_known():
     assert big_hole_cause(catalog, rules)["rule"] == "strip"
     causes = classify_causes(catalog.stats, rules, bands_known=True)
     assert causes[np.argmax(catalog.holes["area_px"])]["cause"] != "missed_coverage"
+
+
+def test_a_level_rim_is_no_water_on_heights_above_the_ground():
+    """On heights above the ground the ground is z = 0 everywhere: a void in a bare field has a
+    level, low rim (``flat_low_rim``: water on elevations) and is no water there
+    (lidR's Megaplot: two cut voids in a clearing were flattened as lakes)."""
+    rng = np.random.default_rng(3)
+    z = np.abs(rng.normal(0, 0.02, (96, 96)))  # bare ground at 0, a few centimetres of noise
+    count = np.ones((96, 96), np.uint32)
+    count[30:50, 30:50] = 0  # a 400 px void
+    _, _, catalog = run(count, z, cell_px=64, min_area_px=10)
+    rules = rules_for(load_config())
+    assert big_hole_cause(catalog, rules)["cause"] == "water"
+    above = classify_causes(catalog.stats, rules, above_ground=True)[np.argmax(catalog.holes["area_px"])]
+    assert above["cause"] == "unknown"

@@ -42,6 +42,8 @@ RULES: tuple[tuple[str, str], ...] = (
 )
 #: The rules that judge a hole from its rim alone, where the sensor's lines of sight are not known.
 RIM_ONLY_RULES = ("jumps", "shadow", "strip", "flat_low_rim")
+#: The water rules that read the rim's heights alone (no water returns): off on heights above the ground.
+RIM_WATER_RULES = ("level_rim", "river_rim", "flat_low_rim")
 
 #: A hole whose ring holds water-class returns on at least this share of its pixels is water before
 #: any coverage gap or missing tile: it is enclosed by measured water more than by anything else, and
@@ -139,6 +141,7 @@ def classify_causes(
     bands_known: bool = False,
     sight_known: bool = False,
     heights_assumed: bool = False,
+    above_ground: bool = False,
 ) -> np.ndarray:
     """Why each hole is there: the first rule of ``RULES`` that holds wins.
 
@@ -170,6 +173,12 @@ def classify_causes(
         :func:`pipeline.stages.sensor_geometry.fov_from_shadows`): the swaths stand, but the lines of
         sight lean as the assumed field of view makes them, and the rim's occlusion rules (``jumps``,
         ``shadow``) speak too.
+    above_ground : bool
+        Whether the heights are above the ground (a normalised survey,
+        :class:`pipeline.survey.ground_level.GroundLevel`): the ground is z = 0 everywhere, so
+        a level, low or planar rim is bare ground, not a water surface, and the rim-only water
+        rules (``RIM_WATER_RULES``) are off; water is known from its returns (``water_points``,
+        ``water_ring``, ``water_edge``) or a water mask.
 
     Returns
     -------
@@ -195,6 +204,9 @@ def classify_causes(
         holds["water_points"] &= ~holds["line_of_sight"]
     else:
         holds["line_of_sight"] = holds["water_edge"] = holds["seen"] = np.zeros(len(stats), bool)
+    if above_ground:
+        for rule in RIM_WATER_RULES:
+            holds[rule] = np.zeros(len(stats), bool)
     conditions = [holds[rule] for rule, _ in RULES]
     out["cause"] = np.select(conditions, [cause for _, cause in RULES], default="unknown")
     out["rule"] = np.select(conditions, [rule for rule, _ in RULES], default="none")

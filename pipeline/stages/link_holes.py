@@ -22,6 +22,8 @@ from ..io.intermediate import save_object
 from ..parameters import HoleParams, cause_rules
 from ..plan import SurveyPlan
 from ..survey.footprint_density import sampling_gap_px
+from ..survey.ground_level import GroundLevel
+from .bin_tiles import BIN_TILES
 from .detect_holes import COVERAGE, DETECT_HOLES, DetectResult, finds_holes
 from .sensor_geometry import SensorGeometry
 from .stage import RunState, Stage
@@ -50,13 +52,16 @@ def link_cells(
     params: HoleParams,
     line_moments: np.ndarray,
     geometry: SensorGeometry | None = None,
+    *,
+    above_ground: bool = False,
 ) -> HoleSet:
     """Gather: link the detected parts of every cell (in plan order) and classify the holes.
 
     ``line_moments``: the survey's flight-line pixel moments (gathered from stage 2),
     for the direction of the flight lines beside a missed strip where their trajectories
     are not known; ``geometry``: the flight lines' trajectories and swaths, whose lines of
-    sight decide the causes where it is complete.
+    sight decide the causes where it is complete; ``above_ground``: the heights are above the
+    ground (no water from the rim's heights alone, :func:`pipeline.holes.classify_causes`).
     """
     rules = cause_rules(
         config,
@@ -72,6 +77,7 @@ def link_cells(
         sight_known=sight_known,
         # the rim's occlusion rules speak where nothing measured the assumed heights (the shadows did not)
         heights_assumed=heights_assumed and geometry is not None and geometry.rim_rules,
+        above_ground=above_ground,
     )
     catalog = link_holes(
         [d.cell_holes for d in detected],
@@ -133,7 +139,11 @@ def link_detected(state: RunState, results: list[object]) -> HoleSet:
     """Gather, on the client: the detected cells' holes linked and classified, and kept."""
     coverage, plan = state[COVERAGE], state.plan
     detected = list(state[DETECT_HOLES])
-    holes = link_cells(detected, plan, state.config, plan.hole_params, coverage.line_moments, coverage.geometry)
+    ground = sum((t.ground for t in state[BIN_TILES].tiles), GroundLevel())
+    holes = link_cells(
+        detected, plan, state.config, plan.hole_params, coverage.line_moments, coverage.geometry,
+        above_ground=ground.normalised,
+    )  # fmt: skip
     keep_hole_set(holes, str(state.staging.hole_catalog))
     return holes
 
