@@ -393,14 +393,15 @@ class FillConfig:
         "auto",
         "Interpolation of holes that are not water: auto (per hole, by cross-validation on its rim among"
         " fill.auto_candidates), tin (Laplacian fairing), spline (regularized spline with tension), mls,"
-        " linear (linear TIN), idw or nearest.",
-        choices=("auto", "tin", "spline", "mls", "linear", "idw", "nearest"),
+        " linear (linear TIN), natural (natural neighbours, Laplace coordinates), idw or nearest.",
+        choices=("auto", "tin", "spline", "mls", "linear", "natural", "idw", "nearest"),
     )
     auto_candidates: list[str] = _opt(
-        ["tin", "linear"],
+        ["natural", "tin"],
         "Methods auto chooses among per hole, by the RMSE of each on the hole's withheld rim sectors"
-        " (tin, spline, mls, linear, idw, nearest).",
-        item_choices=("tin", "spline", "mls", "linear", "idw", "nearest"),
+        " (tin, spline, mls, linear, natural, idw, nearest); the first fills unless another is"
+        " significantly better.",
+        item_choices=("tin", "spline", "mls", "linear", "natural", "idw", "nearest"),
     )
     by_cause: bool = _opt(
         True, "Occlusion holes from their lower rim (the ground beside a building); water holes flat."

@@ -16,6 +16,7 @@ import pytest
 from pipeline.fill import METHOD_CODES, FillSettings, fill_region
 from pipeline.fill._problem import build_problem
 from pipeline.fill.by_cause import RIM, FillParams, fill_hole, fill_kind
+from pipeline.fill.natural import laplace_interpolate
 from pipeline.fill.region import contest, pick
 from pipeline.fill.scattered import rst_basis, rst_fit
 
@@ -60,7 +61,7 @@ def test_rst_with_too_few_points_is_nan():
     assert np.isnan(rst_fit(np.zeros((2, 2)), np.zeros(2), np.zeros((3, 2)), tension=40.0, smoothing=0.1)).all()
 
 
-@pytest.mark.parametrize("method", ["spline", "linear"])
+@pytest.mark.parametrize("method", ["spline", "linear", "natural"])
 def test_new_kernels_are_exact_on_a_plane_and_coded(method):
     region = _hole()
     out = fill_region(np.where(region, np.nan, PLANE), region, method=method)
@@ -69,13 +70,45 @@ def test_new_kernels_are_exact_on_a_plane_and_coded(method):
     assert [c.method for c in out.components] == [method]
 
 
-def test_linear_fills_a_hole_open_to_the_window_edge():
+@pytest.mark.parametrize("method", ["linear", "natural"])
+def test_linear_fills_a_hole_open_to_the_window_edge(method):
     region = np.zeros(PLANE.shape, bool)
     region[30:45, 70:] = True  # beyond the hull of its rim: nearest support height there
-    out = fill_region(np.where(region, np.nan, PLANE), region, method="linear")
+    out = fill_region(np.where(region, np.nan, PLANE), region, method=method)
     assert np.isfinite(out.heights[region]).all()
     inside = region & (XX < 78)
     assert np.abs(out.heights[inside] - PLANE[inside]).max() < 1e-5
+
+
+def test_natural_neighbour_weights_by_voronoi_edge_over_distance():
+    """Four data points on a square's corners, the query at its centre: the query's Voronoi cell
+    is the square of the corners' bisectors, every edge the same, so the mean; a query nearer
+    one corner leans to it, and every value stays within the data's range (no overshoot)."""
+    square = np.array([[0.0, 0.0], [0.0, 10.0], [10.0, 0.0], [10.0, 10.0]])
+    z = np.array([1.0, 2.0, 3.0, 10.0])
+    centre = laplace_interpolate(square, z, np.array([[5.0, 5.0]]))
+    # the four corners are co-circular: the two triangulations give the same Laplace weights
+    assert centre[0] == pytest.approx(z.mean())
+    rng = np.random.default_rng(4)
+    queries = rng.uniform(0.5, 9.5, (200, 2))
+    values = laplace_interpolate(square, z, queries)
+    assert np.all((values >= z.min() - 1e-9) & (values <= z.max() + 1e-9))
+    near = laplace_interpolate(square, z, np.array([[9.0, 9.0]]))[0]
+    assert near > 7.0
+    assert np.isnan(laplace_interpolate(square, z, np.array([[20.0, 20.0]]))[0])  # outside the hull
+
+
+def test_natural_matches_startinpy_laplace():
+    """The same interpolant as the fill benchmark's ``laplace`` alternative (startinpy, optional)."""
+    startinpy = pytest.importorskip("startinpy")
+    rng = np.random.default_rng(5)
+    points = rng.uniform(0, 50, (300, 2))
+    z = np.sin(points[:, 0] / 7) * 3 + np.cos(points[:, 1] / 5) * 2
+    dt = startinpy.DT()
+    dt.insert(np.column_stack([points, z]))
+    queries = rng.uniform(10, 40, (40, 2))
+    theirs = np.array([dt.interpolate({"method": "Laplace"}, [q])[0] for q in queries])
+    np.testing.assert_allclose(laplace_interpolate(points, z, queries), theirs, atol=1e-6)
 
 
 def test_auto_picks_mls_on_a_quadratic_where_it_alone_is_exact():
@@ -122,7 +155,7 @@ def test_tiny_voids_get_no_contest_and_candidates_can_be_restricted():
     methods = {c.n_pixels: c.method for c in out.components}
     assert methods[3] == "tin" and methods[25 * 27] != "tin"
     only = FillSettings(tin_order=1, auto_candidates=("tin", "spline"))
-    assert FillSettings().auto_candidates == ("tin", "linear")  # the default: methods bounded by their rim
+    assert FillSettings().auto_candidates == ("natural", "tin")  # the default: methods bounded by their rim
     out = fill_region(np.where(region, np.nan, RIDGE), region, method="auto", settings=only)
     assert {c.method for c in out.components} <= {"tin", "spline"}
 
@@ -166,7 +199,7 @@ def test_the_configured_candidates_reach_the_kernels():
     holes = hole_params(config, pixel_size_m=1.0, spacing_m=0.5, vertical_unit_m=1.0)
     params = fill_params(config, holes, pixel_size=1.0, horizontal_unit_m=1.0, vertical_unit_m=1.0)
     assert params.settings.auto_candidates == ("tin", "mls")
-    assert load_config().fill.auto_candidates == ["tin", "linear"]
+    assert load_config().fill.auto_candidates == ["natural", "tin"]
 
 
 def _params() -> FillParams:

@@ -13,6 +13,7 @@ from ._problem import Problem, build_problem, rim_pairs
 from .baselines import fill_flat, fill_idw, fill_nearest
 from .laplace import fill_tin
 from .mls import fill_mls
+from .natural import fill_natural
 from .scattered import fill_linear, fill_spline
 from .settings import METHOD_CODES, NOT_FILLED, ComponentFill, FillOutcome, FillSettings
 
@@ -28,6 +29,7 @@ FILL_METHODS: dict[str, Kernel] = {
     "flat": fill_flat,
     "spline": fill_spline,
     "linear": fill_linear,
+    "natural": fill_natural,
 }
 """Every kernel has the signature ``kernel(problem, labels, out) -> list[ComponentFill]``:
 it fills the components ``labels`` of ``problem`` into the float64 raster ``out``."""
@@ -52,7 +54,7 @@ def fill_region(
         Heights (any real dtype); NaN = unknown. Row 0 is north. Not modified.
     region : ndarray of bool, shape (M, N)
         Pixels to fill (True). Their input heights are ignored, even finite ones.
-    method : {"auto", "tin", "spline", "mls", "linear", "idw", "nearest", "flat"}
+    method : {"auto", "tin", "spline", "mls", "linear", "natural", "idw", "nearest", "flat"}
         Fill method; ``auto`` chooses per component: by cross-validation on its own rim
         among ``settings.auto_candidates`` (:func:`contest`) for components of at least
         ``auto_contest_min_px`` pixels, :func:`choose_methods` for the others.

@@ -37,6 +37,7 @@ METHOD_CODES: dict[str, int] = {
     "river": 7,
     "spline": 8,
     "linear": 9,
+    "natural": 10,
 }
 """``method_code`` per method. ``barrier`` marks region pixels lying on a barrier
 (a wall line): they take the highest adjacent filled or measured height, since a
@@ -51,7 +52,7 @@ METHOD_NAMES: dict[int, str] = {v: k for k, v in METHOD_CODES.items()} | {
 _WEIGHTS = ("wendland", "cubic", "gaussian")
 _FRAMES = ("horizontal", "tilted")
 #: Methods ``auto`` can choose among (``flat`` is for water only, ``barrier`` not a method).
-_CANDIDATES = ("tin", "spline", "mls", "linear", "idw", "nearest")
+_CANDIDATES = ("tin", "spline", "mls", "linear", "natural", "idw", "nearest")
 
 
 @dataclass(frozen=True)
@@ -134,9 +135,10 @@ class FillSettings:
         ``auto``: the methods that compete for each component of at least
         ``auto_contest_min_px`` pixels; the one with the lowest cross-validation error on
         the component's own rim (withheld rim sectors, as ``estimate_error``) fills it and
-        that error is its ``error_estimate``. Default ``("tin", "linear")``: with ``spline``
-        and ``mls`` too the real-survey benchmark got worse (they predict the rim well and
-        overshoot inside; docs/performance.md).
+        that error is its ``error_estimate``. Default ``("natural", "tin")``: natural-neighbour
+        interpolation unless the harmonic fairing predicts the rim significantly better (both
+        stay within their rim); with ``spline`` and ``mls`` too the real-survey benchmark got
+        worse (they predict the rim well and overshoot inside; docs/performance.md).
         Empty: no contest (``tin``, or ``mls`` by ``auto_mls_min_px``, as before).
     auto_contest_min_px : int
         Components smaller than this are filled by ``tin`` without a contest: a rim of a
@@ -192,7 +194,7 @@ class FillSettings:
     flat_level: float | None = None
     auto_mls_min_px: int = 0
     auto_mls_min_roundness: float = 0.5
-    auto_candidates: tuple[str, ...] = ("tin", "linear")
+    auto_candidates: tuple[str, ...] = ("natural", "tin")
     auto_contest_min_px: int = 4
     auto_folds: int = 2
     auto_z: float = 2.0
