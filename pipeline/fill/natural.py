@@ -30,10 +30,10 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from scipy.spatial import Delaunay, QhullError, cKDTree
+from scipy.spatial import Delaunay, QhullError
 
 from ._problem import Problem
-from .scattered import _component_points, _none
+from .scattered import fill_triangulated
 from .settings import ComponentFill
 
 __all__ = ["fill_natural", "laplace_interpolate"]
@@ -168,23 +168,4 @@ def _laplace(pts, simplices, neighbors, z, queries, start, out):  # pragma: no c
 
 def fill_natural(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[ComponentFill]:
     """Fill the components ``labels`` by natural-neighbour interpolation (Laplace coordinates) of their rim band."""
-    w = problem.labels.shape[1]
-    records: list[ComponentFill] = []
-    for k, size, pts, _, pr, pc in _component_points(problem, labels):
-        if len(pts) == 0:
-            records.append(_none(k, size))
-            continue
-        sr, sc = np.divmod(pts, w)
-        corner = np.array([sr.min(), sc.min()], np.float64)
-        xy = np.column_stack([sr, sc]).astype(np.float64) - corner  # the component's own frame (see linear)
-        zs = problem.heights[sr, sc]
-        queries = np.column_stack([pr, pc]).astype(np.float64) - corner
-        jitter = np.random.default_rng(0).uniform(-1e-6, 1e-6, xy.shape)
-        values = laplace_interpolate(xy + jitter, zs, queries)
-        outside = ~np.isfinite(values)
-        if outside.any():
-            _, nn = cKDTree(xy).query(queries[outside])
-            values[outside] = zs[nn]
-        out[pr, pc] = values
-        records.append(ComponentFill(label=k, n_pixels=size, method="natural", filled=True, n_support=len(pts)))
-    return records
+    return fill_triangulated(problem, labels, out, laplace_interpolate, "natural")

@@ -25,6 +25,8 @@ Both are pure: arrays in, arrays out, one component at a time.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy import linalg
 from scipy.interpolate import LinearNDInterpolator
@@ -34,7 +36,7 @@ from scipy.special import exp1
 from ._problem import Problem, rims_by_label, support_points
 from .settings import ComponentFill
 
-__all__ = ["fill_linear", "fill_spline", "rst_basis", "rst_fit"]
+__all__ = ["fill_linear", "fill_spline", "fill_triangulated", "rst_basis", "rst_fit"]
 
 _EULER = 0.5772156649015329
 
@@ -144,6 +146,29 @@ def fill_spline(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[C
 
 def fill_linear(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[ComponentFill]:
     """Fill the components ``labels`` by linear interpolation on the Delaunay triangulation of their rim band."""
+    return fill_triangulated(problem, labels, out, _linear, "linear")
+
+
+def _linear(points: np.ndarray, z: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    return LinearNDInterpolator(Delaunay(points), z)(queries)
+
+
+def fill_triangulated(
+    problem: Problem,
+    labels: np.ndarray,
+    out: np.ndarray,
+    interpolate: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+    method: str,
+) -> list[ComponentFill]:
+    """Fill each component with ``interpolate(points, z, queries)`` (NaN outside the points' hull)
+    of its rim band's pixel centres, then the nearest support height outside the hull (everywhere
+    where the band's pixels lie on one line).
+
+    The points are taken in the component's own frame (its support's corner at the origin: the
+    same triangulation wherever the window around it starts, whatever the cell size) and moved by
+    a fixed 1e-6 px jitter in their row-major order: pixel centres are co-circular by the thousand,
+    and qhull's point location then walks for ever (0.5 s for a 700-pixel hole).
+    """
     w = problem.labels.shape[1]
     recs = []
     for k, size, pts, _, pr, pc in _component_points(problem, labels):
@@ -152,20 +177,17 @@ def fill_linear(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[C
             continue
         sr, sc = np.divmod(pts, w)
         corner = np.array([sr.min(), sc.min()], np.float64)
-        xy = np.column_stack([sr, sc]).astype(np.float64) - corner  # the component's own frame: the same
-        zs = problem.heights[sr, sc]  # triangulation wherever the window around it starts (the cell size)
+        xy = np.column_stack([sr, sc]).astype(np.float64) - corner
+        zs = problem.heights[sr, sc]
         queries = np.column_stack([pr, pc]).astype(np.float64) - corner
         values = np.full(len(pr), np.nan)
-        if len(pts) >= 3 and np.linalg.matrix_rank(xy - xy.mean(axis=0)) == 2:
-            # pixel centres are co-circular by the thousand: qhull's point location then walks
-            # for ever (0.5 s for a 700-pixel hole); a fixed 1e-6 px jitter, in the points'
-            # row-major order, breaks the ties
+        if len(pts) >= 3 and np.linalg.matrix_rank(xy - xy.mean(axis=0)) == 2:  # not all on a line
             jitter = np.random.default_rng(0).uniform(-1e-6, 1e-6, xy.shape)
-            values = LinearNDInterpolator(Delaunay(xy + jitter), zs)(queries)
+            values = interpolate(xy + jitter, zs, queries)
         outside = ~np.isfinite(values)
         if outside.any():
             _, nn = cKDTree(xy).query(queries[outside])
             values[outside] = zs[nn]
         out[pr, pc] = values
-        recs.append(ComponentFill(label=k, n_pixels=size, method="linear", filled=True, n_support=len(pts)))
+        recs.append(ComponentFill(label=k, n_pixels=size, method=method, filled=True, n_support=len(pts)))
     return recs
