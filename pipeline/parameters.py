@@ -205,6 +205,7 @@ def fill_params(
             estimate_error=fill.estimate_error,
             tin_order=fill.tin_order,
             auto_candidates=tuple(dict.fromkeys(fill.auto_candidates)),
+            auto_rough_rim=holes.jump_threshold,
         ),
         clamp_to_rim=fill.clamp_to_rim,
         river_min_drop=fill.river_min_drop_m / vertical_unit_m,

@@ -111,6 +111,25 @@ def test_natural_matches_startinpy_laplace():
     np.testing.assert_allclose(laplace_interpolate(points, z, queries), theirs, atol=1e-6)
 
 
+def test_a_rough_rim_makes_tin_the_reference_a_smooth_one_keeps_natural():
+    """Crowns around a hole (heights scattered by metres about any plane): tin is the reference;
+    sloped ground with 5 cm of noise: the first candidate, natural, stays."""
+    from pipeline.fill._problem import build_problem as problem_of
+    from pipeline.fill.region import rough_rims
+
+    region = _hole()
+    crowns = PLANE + 8.0 * (np.random.default_rng(0).random(PLANE.shape) > 0.5)
+    settings = FillSettings(tin_order=1, auto_candidates=("natural", "tin"), auto_rough_rim=2.5)
+    ground = PLANE + np.random.default_rng(1).normal(0.0, 0.05, PLANE.shape)
+    for surface, rough in ((crowns, True), (ground, False)):
+        heights = np.where(region, np.nan, surface)
+        problem = problem_of(heights, region, pixel_size=1.0, settings=settings)
+        assert rough_rims(problem, np.array([1]), 2.5).tolist() == ([1] if rough else [])
+        out = fill_region(heights, region, method="auto", settings=settings)
+        assert out.components[0].method == ("tin" if rough else "natural")
+    assert rough_rims(problem, np.array([1]), math.inf).tolist() == []  # the default: never
+
+
 def test_auto_picks_mls_on_a_quadratic_where_it_alone_is_exact():
     region = _hole()
     out = fill_region(np.where(region, np.nan, BOWL), region, method="auto", settings=HARMONIC)

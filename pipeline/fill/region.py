@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import scipy.ndimage as ndi
 
-from ._problem import Problem, build_problem, rim_pairs
+from ._problem import Problem, build_problem, rim_pairs, rims_by_label
 from .baselines import fill_flat, fill_idw, fill_nearest
 from .laplace import fill_tin
 from .mls import fill_mls
@@ -127,11 +127,37 @@ def _choose(
     chosen = choose_methods(problem.labels, present, settings)
     scores: dict[int, dict[str, float]] = {}
     entrants = present[sizes[present] >= settings.auto_contest_min_px] if settings.auto_candidates else present[:0]
+    rough = (
+        set(rough_rims(problem, entrants, settings.auto_rough_rim).tolist())
+        if "tin" in settings.auto_candidates
+        else set()
+    )
+    tin_first = ("tin", *(m for m in settings.auto_candidates if m != "tin"))
     for k, by_method in _contest_errors(problem, entrants, settings.auto_candidates).items():
         if by_method:
-            chosen[k] = pick(by_method, settings.auto_candidates, settings.auto_z)
+            order = tin_first if k in rough else settings.auto_candidates
+            chosen[k] = pick(by_method, order, settings.auto_z)
             scores[k] = {m: v[0] for m, v in by_method.items()}
     return chosen, scores
+
+
+def rough_rims(problem: Problem, labels: np.ndarray, limit: float) -> np.ndarray:
+    """The components among ``labels`` whose rim heights scatter about their least-squares plane
+    by more than ``limit`` (RMS, z units): several surfaces side by side (``FillSettings.auto_rough_rim``)."""
+    if len(labels) == 0 or not math.isfinite(limit):
+        return np.zeros(0, np.int64)
+    w = problem.labels.shape[1]
+    rough = []
+    for k, rim in rims_by_label(problem, np.asarray(labels, np.int64)).items():
+        if len(rim) < 4:
+            continue
+        r, c = np.divmod(rim, w)
+        z = problem.heights.ravel()[rim]
+        design = np.column_stack([np.ones(len(rim)), r - r.mean(), c - c.mean()])
+        coef, *_ = np.linalg.lstsq(design, z, rcond=None)
+        if np.sqrt(np.mean((z - design @ coef) ** 2)) > limit:
+            rough.append(k)
+    return np.array(rough, np.int64)
 
 
 def _with_holdout_errors(

@@ -155,6 +155,16 @@ class FillSettings:
         paired difference of squared errors (:func:`~pipeline.fill.region.pick`); 2 is
         the usual 95 % one. On a rim of tree crowns every method misses by metres and the
         ranking is noise; the reference never overshoots the rim. Default 2.
+    auto_rough_rim : float
+        z units: a component whose rim heights scatter about their best plane by more than
+        this (RMS) has a rough rim, several surfaces side by side (crowns, roofs, the ground
+        between); ``tin``, where it is a candidate, is then its reference instead of the first
+        one. Deep in such a hole the nearest rim pixels (``natural``'s neighbours) say little
+        more than any others, and the harmonic fill, an average of the whole rim weighted by how
+        near each part is, strays least; on a smooth rim (terrain, one roof) the nearest pixels
+        carry the surface's trend in, and the first candidate stays. The pipeline passes the
+        height-jump threshold (``holes.jump_threshold_m``: a step between surfaces). Default
+        ``inf``: never.
     spline_tension, spline_smoothing : float
         Regularized spline with tension (``spline``, :mod:`.scattered`): tension for
         coordinates normalised by the support's extent, and smoothing (the diagonal
@@ -198,6 +208,7 @@ class FillSettings:
     auto_contest_min_px: int = 4
     auto_folds: int = 2
     auto_z: float = 2.0
+    auto_rough_rim: float = math.inf
     spline_tension: float = 40.0
     spline_smoothing: float = 0.1
     spline_max_points: int = 400
