@@ -198,6 +198,7 @@ def fill_params(
         max_distance=fill.max_distance_m / horizontal_unit_m if fill.max_distance_m > 0 else math.inf,
         max_area_m2=fill.max_area_m2 if fill.max_area_m2 > 0 else math.inf,
         fill_missed_coverage=fill.missed_coverage,
+        bare_earth=PointFilter(tuple(config.filter.drop_classes), tuple(config.filter.keep_classes)).bare_earth,
         water_edge=edge,
         water_reach_px=1.0 + fill.water_edge_reach_m / pixel_m,  # the ring, and the reach beyond it
         jump_threshold=holes.jump_threshold,

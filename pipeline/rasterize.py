@@ -53,6 +53,8 @@ STATISTIC_NAMES = tuple(STATISTIC_DTYPES)
 WATER_CLASS = 9
 #: ASPRS noise classes (low and high noise): points a filter drops cover nothing.
 NOISE_CLASSES = (7, 18)
+#: ASPRS classes of the bare earth: ground, model key-points, water, rail, road surface.
+BARE_EARTH_CLASSES = (2, 8, 9, 10, 11)
 
 
 @dataclass
@@ -281,6 +283,13 @@ class PointFilter:
     def filters_classes(self) -> bool:
         """Whether the filter leaves out more than noise: the points it drops then cover the ground."""
         return bool(self.keep_classes) or bool(set(self.drop_classes) - set(NOISE_CLASSES))
+
+    @property
+    def bare_earth(self) -> bool:
+        """Whether only bare-earth classes (``BARE_EARTH_CLASSES``) are kept: a terrain model (DTM),
+        with no building, tree or other object in it whose top could hide the ground beside it."""
+        kept = set(self.keep_classes) - set(self.drop_classes)
+        return bool(kept) and kept <= set(BARE_EARTH_CLASSES)
 
 
 def point_filter_mask(

@@ -66,6 +66,27 @@ def beside_a_building() -> tuple[np.ndarray, np.ndarray]:
 def test_each_cause_has_its_kind_of_fill(cause, kind):
     assert fill_kind(cause, params()) == kind
     assert fill_kind(cause, params(by_cause=False)) == RIM
+    # a bare-earth model (a DTM) holds no object whose top could stand on a rim: terrain all round
+    assert fill_kind(cause, params(bare_earth=True)) == (WATER if cause == "water" else RIM)
+
+
+@pytest.mark.parametrize(
+    ("keep", "bare"),
+    [
+        ((), False),
+        ((2,), True),
+        ((2, 9), True),
+        ((2, 8, 9, 10, 11), True),
+        ((2, 6), False),
+        ((2, 18), True),
+        ((5,), False),
+    ],
+)
+def test_a_bare_earth_model_keeps_only_bare_earth_classes(keep, bare):
+    """``filter.keep_classes`` of ground, key-points, water, rail, road only (noise dropped anyway)."""
+    from pipeline.rasterize import PointFilter
+
+    assert PointFilter(drop_classes=(7, 18), keep_classes=keep).bare_earth is bare
 
 
 def test_a_water_hole_is_flat_at_its_rims_lowest_returns():

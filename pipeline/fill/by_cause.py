@@ -80,6 +80,7 @@ class FillParams:
     water_reach_px: float = 3.0  # how far from a hole its water returns are looked for
     max_area_m2: float = math.inf  # fill.max_area_m2; inf: no limit
     fill_missed_coverage: bool = False  # fill.missed_coverage
+    bare_earth: bool = False  # only bare-earth classes kept (a DTM): no object's top on any rim
 
 
 @dataclass(frozen=True)
@@ -98,12 +99,18 @@ class HoleFill:
 
 
 def fill_kind(cause: str, params: FillParams) -> str:
-    """How a hole of this cause is filled: ``water`` flat, ``low`` from the low side, ``rim`` from all of it."""
+    """How a hole of this cause is filled: ``water`` flat, ``low`` from the low side, ``rim`` from all of it.
+
+    The low side is for a void beside an object whose top stands on its rim (the ground a
+    building hides); in a bare-earth model (``params.bare_earth``: a DTM) the class filter took
+    every object away, so a rim spanning more than a step is terrain (a slope, a bank, a cliff)
+    and the whole of it is the support.
+    """
     if not params.by_cause:
         return RIM
     if cause == "water":
         return WATER
-    return LOW_SIDE if cause in (OCCLUSION, SMALL_VOID) else RIM
+    return LOW_SIDE if cause in (OCCLUSION, SMALL_VOID) and not params.bare_earth else RIM
 
 
 def unfilled_reason(cause: str, *, area_m2: float, farthest: float, params: FillParams) -> tuple[str, str] | None:
