@@ -6,6 +6,7 @@ import json
 import math
 import os
 import sys
+import zlib
 
 import numpy as np
 import pytest
@@ -276,6 +277,17 @@ def test_fill_benchmark_end_to_end_on_a_plane(tmp_path, rng, dask_client):
     assert summary["target_default_vs_best_alternative"]["of"] == 1
     assert "default" in result.output and "tin_linear" in result.output
     assert (out / "fill_eval.txt").read_text().strip() in result.output
+
+
+def test_a_survey_gets_the_same_holes_in_any_company():
+    """The generator follows the survey's name and the model, not the list of models run."""
+    from pipeline.evaluate.fill.benchmark import placement_rng
+
+    draw = lambda survey, model: placement_rng(3, survey, model).random(4).tolist()  # noqa: E731
+    assert draw("a.laz", "dtm") == draw("a.laz", "dtm")
+    assert draw("a.laz", "dtm") != draw("a.laz", "dsm") != draw("b.laz", "dsm")
+    # a run of both models drew the DTM's holes from index 1 before: those holes are kept
+    assert draw("a.laz", "dtm") == np.random.default_rng([3, zlib.crc32(b"a.laz"), 1]).random(4).tolist()
 
 
 def test_evaluate_needs_one_mode(tmp_path):

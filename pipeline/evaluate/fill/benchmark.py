@@ -53,6 +53,13 @@ PIPELINE_RUNS: dict[str, dict[str, Any]] = {
 MODELS: dict[str, dict[str, Any]] = {"dsm": {}, "dtm": {"keep_classes": [2]}}
 
 
+def placement_rng(seed: int, survey: str, model: str) -> np.random.Generator:
+    """The generator of one survey's holes in one model: from the seed, the survey's name and the
+    model's place in :data:`MODELS` (not in the run's list), so a survey gets the same holes in any
+    company (before 2026-11-27 a DTM run alone drew the DSM's holes: the list's index was 0)."""
+    return np.random.default_rng([seed, zlib.crc32(survey.encode()), list(MODELS).index(model)])
+
+
 @dataclass(frozen=True)
 class BenchmarkPlan:
     """What every survey of one benchmark runs with (the options of :func:`evaluate_fill`).
@@ -146,9 +153,9 @@ def evaluate_fill(
     base = config.replace("flightplan", source="fill benchmark", enabled=False)
     with dask_client(client, scheduler, base) as connect:
         runs_client = connect()
-        for model_index, model in enumerate(plan.models):
+        for model in plan.models:
             for name, inputs in zip(names, surveys):
-                rng = np.random.default_rng([plan.seed, zlib.crc32(name.encode()), model_index])
+                rng = placement_rng(plan.seed, name, model)
                 survey_config = _survey_config(base, model, (crs or {}).get(name) or (crs or {}).get("*"))
                 result = _evaluate_survey(
                     name, inputs, out / model / name, survey_config, model=model, rng=rng, plan=plan, client=runs_client
