@@ -118,14 +118,14 @@ def fill_region(
 
 def _choose(
     problem: Problem, method: str, settings: FillSettings
-) -> tuple[dict[int, str], dict[int, dict[str, float]]]:
+) -> tuple[dict[int, str], dict[int, dict[str, tuple[float, int]]]]:
     """A method per component label, and the rim cross-validation RMSE of each candidate where ``auto`` held a contest."""
     sizes = problem.sizes()
     present = np.nonzero(sizes[1:])[0] + 1
     if method != "auto":
         return {int(k): method for k in present}, {}
     chosen = choose_methods(problem.labels, present, settings)
-    scores: dict[int, dict[str, float]] = {}
+    scores: dict[int, dict[str, tuple[float, int]]] = {}
     entrants = present[sizes[present] >= settings.auto_contest_min_px] if settings.auto_candidates else present[:0]
     rough = (
         set(rough_rims(problem, entrants, settings.auto_rough_rim).tolist())
@@ -137,7 +137,7 @@ def _choose(
         if by_method:
             order = tin_first if k in rough else settings.auto_candidates
             chosen[k] = pick(by_method, order, settings.auto_z)
-            scores[k] = {m: v[0] for m, v in by_method.items()}
+            scores[k] = {m: (v[0], len(v[1])) for m, v in by_method.items()}
     return chosen, scores
 
 
@@ -164,7 +164,7 @@ def _with_holdout_errors(
     problem: Problem,
     chosen: dict[int, str],
     records: dict[int, ComponentFill],
-    scores: dict[int, dict[str, float]],
+    scores: dict[int, dict[str, tuple[float, int]]],
 ) -> dict[int, ComponentFill]:
     """Each record with its error estimate: the contest's winner keeps its cross-validation RMSE,
     the others get the leave-boundary-out RMSE (:func:`_holdout_errors`)."""
@@ -333,15 +333,19 @@ def pick(by_method: dict[str, tuple[float, np.ndarray]], candidates: tuple[str, 
     return best
 
 
-def _with_scores(record: ComponentFill, by_method: dict[str, float] | None) -> ComponentFill:
-    """A contest winner's record: its cross-validation RMSE as the error estimate, every score in ``detail``."""
+def _with_scores(record: ComponentFill, by_method: dict[str, tuple[float, int]] | None) -> ComponentFill:
+    """A contest winner's record: its cross-validation RMSE as the error estimate, every score and
+    how many withheld rim pixels they rest on in ``detail`` (one pixel scores 0 for a method that
+    happens to hit it: the count says how little that means)."""
     if not by_method or not record.filled or record.method not in by_method:
         return record
-    scores = ", ".join(f"{m} {e:.3g}" for m, e in sorted(by_method.items(), key=lambda item: item[1]))
-    detail = f"auto: {record.method} by rim cross-validation (RMSE {scores})"
+    scores = ", ".join(f"{m} {e:.3g}" for m, (e, _) in sorted(by_method.items(), key=lambda item: item[1][0]))
+    withheld = by_method[record.method][1]
+    pixels = "pixel" if withheld == 1 else "pixels"
+    detail = f"auto: {record.method} by rim cross-validation on {withheld} withheld rim {pixels} (RMSE {scores})"
     return replace(
         record,
-        error_estimate=by_method[record.method],
+        error_estimate=by_method[record.method][0],
         detail=f"{record.detail}; {detail}" if record.detail else detail,
     )
 
