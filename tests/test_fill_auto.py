@@ -158,6 +158,7 @@ def test_auto_records_the_winners_cross_validation_error_and_every_score():
     assert math.isfinite(rec.error_estimate) and 0 < rec.error_estimate < 0.5
     for name in ("tin", "spline", "mls", "linear"):
         assert name in rec.detail
+    assert " withheld rim pixels (RMSE " in rec.detail  # how many pixels the scores rest on
     problem = build_problem(np.where(region, np.nan, noisy), region, pixel_size=1.0, settings=HARMONIC, support=None)
     scores = contest(problem, np.array([1]), ("tin", "spline", "mls", "linear"))[1]
     assert set(scores) == {"tin", "spline", "mls", "linear"}
