@@ -150,7 +150,7 @@ class FillSettings:
         perpendicular pairs of arcs, half the rim in all), so that a feature crossing the
         hole (a ridge, a break line) is withheld in one of them. Default 2.
     auto_z : float
-        The first candidate (the reference, ``tin``) fills a component unless another
+        The first candidate (the reference, ``natural`` by default) fills a component unless another
         predicts its withheld rim better by more than ``auto_z`` standard errors of the
         paired difference of squared errors (:func:`~pipeline.fill.region.pick`); 2 is
         the usual 95 % one. On a rim of tree crowns every method misses by metres and the
