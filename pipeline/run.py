@@ -30,7 +30,7 @@ from typing import Any, TypedDict, Unpack
 
 from . import __version__, interrupt
 from .budget import MemoryBudget, check_plan_memory, memory_budget
-from .cluster import ClusterStart, WorkerWatch, dask_client, task_stream
+from .cluster import ClusterStart, WorkerWatch, dask_client, quiet_shutdown, task_stream
 from .config import Config, config_key, to_dict
 from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, TaskError
 from .flight_planning import plan_flights
@@ -132,9 +132,11 @@ def run_survey(
                 progress=options.get("progress", False), keep_work=config.output.keep_intermediate or incremental,
                 settle=settle,
             )  # fmt: skip
-        except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError, ClusterError):
+        except (KeyboardInterrupt, SystemExit, TaskError, DiskFullError, ClusterError) as stop:
             # interrupted, or the cluster lost a worker for good: finished tasks stay for --resume
             interrupt.acknowledge()  # a second TERM must not cut the unlock short
+            if isinstance(stop, (KeyboardInterrupt, SystemExit)):
+                quiet_shutdown()
             staging.keep_for_resume()
             raise
         except BaseException:
@@ -602,7 +604,9 @@ class _Runner:
                     if watch.lost:
                         raise watch.error()
                     collect(index[future.key], result)
-        except BaseException:
+        except BaseException as stop:
+            if isinstance(stop, (KeyboardInterrupt, SystemExit)):
+                quiet_shutdown()  # before the cancel: a gather in flight then finds its keys forgotten
             self.client.cancel(pending)
             raise
 

@@ -43,3 +43,23 @@ def test_the_cluster_start_thread_imports_nothing(tmp_path):
     done = subprocess.run([sys.executable, str(probe)], capture_output=True, text=True, timeout=120, check=True)
     imported_elsewhere = json.loads(done.stdout.strip().splitlines()[-1])
     assert imported_elsewhere == [], imported_elsewhere
+
+
+def test_an_interrupted_run_drops_distributed_s_shutdown_records():
+    """After Ctrl-C the cluster's stop logs what the stop causes ("Couldn't gather keys ...
+    forgotten"); holefill's one line says what happened. With -vv (distributed at INFO) they stay."""
+    import logging
+
+    from pipeline.cluster import quiet_shutdown
+
+    logger = logging.getLogger("distributed")
+    before = logger.level
+    try:
+        logger.setLevel(logging.ERROR)
+        quiet_shutdown()
+        assert not logging.getLogger("distributed.scheduler").isEnabledFor(logging.CRITICAL)
+        logger.setLevel(logging.INFO)
+        quiet_shutdown()
+        assert logging.getLogger("distributed.scheduler").isEnabledFor(logging.ERROR)
+    finally:
+        logger.setLevel(before)
