@@ -85,12 +85,17 @@ class HoleParams:
     sampling_gap_px: float = 0.0  # holes no thicker than this (pixels) are sampling gaps; 0: none
 
 
+def point_filter(config: Config) -> PointFilter:
+    """Which points enter the rasters, from ``[filter]``."""
+    f = config.filter
+    return PointFilter(tuple(f.drop_classes), tuple(f.keep_classes), f.drop_withheld)
+
+
 def read_params(config: Config, *, vertical_unit_m: float) -> ReadParams:
     """Stage 1's parameters; with ``read.reader = "pdal"`` the user's pipeline file is read and checked here."""
-    f = config.filter
     pdal = config.read.reader == "pdal"
     return ReadParams(
-        point_filter=PointFilter(tuple(f.drop_classes), tuple(f.keep_classes), f.drop_withheld),
+        point_filter=point_filter(config),
         voxel_height=config.rasterize.voxel_height_m / vertical_unit_m,
         chunk_points=config.rasterize.chunk_points,
         sensor=config.holes.enabled and config.sensor.enabled,
@@ -198,7 +203,7 @@ def fill_params(
         max_distance=fill.max_distance_m / horizontal_unit_m if fill.max_distance_m > 0 else math.inf,
         max_area_m2=fill.max_area_m2 if fill.max_area_m2 > 0 else math.inf,
         fill_missed_coverage=fill.missed_coverage,
-        bare_earth=PointFilter(tuple(config.filter.drop_classes), tuple(config.filter.keep_classes)).bare_earth,
+        bare_earth=point_filter(config).bare_earth,
         water_edge=edge,
         water_reach_px=1.0 + fill.water_edge_reach_m / pixel_m,  # the ring, and the reach beyond it
         jump_threshold=holes.jump_threshold,

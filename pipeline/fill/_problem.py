@@ -129,6 +129,13 @@ def rim_pairs(problem: Problem, wanted: np.ndarray | None = None) -> tuple[np.nd
     return key // (h * w), key % (h * w)
 
 
+def fit_plane(rows: np.ndarray, cols: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Least-squares plane ``z = a + b col + c row`` through pixels: ``(a, b, c)``."""
+    design = np.column_stack([np.ones(len(z)), cols, rows]).astype(np.float64)
+    plane, *_ = np.linalg.lstsq(design, z, rcond=None)
+    return plane
+
+
 def rims_by_label(problem: Problem, labels: np.ndarray) -> dict[int, np.ndarray]:
     """Flat indices of the rim pixels of each component in ``labels``."""
     wanted = np.zeros(problem.n_labels + 1, bool)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.ndimage as ndi
 
-from ._problem import CROSS
+from ._problem import CROSS, fit_plane
 
 __all__ = ["clamp_to_rim", "lower_side_support", "rim_level"]
 
@@ -140,8 +140,7 @@ def _slope_not_step(
     around = (steps >= 2) & (steps <= SLOPE_CHECK_PX) & np.isfinite(heights[r0:r1, c0:c1])
     if not around.any() or not rim_range > 0:
         return False
-    design = np.column_stack([np.ones(len(z)), cols - c0, rows - r0]).astype(np.float64)
-    plane, *_ = np.linalg.lstsq(design, z, rcond=None)
+    plane = fit_plane(rows - r0, cols - c0, z)
     ar, ac = np.nonzero(around)
     predicted = plane[0] + plane[1] * ac + plane[2] * ar
     departure = heights[r0:r1, c0:c1][ar, ac] - predicted

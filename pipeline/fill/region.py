@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import scipy.ndimage as ndi
 
-from ._problem import Problem, build_problem, rim_pairs, rims_by_label
+from ._problem import Problem, build_problem, fit_plane, rim_pairs, rims_by_label
 from .baselines import fill_flat, fill_idw, fill_nearest
 from .laplace import fill_tin
 from .mls import fill_mls
@@ -151,11 +151,10 @@ def rough_rims(problem: Problem, labels: np.ndarray, limit: float) -> np.ndarray
     for k, rim in rims_by_label(problem, np.asarray(labels, np.int64)).items():
         if len(rim) < 4:
             continue
-        r, c = np.divmod(rim, w)
+        rows, cols = np.divmod(rim, w)
         z = problem.heights.ravel()[rim]
-        design = np.column_stack([np.ones(len(rim)), r - r.mean(), c - c.mean()])
-        coef, *_ = np.linalg.lstsq(design, z, rcond=None)
-        if np.sqrt(np.mean((z - design @ coef) ** 2)) > limit:
+        a, b, c = fit_plane(rows, cols, z)
+        if np.sqrt(np.mean((z - (a + b * cols + c * rows)) ** 2)) > limit:
             rough.append(k)
     return np.array(rough, np.int64)
 
