@@ -33,7 +33,6 @@ from .budget import MemoryBudget, check_plan_memory, memory_budget
 from .cluster import ClusterStart, WorkerWatch, dask_client, quiet_shutdown, task_stream
 from .config import Config, config_key, to_dict
 from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, TaskError
-from .flight_planning import plan_flights
 from .io.checksums import output_records
 from .io.vector import read_survey_area
 from .output_guard import check_before_run, check_same_survey
@@ -467,6 +466,9 @@ def _plan_flights(
     else:
         # home: flightplan.home, else the open ground nearest to the holes, from the ground points
         points = [] if plan.survey.reproject else [t.path for t in plan.survey.tiles]
+        # imported here: 0.5 s of modules (the planner, its file formats) a run without holes never needs
+        from .flight_planning import plan_flights
+
         try:
             flight_summary = plan_flights(gpkg, vrt, config, staging.root, point_files=points)
         except InputDataError as e:  # the survey's products stand; only the re-flight cannot be planned

@@ -132,6 +132,51 @@ def test_vertical_holes_eq2():
     assert vh.tolist() == [[False, True, False, False]]
 
 
+def test_vertical_hole_records_per_group():
+    """Pixels, largest span, missing voxels and top of each 8-connected group; small groups left out."""
+    from affine import Affine
+
+    from pipeline.holes.vertical import vertical_hole_records
+    from pipeline.rasterize import PixelStatistics
+
+    zmax = np.zeros((6, 6), np.float32)
+    zmin = np.zeros((6, 6), np.float32)
+    voxels = np.zeros((6, 6), np.uint16)
+    mask = np.zeros((6, 6), bool)
+    # group A: three pixels, diagonal neighbours (8-connected)
+    for (r, c), top, bottom, occupied in (((0, 0), 10.0, 0.0, 3), ((1, 1), 12.0, 2.0, 4), ((2, 2), 8.0, 1.0, 1)):
+        mask[r, c], zmax[r, c], zmin[r, c], voxels[r, c] = True, top, bottom, occupied
+    # group B: two pixels
+    for (r, c), top, bottom, occupied in (((4, 4), 5.0, 0.0, 2), ((4, 5), 6.5, 0.5, 20)):
+        mask[r, c], zmax[r, c], zmin[r, c], voxels[r, c] = True, top, bottom, occupied
+    # a lone pixel, under min_px
+    mask[0, 5], zmax[0, 5] = True, 30.0
+    empty = np.zeros((6, 6), np.uint16)
+    core = PixelStatistics(
+        window=PixelWindow(0, 0, 6, 6), zmax=zmax, zmin=zmin, count=empty.astype(np.uint32),
+        voxels=voxels, water=empty, source=empty, covered=empty,
+    )  # fmt: skip
+    records = vertical_hole_records(mask, core, Affine.identity(), voxel_height=1.0, min_px=2)
+    assert [r["pixels"] for r in records] == [3, 2]
+    assert [r["max_height_range"] for r in records] == [10.0, 6.0]
+    assert [r["top"] for r in records] == [12.0, 6.5]
+    # expected voxels floor(span / 1 m) less the occupied ones, never below 0: (10-3)+(10-4)+(7-1); (5-2)+0
+    assert [r["missing_voxels"] for r in records] == [19, 3]
+
+
+def test_largest_per_label_matches_ndimage():
+    from pipeline.stages.fill_holes import largest_per_label
+
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        labels = rng.integers(-1, 8, (20, 30))
+        values = rng.random((20, 30)) * 5
+        ids = rng.choice(np.arange(1, 12), size=int(rng.integers(1, 6)), replace=False)
+        expected = ndi.maximum(values, labels=labels, index=ids)
+        np.testing.assert_array_equal(largest_per_label(values, labels, ids), expected)
+    assert largest_per_label(values, labels, np.empty(0, np.int64)).shape == (0,)
+
+
 # --------------------------------------------------------------------------------------
 # per cell: closed / open, type I / II, shapes A-D ([OPEN] 3.1)
 # --------------------------------------------------------------------------------------

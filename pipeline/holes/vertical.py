@@ -54,14 +54,17 @@ def vertical_hole_records(
     if n == 0:
         return []
     mask = labels > 0
-    index = np.arange(1, n + 1)
     span = core.zmax.astype(np.float64) - core.zmin
     expected = np.floor(span / voxel_height)
     missing = np.where(mask, np.maximum(expected - core.voxels, 0), 0)
-    pixels = ndi.sum_labels(mask, labels, index)
-    max_span = ndi.maximum(np.where(mask, span, 0), labels, index)
-    missing_voxels = ndi.sum_labels(missing, labels, index)
-    top = ndi.maximum(np.where(mask, core.zmax, -np.inf), labels, index)
+    # per-group sums and maxima over the group pixels only (ndimage.maximum sorts the whole array)
+    group = labels[mask] - 1
+    pixels = np.bincount(group, minlength=n)
+    missing_voxels = np.bincount(group, weights=missing[mask], minlength=n)
+    max_span = np.zeros(n)
+    np.maximum.at(max_span, group, span[mask])
+    top = np.full(n, -np.inf)
+    np.maximum.at(top, group, core.zmax[mask].astype(np.float64))
     polygons = label_polygons(labels, transform, connectivity=8)
     return [
         {

@@ -554,7 +554,10 @@ def find_walls(
     -------
     list of Wall
     """
+    # float64 once for every wall's support (each fit would otherwise convert the whole arrays)
     zmax = np.asarray(zmax, dtype=np.float64)
+    zmin = None if zmin is None else np.asarray(zmin, dtype=np.float64)
+    count = None if count is None else np.asarray(count, dtype=np.float64)
     if jumps is None:
         jumps = height_jumps(zmax, zmax if zmin is None else zmin, jump_threshold=jump_threshold)
     segments = wall_segments(

@@ -9,16 +9,20 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import geopandas as gpd
 import numpy as np
-import pandas as pd
-import pyogrio
 import shapely
 from pyproj import CRS, Transformer
 
 from ..errors import CRSError, InputDataError, OutputError
+
+if TYPE_CHECKING:
+    import geopandas as gpd
+    import pandas as pd
+
+# pyogrio (which imports geopandas and pandas, 0.3 s) is imported where a layer is read or
+# written: the workers that import this module through the survey plan never do either
 
 
 def write_layer(
@@ -46,6 +50,10 @@ def write_layer(
         ``"object"`` for text), written even when there is no record: a GIS user meets
         the same columns in an empty layer.
     """
+    import geopandas as gpd
+    import pandas as pd
+    import pyogrio
+
     path = Path(path)
     if not records and fields:
         columns = {name: pd.Series([], dtype=dtype) for name, dtype in fields.items()}
@@ -68,11 +76,15 @@ def write_layer(
 
 def read_layer(path: str | os.PathLike, layer: str) -> gpd.GeoDataFrame:
     """Read one layer back (tests, evaluation)."""
+    import pyogrio
+
     return pyogrio.read_dataframe(path, layer=layer)
 
 
 def read_attributes(path: str | os.PathLike, layer: str, columns: list[str]) -> pd.DataFrame | None:
     """Some fields of a layer, without geometries; None when the layer lacks one of them (an empty layer has no field)."""
+    import pyogrio
+
     if any(column not in pyogrio.read_info(path, layer=layer)["fields"] for column in columns):
         return None
     return pyogrio.read_dataframe(path, layer=layer, columns=columns, read_geometry=False)
@@ -80,6 +92,8 @@ def read_attributes(path: str | os.PathLike, layer: str, columns: list[str]) -> 
 
 def list_layers(path: str | os.PathLike) -> list[str]:
     """Layer names of a GeoPackage."""
+    import pyogrio
+
     return [name for name, _ in pyogrio.list_layers(path)]
 
 
@@ -92,6 +106,8 @@ def read_survey_area(
     ones, or, with ``within`` (the survey area), none that overlaps it: polygons beside the
     data are most likely in another CRS than their file says, or of another place.
     """
+    import pyogrio
+
     try:
         frame = pyogrio.read_dataframe(path)
     except Exception as e:

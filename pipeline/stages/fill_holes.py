@@ -192,6 +192,27 @@ def _sources_under(grid: Grid, sources: dict[str, CellSource], holes: list[HoleT
     return tuple(needed.values())
 
 
+def largest_per_label(values: np.ndarray, labels: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """The largest of ``values`` (>= 0) over the pixels of each label in ``ids``; 0 for an id without pixels.
+
+    ``scipy.ndimage.maximum`` with the same result sorts the whole window; this visits only
+    the pixels of the labels asked for.
+    """
+    largest = np.zeros(len(ids))
+    if not len(ids):
+        return largest
+    order = np.argsort(ids)
+    sorted_ids = ids[order]
+    labelled = labels > 0
+    pixel_labels = labels[labelled]
+    slot = np.minimum(np.searchsorted(sorted_ids, pixel_labels), len(ids) - 1)
+    asked = sorted_ids[slot] == pixel_labels
+    by_slot = np.zeros(len(ids))
+    np.maximum.at(by_slot, slot[asked], values[labelled][asked])
+    largest[order] = by_slot
+    return largest
+
+
 def fill_cell_holes(task: FillTask) -> list[HoleFill]:
     """Fill every hole a cell owns and keep the result in one file.
 
@@ -206,7 +227,7 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
     params = task.params if factor == 1 else coarse_params(task.params, factor)
     distance = fill_distance(measured, pixel_size=params.pixel_size)
     ids = np.array([hole.hole_id for hole in task.holes], dtype=np.int64)
-    farthest = ndi.maximum(distance, labels=hole_ids, index=ids) if len(ids) else np.empty(0)
+    farthest = largest_per_label(distance, hole_ids, ids)
     results: dict[int, HoleFill] = {}
     groups: dict[str, list[HoleToFill]] = defaultdict(list)
     for hole, far in zip(task.holes, farthest):
