@@ -167,6 +167,12 @@ def start_fork_server() -> None:
     raises it in the main thread). The resource tracker starts first: its own start
     unblocks the signal. Elsewhere (a program calling holefill from a thread) the server
     starts with the first worker, and the workers answer Ctrl-C themselves.
+
+    The server imports distributed and the stages (:data:`WORKER_PRELOAD`) once, and every
+    worker forks with them imported: each worker importing the stages itself took 0.9 s of
+    a 2-core run's start. The server starts with :data:`WORKER_ENV`: the BLAS libraries it
+    loads size their thread pools as they load, so the workers' own environment would come
+    too late (a fill stage 5 x slower, its least-squares fits on two threads per worker).
     """
     import multiprocessing.forkserver
     import multiprocessing.resource_tracker
@@ -175,18 +181,32 @@ def start_fork_server() -> None:
     from distributed.utils import get_mp_context
 
     dask.config.set({"distributed.worker.multiprocessing-method": START_METHOD})
-    # the server imports distributed and the stages once, and every worker forks with them imported:
-    # each worker importing the stages itself took 0.9 s of a 2-core run's start, with nothing to do
-    # meanwhile (get_mp_context sets distributed's own list first; it is replaced before the server starts)
-    get_mp_context().set_forkserver_preload(["distributed", *WORKER_PRELOAD])
+    context = get_mp_context()  # distributed's modules to import in the server, set before it starts
     if threading.current_thread() is not threading.main_thread():
         return
+    context.set_forkserver_preload(["distributed", *WORKER_PRELOAD])
     multiprocessing.resource_tracker.ensure_running()
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
-        multiprocessing.forkserver.ensure_running()
+        with _environment(WORKER_ENV):
+            multiprocessing.forkserver.ensure_running()
     finally:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
+@contextlib.contextmanager
+def _environment(values: dict[str, str]) -> Iterator[None]:
+    """``os.environ`` with ``values`` while a child process is started from it, then as it was."""
+    saved = {name: os.environ.get(name) for name in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
 
 
 def import_cluster_modules() -> None:

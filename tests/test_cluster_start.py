@@ -63,3 +63,69 @@ def test_an_interrupted_run_drops_distributed_s_shutdown_records():
         assert logging.getLogger("distributed.scheduler").isEnabledFor(logging.ERROR)
     finally:
         logger.setLevel(before)
+
+
+#: Run in a fresh interpreter: what the local workers' fork server had in its environment and imported.
+FORK_SERVER_PROBE = """
+import json, os, sys
+
+def server_state():
+    server = os.getppid()  # a worker is forked by the fork server
+    with open(f"/proc/{server}/environ", "rb") as fh:
+        environ = dict(item.split(b"=", 1) for item in fh.read().split(b"\\0") if b"=" in item)
+    return {
+        "environ": {k.decode(): v.decode() for k, v in environ.items() if k.decode().endswith("_NUM_THREADS")},
+        "stages_imported": "pipeline.stages.bin_tiles" in sys.modules,
+    }
+
+def main():
+    from pipeline.cluster import ClusterStart
+    from pipeline.config import load_config
+
+    start = ClusterStart.begin(load_config(None, ["dask.workers=1"]))
+    result = list(start.client().run(server_state).values())[0]
+    start.close()
+    print(json.dumps({"server": result}))
+
+if __name__ == "__main__":
+    main()
+"""
+
+
+def test_workers_fork_from_a_server_with_one_blas_thread_and_the_stages_imported(tmp_path):
+    """The server loads numpy and scipy for every worker; their BLAS pools take their size as
+    they load, so the server itself must start with WORKER_ENV (two BLAS threads per worker made
+    the fill stage 5 x slower on 2 cores). The client's own environment is left as it was."""
+    import os
+
+    from pipeline.cluster import WORKER_ENV
+
+    if not os.path.exists("/proc/self/environ"):
+        import pytest
+
+        pytest.skip("reads the fork server's environment from /proc")
+    probe = tmp_path / "probe.py"
+    probe.write_text(FORK_SERVER_PROBE)
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    done = subprocess.run(
+        [sys.executable, str(probe)], capture_output=True, text=True, timeout=120, check=True, env=env
+    )
+    found = json.loads(done.stdout.strip().splitlines()[-1])
+    assert found["server"]["environ"] == {k: v for k, v in WORKER_ENV.items() if k.endswith("_NUM_THREADS")}
+    assert found["server"]["stages_imported"]
+
+
+def test_the_fork_server_environment_is_restored():
+    import os
+
+    from pipeline.cluster import _environment
+
+    os.environ.pop("HOLEFILL_TEST_UNSET", None)
+    os.environ["HOLEFILL_TEST_SET"] = "before"
+    try:
+        with _environment({"HOLEFILL_TEST_UNSET": "1", "HOLEFILL_TEST_SET": "1"}):
+            assert os.environ["HOLEFILL_TEST_UNSET"] == os.environ["HOLEFILL_TEST_SET"] == "1"
+        assert "HOLEFILL_TEST_UNSET" not in os.environ
+        assert os.environ["HOLEFILL_TEST_SET"] == "before"
+    finally:
+        os.environ.pop("HOLEFILL_TEST_SET", None)
