@@ -173,6 +173,9 @@ def start_fork_server() -> None:
     a 2-core run's start. The server starts with :data:`WORKER_ENV`: the BLAS libraries it
     loads size their thread pools as they load, so the workers' own environment would come
     too late (a fill stage 5 x slower, its least-squares fits on two threads per worker).
+    And with ``PYTHONSAFEPATH``: the server is a ``python -c`` whose path would begin with
+    the working directory (Python 3.11 passes it the client's path and does not use it), so
+    a ``pipeline`` folder where holefill is run from would be imported instead of holefill's.
     """
     import multiprocessing.forkserver
     import multiprocessing.resource_tracker
@@ -188,7 +191,7 @@ def start_fork_server() -> None:
     multiprocessing.resource_tracker.ensure_running()
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
-        with _environment(WORKER_ENV):
+        with _environment({**WORKER_ENV, "PYTHONSAFEPATH": "1"}):
             multiprocessing.forkserver.ensure_running()
     finally:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 #: Run in a fresh interpreter: records every module first imported by a thread other than the main one.
 PROBE = """
@@ -76,6 +77,7 @@ def server_state():
     return {
         "environ": {k.decode(): v.decode() for k, v in environ.items() if k.decode().endswith("_NUM_THREADS")},
         "stages_imported": "pipeline.stages.bin_tiles" in sys.modules,
+        "pipeline": sys.modules["pipeline"].__file__,
     }
 
 def main():
@@ -95,7 +97,8 @@ if __name__ == "__main__":
 def test_workers_fork_from_a_server_with_one_blas_thread_and_the_stages_imported(tmp_path):
     """The server loads numpy and scipy for every worker; their BLAS pools take their size as
     they load, so the server itself must start with WORKER_ENV (two BLAS threads per worker made
-    the fill stage 5 x slower on 2 cores). The client's own environment is left as it was."""
+    the fill stage 5 x slower on 2 cores). A folder named like holefill's package where holefill
+    runs from is not what the server imports."""
     import os
 
     from pipeline.cluster import WORKER_ENV
@@ -106,13 +109,20 @@ def test_workers_fork_from_a_server_with_one_blas_thread_and_the_stages_imported
         pytest.skip("reads the fork server's environment from /proc")
     probe = tmp_path / "probe.py"
     probe.write_text(FORK_SERVER_PROBE)
+    elsewhere = tmp_path / "project"
+    (elsewhere / "pipeline").mkdir(parents=True)
+    (elsewhere / "pipeline" / "__init__.py").write_text("")
     env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    env["PYTHONPATH"] = os.pathsep.join(
+        p for p in (str(Path(__file__).resolve().parents[1]), env.get("PYTHONPATH")) if p
+    )
     done = subprocess.run(
-        [sys.executable, str(probe)], capture_output=True, text=True, timeout=120, check=True, env=env
+        [sys.executable, str(probe)], capture_output=True, text=True, timeout=120, check=True, env=env, cwd=elsewhere
     )
     found = json.loads(done.stdout.strip().splitlines()[-1])
     assert found["server"]["environ"] == {k: v for k, v in WORKER_ENV.items() if k.endswith("_NUM_THREADS")}
     assert found["server"]["stages_imported"]
+    assert not found["server"]["pipeline"].startswith(str(elsewhere)), found["server"]["pipeline"]
 
 
 def test_the_fork_server_environment_is_restored():
