@@ -34,6 +34,7 @@ from .io.vector import write_layer
 from .plan import SurveyPlan
 from .stages.bin_tiles import TileResult
 from .stages.detect_holes import DetectResult
+from .stages.find_walls import WallResult
 from .stages.link_holes import HoleSet
 from .stages.merge_cells import CellResult
 from .stages.registry import RunResults
@@ -132,7 +133,9 @@ def write_layers(staging: Staging, plan: SurveyPlan, config: Config, results: Ru
     write_survey_layers(gpkg, plan, results.tiles, results.cells, results.written, results.skipped(plan))
     if results.holes is None:
         return {}
-    return write_hole_layers(gpkg, plan, config, results.holes, results.detected, results.fills, results.written)
+    return write_hole_layers(
+        gpkg, plan, config, results.holes, results.detected, results.fills, results.written, walls=results.walls
+    )
 
 
 def run_summary(
@@ -349,11 +352,13 @@ def write_hole_layers(
     detected: Sequence[DetectResult],
     fills: Sequence[HoleFill] | None = None,
     written: Sequence[WriteResult] | None = None,
+    *,
+    walls: Sequence[WallResult] = (),
 ) -> dict[str, Any]:
     """The ``holes``, ``hole_parts``, ``vertical_holes`` and ``walls`` layers; returns the report's counts.
 
     ``written``: the writer stage's results, whose filled pixels (those of ``fill_mask``)
-    the fill figures add up.
+    the fill figures add up. ``walls``: each cell's walls and vertical holes.
     """
     crs = plan.grid.crs_wkt
     part_outlines = {
@@ -364,8 +369,8 @@ def write_hole_layers(
     hole_records, hole_geometries = _hole_records(plan, config, holes, part_outlines, fills)
     listed = {r["hole_id"] for r in hole_records}
     part_records, part_geometries, counts_by_type = _part_records(plan, holes, part_outlines, listed)
-    vertical_records, vertical_geometries = _vertical_records(plan, detected)
-    wall_records, wall_geometries = _wall_records(plan, detected)
+    vertical_records, vertical_geometries = _vertical_records(plan, walls)
+    wall_records, wall_geometries = _wall_records(plan, walls)
     line_records, line_geometries, swath_geometries = _flight_line_records(holes)
     for layer, records, geometries, geometry_type in (
         ("holes", hole_records, hole_geometries, "MultiPolygon"),
@@ -394,7 +399,7 @@ def write_hole_layers(
         "sampling_gap_area_m2": round(holes.sampling_gap_px * plan.pixel_area_m2, 2),
         "vertical_hole_groups": len(vertical_records),
         "walls": len(wall_records),
-        "height_jump_px": int(sum(d.jump_px for d in detected)),
+        "height_jump_px": int(sum(w.jump_px for w in walls)),
         "aoi_area_m2": round(sum(d.aoi_px for d in detected) * plan.pixel_area_m2, 2),
         "assumed_heights": _assumed_heights(holes, config),
         "largest": sorted(hole_records, key=lambda r: -r["area_m2"])[:20],
@@ -568,26 +573,26 @@ def _flight_line_records(holes: HoleSet) -> tuple[list, list, list]:
     return records, tracks, swaths
 
 
-def _vertical_records(plan: SurveyPlan, detected: Sequence[DetectResult]) -> tuple[list, list]:
+def _vertical_records(plan: SurveyPlan, walls: Sequence[WallResult]) -> tuple[list, list]:
     records, geometries = [], []
-    for d in detected:
-        for record in d.vertical_holes:
+    for w in walls:
+        for record in w.vertical_holes:
             record = dict(record)
             geometries.append(shapely.from_wkb(record.pop("wkb")))
-            record["cell_id"] = d.cell_holes.cell.id
+            record["cell_id"] = w.cell_id
             record["area_m2"] = record["pixels"] * plan.pixel_area_m2
             records.append(record)
     return records, geometries
 
 
-def _wall_records(plan: SurveyPlan, detected: Sequence[DetectResult]) -> tuple[list, list]:
+def _wall_records(plan: SurveyPlan, walls: Sequence[WallResult]) -> tuple[list, list]:
     unit = plan.survey.horizontal_unit_m
     records, geometries = [], []
-    for d in detected:
-        for wall in d.walls:
+    for w in walls:
+        for wall in w.walls:
             records.append(
                 {
-                    "cell_id": d.cell_holes.cell.id,
+                    "cell_id": w.cell_id,
                     "bottom": wall.bottom,
                     "top": wall.top,
                     "height": wall.height,

@@ -267,6 +267,8 @@ def _run_stages(
 
     A stage that streams is submitted with the next one and gathered in the same loop
     (its tasks are their dependencies); a stage without a worker runs on the client.
+    A deferred stage is submitted when reached and gathered after all the others: its
+    tasks (at a low priority) keep the workers busy while the client works.
     ``settle`` sees the state once stage 1's batch is gathered (:func:`settle_density`).
     """
 
@@ -277,9 +279,15 @@ def _run_stages(
         return state
 
     batch: list[tuple[Stage, list[Any]]] = []
+    deferred: list[tuple[Stage, list[Any]]] = []
     submitted: dict[Dependency, Any] = {}
     for stage in STAGES:
         if not stage.runs(state):
+            continue
+        if stage.deferred:  # its recipes read what the open batch gathers
+            if batch:
+                state, batch, submitted = close(state, batch, submitted), [], {}
+            deferred.append((stage, _submit_stage(runner, stage, state, {})))
             continue
         if stage.worker is None:
             if batch:  # the client stage reads what the open batch gathers
@@ -291,7 +299,11 @@ def _run_stages(
         batch.append((stage, [] if stage.background else _submit_stage(runner, stage, state, submitted)))
         if not stage.streams:
             state, batch, submitted = close(state, batch, submitted), [], {}
-    return close(state, batch, submitted) if batch else state
+    if batch:
+        state = close(state, batch, submitted)
+    for stage_futures in deferred:
+        state = _gather_batch(runner, state, [stage_futures], timer)
+    return state
 
 
 def _close_batch(

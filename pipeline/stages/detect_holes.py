@@ -1,4 +1,4 @@
-"""Hole detection, one task per cell: hole parts, vertical holes and walls of the cell core.
+"""Hole detection, one task per cell: the hole parts of the cell core (its walls: :mod:`.find_walls`).
 
 Each task keeps its cell's part-label raster under the work folder (the fill
 stage reads it) and returns only small tables and outlines to the client.
@@ -17,7 +17,7 @@ import shapely
 
 from ..config import HOLE_CONTEXT_PX, Config
 from ..grid import Cell, Grid, PixelWindow, window_union_mask
-from ..holes import CellEvidence, CellHoles, DetectParams, detect_cell_holes, height_jumps, vertical_holes
+from ..holes import CellEvidence, CellHoles, DetectParams, detect_cell_holes
 from ..holes.coverage import (
     IN_GAP,
     IN_MISSING_TILE,
@@ -28,8 +28,6 @@ from ..holes.coverage import (
     extent_strips,
 )
 from ..holes.outlines import label_outlines
-from ..holes.vertical import vertical_hole_records
-from ..holes.walls import Wall, WallParams, find_walls
 from ..io.intermediate import load_cell_statistics, save_labels
 from ..io.raster import geometry_mask
 from ..plan import HoleParams, SurveyPlan
@@ -66,7 +64,7 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class DetectTask:
-    """Find and measure the holes, vertical holes and walls of one cell."""
+    """Find and measure the holes of one cell."""
 
     cell: Cell
     grid: Grid
@@ -105,9 +103,6 @@ class DetectResult:
     cell_holes: CellHoles  # without its label raster (kept in ``labels_path``)
     labels_path: str
     part_outlines: dict[int, bytes]  # WKB polygon per part label, exact pixel edges in global pixel coordinates
-    vertical_holes: list[dict]  # records with a "wkb" polygon
-    walls: list[Wall]
-    jump_px: int
     aoi_px: int
 
 
@@ -241,7 +236,7 @@ def with_tile_grid(plan: SurveyPlan, gaps: CoverageGaps) -> CoverageGaps:
 
 
 def detect_cell(task: DetectTask) -> DetectResult:
-    """Holes, vertical holes and walls of one cell, from its merged statistics."""
+    """The holes of one cell, from its merged statistics (its walls and vertical holes: :mod:`.find_walls`)."""
     cell, grid, params = task.cell, task.grid, task.params
     stats = load_cell_statistics(task.statistics_path)
     coverage = task.gaps.classes(stats.window) if task.gaps is not None else None
@@ -262,34 +257,10 @@ def detect_cell(task: DetectTask) -> DetectResult:
     core_rows, core_cols = cell.window.slices_within(stats.window)
     seen = None if sight is None else seen_small_voids(labels, sight[core_rows, core_cols])
     save_labels(task.labels_path, labels, cell.window, seen_voids=seen)
-    # float64, as find_walls compares heights: one jump raster serves the count and the walls
-    jumps = height_jumps(stats.zmax.astype(np.float64), stats.zmin, jump_threshold=params.jump_threshold)
-    vertical = vertical_holes(
-        stats.zmax, stats.zmin, stats.voxels, voxel_height=params.voxel_height, jump_threshold=params.jump_threshold
-    )[core_rows, core_cols]
-    walls = find_walls(
-        stats.zmax,
-        stats.zmin,
-        jump_threshold=params.jump_threshold,
-        count=stats.count,
-        transform=grid.window_transform(stats.window),
-        region=(core_rows, core_cols),
-        params=WallParams(min_length_px=params.wall_min_length_px),
-        jumps=jumps,
-    )
     return DetectResult(
         cell_holes=holes.without_labels(),
         labels_path=task.labels_path,
         part_outlines=_part_outlines(holes, cell, params),
-        vertical_holes=vertical_hole_records(
-            vertical,
-            stats.crop(cell.window),
-            grid.window_transform(cell.window),
-            voxel_height=params.voxel_height,
-            min_px=params.vertical_min_px,
-        ),
-        walls=walls,
-        jump_px=int(jumps[core_rows, core_cols].sum()),
         aoi_px=int(aoi[core_rows, core_cols].sum()),
     )
 
@@ -560,7 +531,7 @@ GAP_VOIDS: Stage[GapVoidTask, CoverageGaps] = Stage(
     runs=_has_gaps,
 )
 
-#: One task per merged cell: hole parts, vertical holes and walls.
+#: One task per merged cell: its hole parts.
 DETECT_HOLES: Stage[DetectTask, tuple[DetectResult, ...]] = Stage(
     name="detect_holes",
     recipes=cell_detect_tasks,

@@ -21,6 +21,7 @@ from .bin_tiles import BIN_TILES, READ_TASKS, TileResult
 from .checksums import CHECKSUMS
 from .detect_holes import COVERAGE, DETECT_HOLES, GAP_VOIDS, DetectResult
 from .fill_holes import FILL_HOLES, PLAN_FILLS, HoleFill
+from .find_walls import FIND_WALLS, WallResult
 from .link_holes import LINK_HOLES, HoleSet
 from .merge_cells import MERGE_CELLS, CellResult
 from .stage import RunState, Stage
@@ -34,9 +35,10 @@ STAGES: tuple[Stage[Any, Any], ...] = (
     BIN_TILES,  # per read task: decode once, bin                       } gather loop
     MERGE_CELLS,  # per cell: merge the tiles touching it               }
     WRITE_MERGED,  # per cell: the rasters, when nothing is filled      }
+    FIND_WALLS,  # per cell: walls, vertical holes (deferred: gathered last, while the workers are idle)
     COVERAGE,  # client: footprint, flight lines, coverage gaps
     GAP_VOIDS,  # per cell a gap reaches: is the gap empty?
-    DETECT_HOLES,  # per cell: hole parts, vertical holes, walls
+    DETECT_HOLES,  # per cell: hole parts
     LINK_HOLES,  # client: holes linked across cells, causes
     PLAN_FILLS,  # client: the fill's recipes
     FILL_HOLES,  # per cell owning holes: fill each hole whole
@@ -55,6 +57,7 @@ class RunResults:
     written: tuple[WriteResult, ...]  # the raster tiles written, per cell
     inputs: Mapping[str, dict[str, Any]]  # path -> size, time and checksum
     detected: tuple[DetectResult, ...] = ()
+    walls: tuple[WallResult, ...] = ()  # walls and vertical holes per cell (hole detection on)
     holes: HoleSet | None = None  # None: holes.enabled is off
     fills: tuple[HoleFill, ...] | None = None  # None: nothing was filled
     points: tuple[str, ...] = ()  # the repaired point clouds (output.points), relative to the run folder
@@ -81,6 +84,7 @@ def run_results(state: RunState, *, resumed_tasks: int = 0, reused_tasks: int = 
         written=state.get(WRITE_FILLED, state[WRITE_MERGED]),
         inputs=state[CHECKSUMS],
         detected=state.get(DETECT_HOLES, ()),
+        walls=state.get(FIND_WALLS, ()),
         holes=state.get(LINK_HOLES, None),
         fills=state.get(FILL_HOLES, None),
         points=state.get(WRITE_POINTS, ()),
