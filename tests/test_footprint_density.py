@@ -278,3 +278,28 @@ def test_dense_windows_and_listed_blocks_add_up_alike():
         for a, b in ((merged.ix, as_listed.ix), (merged.iy, as_listed.iy), (merged.count, as_listed.count)):
             assert np.array_equal(a, b)
         assert merged.count.sum() == window.counts.sum() + 7 + (70_001 if len(parts) == 3 else 0)
+
+
+def test_local_density_is_the_median_around_each_box_whatever_the_blocks_order():
+    """Merged blocks come in key order (the search skips its sort then); blocks in any other order give the same."""
+    from pipeline.survey.blocks import BlockCounts
+    from pipeline.survey.footprint_density import LOCAL_MARGIN_BLOCKS, local_pulses_per_m2
+
+    rng = np.random.default_rng(3)
+    ix, iy = np.meshgrid(np.arange(40), np.arange(30), indexing="ij")
+    ix, iy = ix.ravel(), iy.ravel()
+    keep = rng.random(len(ix)) < 0.8
+    ix, iy = ix[keep], iy[keep]
+    count = rng.integers(1, 50, len(ix))
+    boxes = np.array([[10.0, 10.0, 14.0, 12.0], [0.0, 0.0, 2.0, 2.0], [100.0, 100.0, 104.0, 104.0]])
+    block = 2.0
+    in_order = local_pulses_per_m2(BlockCounts(block, ix, iy, count), boxes)
+    shuffled = rng.permutation(len(ix))
+    any_order = local_pulses_per_m2(BlockCounts(block, ix[shuffled], iy[shuffled], count[shuffled]), boxes)
+    np.testing.assert_array_equal(in_order, any_order)
+    for box, found in zip(boxes, in_order):
+        lo_x, hi_x = int(box[0] // block) - LOCAL_MARGIN_BLOCKS, int(box[2] // block) + LOCAL_MARGIN_BLOCKS
+        lo_y, hi_y = int(box[1] // block) - LOCAL_MARGIN_BLOCKS, int(box[3] // block) + LOCAL_MARGIN_BLOCKS
+        near = (ix >= lo_x) & (ix <= hi_x) & (iy >= lo_y) & (iy <= hi_y)
+        expected = np.median(count[near]) / block**2 if near.any() else np.nan
+        np.testing.assert_allclose(found, expected)

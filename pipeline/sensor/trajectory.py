@@ -605,8 +605,8 @@ def swath_polygon(line: FlightLine) -> shapely.Geometry:
     path = np.vstack([start, track, end])
     lefts = path + left * line.half_width_left
     rights = path - left * line.half_width_right
-    quads = [
-        shapely.Polygon([lefts[i], lefts[i + 1], rights[i + 1], rights[i]]).buffer(0) for i in range(len(path) - 1)
-    ]
-    hulls = [shapely.Polygon(h).buffer(0) for h in line.hulls]
-    return shapely.union_all([g for g in quads + hulls if not g.is_empty])
+    # every quad and hull made in one call each (a line has hundreds of bins)
+    quads = shapely.buffer(shapely.polygons(np.stack([lefts[:-1], lefts[1:], rights[1:], rights[:-1]], axis=1)), 0)
+    hulls = shapely.buffer(shapely.polygons(np.asarray(line.hulls, np.float64).reshape(-1, SUPPORT_DIRECTIONS, 2)), 0)
+    parts = np.concatenate([quads, hulls])
+    return shapely.union_all(parts[~shapely.is_empty(parts)])

@@ -315,8 +315,10 @@ def local_pulses_per_m2(blocks: BlockCounts, boxes: np.ndarray) -> np.ndarray:
     x0, y0 = int(blocks.ix.min()), int(blocks.iy.min())
     rows = int(blocks.iy.max()) - y0 + 1
     keys = (blocks.ix - x0) * rows + (blocks.iy - y0)
-    order = np.argsort(keys)
-    keys, counts = keys[order], blocks.count[order]
+    counts = blocks.count
+    if len(keys) > 1 and not (keys[1:] >= keys[:-1]).all():  # merged blocks come in key order (0.3 s saved at 4 M)
+        order = np.argsort(keys)
+        keys, counts = keys[order], counts[order]
     for i, (minx, miny, maxx, maxy) in enumerate(boxes):
         cx = _window(minx, maxx, blocks.block)
         cy = _window(miny, maxy, blocks.block)
