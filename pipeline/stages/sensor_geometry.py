@@ -20,7 +20,7 @@ import shapely
 from ..config import Config
 from ..grid import PixelWindow
 from ..holes import height_jumps
-from ..io.intermediate import load_cell_statistics
+from ..io.intermediate import load_shared_cell_statistics
 from ..io.raster import geometry_mask
 from ..plan import SurveyPlan
 from ..sensor.sight import (
@@ -281,7 +281,7 @@ def read_neighbours(
         overlap = core.intersection(window)
         if overlap.is_empty:
             continue
-        stats = load_cell_statistics(path, ("zmax", "zmin", "count", "water")).crop(overlap)
+        stats = load_shared_cell_statistics(path, ("zmax", "zmin", "count", "water")).crop(overlap)
         inside = overlap.slices_within(window)
         zmax[inside], zmin[inside], measured[inside] = stats.zmax, stats.zmin, stats.count > 0
         water[inside] = stats.water > 0
