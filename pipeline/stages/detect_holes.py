@@ -62,6 +62,10 @@ from .stage import RunState, Stage, in_plan_order
 logger = logging.getLogger(__name__)
 
 
+#: The statistics detection reads (the occupied voxels are the walls' and vertical holes': :mod:`.find_walls`).
+DETECT_STATISTICS = ("zmax", "zmin", "count", "water", "source", "covered")
+
+
 @dataclass(frozen=True)
 class DetectTask:
     """Find and measure the holes of one cell."""
@@ -238,7 +242,7 @@ def with_tile_grid(plan: SurveyPlan, gaps: CoverageGaps) -> CoverageGaps:
 def detect_cell(task: DetectTask) -> DetectResult:
     """The holes of one cell, from its merged statistics (its walls and vertical holes: :mod:`.find_walls`)."""
     cell, grid, params = task.cell, task.grid, task.params
-    stats = load_cell_statistics(task.statistics_path)
+    stats = load_cell_statistics(task.statistics_path, DETECT_STATISTICS)
     coverage = task.gaps.classes(stats.window) if task.gaps is not None else None
     if task.sight is not None:
         coverage = _with_swaths(task.sight, grid, stats.window, coverage)
