@@ -9,6 +9,13 @@ default, decode, ...) so every command sees the same machine state; best of N.
     .venv/bin/python bench/bench_command.py                       # ~42 M points
     .venv/bin/python bench/bench_command.py --points 200e6        # ~211 M points, 320 tiles
     .venv/bin/python bench/bench_command.py --workers 16,4,1      # scaling: each count in turn
+    .venv/bin/python bench/bench_command.py --compare before=/tmp/old-checkout   # and another version
+
+With ``--compare NAME=CHECKOUT`` (repeatable) the DSM-only and default commands of another
+checkout of holefill run in the same rounds, interleaved with this one's (``dsm_only@NAME``,
+``default@NAME``): the code of that folder on ``PYTHONPATH``, every command started from the
+system's temporary folder, so that no checkout's ``pipeline`` folder is on the path by accident.
+On a machine whose speed drifts, only such interleaved rounds show a change of a few percent.
 
 With several worker counts (``--workers 16,4,1``) each count is timed in turn, decode and
 holefill interleaved at that count, round after round; ``--json`` is rewritten after every
@@ -35,9 +42,11 @@ import shutil
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import NamedTuple
 
 #: LAS header byte positions of the x/y offsets and bounds (the same in LAS 1.0 to 1.4).
 X_OFFSET, Y_OFFSET = 155, 163
@@ -66,10 +75,18 @@ def decode_command(workers: int, files: list[str]) -> None:
     print(points)
 
 
-def timed(command: list[str]) -> tuple[float, int, str]:
+class Command(NamedTuple):
+    """A timed command, and the checkout whose code it runs (``PYTHONPATH``; None: this interpreter's holefill)."""
+
+    argv: list[str]
+    pythonpath: str | None = None
+
+
+def timed(command: list[str], pythonpath: str | None = None) -> tuple[float, int, str]:
     """Wall seconds, peak RSS (bytes) of the command's largest process, and its stdout+stderr.
 
-    Timed in a fresh wrapper process so that RUSAGE_CHILDREN covers this command alone.
+    Timed in a fresh wrapper process so that RUSAGE_CHILDREN covers this command alone. With
+    ``pythonpath``, the command runs that checkout's code, started from the temporary folder.
     """
     wrapper = (
         "import json, resource, subprocess, sys, time\n"
@@ -79,7 +96,12 @@ def timed(command: list[str]) -> tuple[float, int, str]:
         "peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024\n"
         "print(json.dumps({'s': s, 'peak': peak, 'rc': p.returncode, 'out': p.stdout + p.stderr}))\n"
     )
-    done = subprocess.run([sys.executable, "-c", wrapper, *command], capture_output=True, text=True, check=True)
+    env, cwd = None, None
+    if pythonpath is not None:
+        env, cwd = {**os.environ, "PYTHONPATH": pythonpath}, tempfile.gettempdir()
+    done = subprocess.run(
+        [sys.executable, "-c", wrapper, *command], capture_output=True, text=True, check=True, env=env, cwd=cwd
+    )
     result = json.loads(done.stdout)
     if result["rc"] != 0:
         raise SystemExit(f"{' '.join(command)} failed ({result['rc']}):\n{result['out']}")
@@ -161,6 +183,14 @@ def main() -> None:
         help="seconds: start no repeat of a command that would end after this (the first round always runs)",
     )
     parser.add_argument(
+        "--compare",
+        action="append",
+        default=[],
+        type=checkout,
+        metavar="NAME=CHECKOUT",
+        help="also time another checkout's DSM-only and default commands in the same rounds (repeatable)",
+    )
+    parser.add_argument(
         "--sensor-off",
         action="store_true",
         help="also time the default run without the sensor's geometry (sensor.enabled=false): what the causes cost",
@@ -168,6 +198,7 @@ def main() -> None:
     args = parser.parse_args()
     started = time.perf_counter()
 
+    args.bench_dir = args.bench_dir.resolve()  # the compared checkouts' commands start elsewhere
     base = base_survey(args.bench_dir)
     per_copy = json.loads((base / "complete.json").read_text())["points"]
     survey = large_survey(args.bench_dir, base, max(1, -(-int(args.points) // per_copy)), args.columns)
@@ -190,7 +221,7 @@ def main() -> None:
         "generation_s": json.loads((base / "complete.json").read_text()).get("generation_s"),
         "by_workers": {},
     }
-    runs = {n: commands(n, files, survey, out / f"w{n}", args.sensor_off) for n in args.workers}
+    runs = {n: commands(n, files, survey, out / f"w{n}", args.sensor_off, tuple(args.compare)) for n in args.workers}
     seconds = {n: {name: [] for name in runs[n]} for n in args.workers}
     peaks = {n: {name: 0 for name in runs[n]} for n in args.workers}
     stages: dict[int, dict] = {n: {} for n in args.workers}
@@ -201,13 +232,14 @@ def main() -> None:
                 if i and args.time_limit and seconds[n][name] and elapsed + seconds[n][name][-1] > args.time_limit:
                     print(f"run {i + 1}: {n} workers {name} skipped (time limit)", flush=True)
                     continue
-                s, peak, output = timed(command)
+                s, peak, output = timed(command.argv, command.pythonpath)
                 seconds[n][name].append(s)
                 peaks[n][name] = max(peaks[n][name], peak)
                 if name == "decode":
                     assert int(output.split()[-1]) == points, output
                 else:
-                    manifest = json.loads((Path(command[command.index("--out") + 1]) / "manifest.json").read_text())
+                    argv = command.argv
+                    manifest = json.loads((Path(argv[argv.index("--out") + 1]) / "manifest.json").read_text())
                     assert manifest["summary"]["points_read"] == points
                     stages[n][name] = manifest["summary"]["stage_seconds"]
                 print(f"run {i + 1}: {n} workers {name} {s:.2f} s, peak {peak / 2**20:.0f} MB", flush=True)
@@ -215,6 +247,14 @@ def main() -> None:
                 if args.json:
                     args.json.write_text(json.dumps(figures, indent=2))
     print(json.dumps(figures, indent=2))
+
+
+def checkout(text: str) -> tuple[str, str]:
+    """``"before=/tmp/old"`` -> ``("before", "/tmp/old")``: a name and a folder holding ``pipeline/``."""
+    name, _, folder = text.partition("=")
+    if not name or not folder or not (Path(folder) / "pipeline" / "__init__.py").is_file():
+        raise argparse.ArgumentTypeError(f"expected NAME=CHECKOUT, a folder holding pipeline/: {text!r}")
+    return name, str(Path(folder).resolve())
 
 
 def worker_counts(text: str) -> list[int]:
@@ -242,17 +282,30 @@ def holefill_command() -> list[str]:
     return [str(script)] if script.exists() else [sys.executable, "-m", "pipeline.cli"]
 
 
-def commands(workers: int, files: list[str], survey: Path, out: Path, sensor_off: bool) -> dict[str, list[str]]:
-    """The timed commands at one worker count: decode, DSM only, default (and default without the sensor)."""
+def commands(
+    workers: int,
+    files: list[str],
+    survey: Path,
+    out: Path,
+    sensor_off: bool,
+    compare: tuple[tuple[str, str], ...] = (),
+) -> dict[str, Command]:
+    """The timed commands at one worker count: decode, DSM only, default (and default without the
+    sensor), then the DSM-only and default commands of each compared checkout."""
     inputs = files if len(files) < len(list(survey.glob("*.laz"))) else [str(survey)]
     run = [*holefill_command(), "run", *inputs, "--workers", str(workers), "--no-progress", "--overwrite"]
     named = {
-        "decode": [sys.executable, __file__, "decode", str(workers), *files],
-        "dsm_only": [*run, "--out", str(out / "dsm"), "--set", "holes.enabled=false"],
-        "default": [*run, "--out", str(out / "default")],
+        "decode": Command([sys.executable, str(Path(__file__).resolve()), "decode", str(workers), *files]),
+        "dsm_only": Command([*run, "--out", str(out / "dsm"), "--set", "holes.enabled=false"]),
+        "default": Command([*run, "--out", str(out / "default")]),
     }
     if sensor_off:
-        named["default_sensor_off"] = [*run, "--out", str(out / "sensor_off"), "--set", "sensor.enabled=false"]
+        named["default_sensor_off"] = Command([*run, "--out", str(out / "sensor_off"), "--set", "sensor.enabled=false"])
+    for name, folder in compare:
+        named[f"dsm_only@{name}"] = Command(
+            [*run, "--out", str(out / f"dsm@{name}"), "--set", "holes.enabled=false"], folder
+        )
+        named[f"default@{name}"] = Command([*run, "--out", str(out / f"default@{name}")], folder)
     return named
 
 
