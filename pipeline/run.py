@@ -284,14 +284,12 @@ def _run_stages(
     for stage in STAGES:
         if not stage.runs(state):
             continue
-        if stage.deferred:  # its recipes read what the open batch gathers
-            if batch:
-                state, batch, submitted = close(state, batch, submitted), [], {}
+        if batch and (stage.deferred or stage.worker is None):  # it reads what the open batch gathers
+            state, batch, submitted = close(state, batch, submitted), [], {}
+        if stage.deferred:
             deferred.append((stage, _submit_stage(runner, stage, state, {})))
             continue
         if stage.worker is None:
-            if batch:  # the client stage reads what the open batch gathers
-                state, batch, submitted = close(state, batch, submitted), [], {}
             state = state.with_result(stage, stage.gather(state, []))
             if stage.lap:
                 timer.lap(stage.lap)

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from ..grid import Cell, Grid
 from ..holes import height_jumps, vertical_holes
 from ..holes.vertical import vertical_hole_records
@@ -59,13 +61,14 @@ def find_cell_walls(task: WallTask) -> WallResult:
     cell, grid, params = task.cell, task.grid, task.params
     stats = load_cell_statistics(task.statistics_path, NEEDED)
     core_rows, core_cols = cell.window.slices_within(stats.window)
-    # float64, as find_walls compares heights: one jump raster serves the count and the walls
-    jumps = height_jumps(stats.zmax.astype("float64"), stats.zmin, jump_threshold=params.jump_threshold)
+    # float64 once, as find_walls compares heights: one jump raster serves the count and the walls
+    zmax = stats.zmax.astype(np.float64)
+    jumps = height_jumps(zmax, stats.zmin, jump_threshold=params.jump_threshold)
     vertical = vertical_holes(
         stats.zmax, stats.zmin, stats.voxels, voxel_height=params.voxel_height, jump_threshold=params.jump_threshold
     )[core_rows, core_cols]
     walls = find_walls(
-        stats.zmax,
+        zmax,
         stats.zmin,
         jump_threshold=params.jump_threshold,
         count=stats.count,
