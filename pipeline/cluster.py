@@ -38,6 +38,10 @@ SCHEDULER_TIMEOUT_S = 10
 #: that the first task does not pay for it.
 WORKER_PRELOAD = ["pipeline.stages.bin_tiles", "pipeline.stages.merge_cells"]
 
+#: Imported once by the server the local workers fork from (:func:`start_fork_server`): the
+#: stages and numba's code generator (:mod:`pipeline.worker_start`).
+SERVER_PRELOAD = [*WORKER_PRELOAD, "pipeline.worker_start"]
+
 
 class ClusterStart:
     """A local cluster being started in a background thread.
@@ -68,9 +72,9 @@ class ClusterStart:
         Python's per-module import locks (``_DeadlockError``, about once in 200 starts
         while the main thread imported the stages and the thread imported distributed).
         """
+        start_fork_server()  # first: the server imports the stages while this process imports distributed
         import_cluster_modules()
         start = cls(config)
-        start_fork_server()
         threading.Thread(target=start._start, name="holefill-cluster-start", daemon=True).start()
         return start
 
@@ -168,33 +172,41 @@ def start_fork_server() -> None:
     unblocks the signal. Elsewhere (a program calling holefill from a thread) the server
     starts with the first worker, and the workers answer Ctrl-C themselves.
 
-    The server imports distributed and the stages (:data:`WORKER_PRELOAD`) once, and every
+    The server imports distributed and the stages (:data:`SERVER_PRELOAD`) once, and every
     worker forks with them imported: each worker importing the stages itself took 0.9 s of
-    a 2-core run's start. The server starts with :data:`WORKER_ENV`: the BLAS libraries it
+    a 2-core run's start. It starts before this process imports distributed, so that both
+    import at once (the workers were up 0.9 s later when it started after). The server starts with :data:`WORKER_ENV`: the BLAS libraries it
     loads size their thread pools as they load, so the workers' own environment would come
     too late (a fill stage 5 x slower, its least-squares fits on two threads per worker).
     And with ``PYTHONSAFEPATH``: the server is a ``python -c`` whose path would begin with
     the working directory (Python 3.11 passes it the client's path and does not use it), so
     a ``pipeline`` folder where holefill is run from would be imported instead of holefill's.
     """
+    import multiprocessing
     import multiprocessing.forkserver
     import multiprocessing.resource_tracker
 
+    if threading.current_thread() is threading.main_thread():
+        multiprocessing.get_context(START_METHOD).set_forkserver_preload(["distributed", *SERVER_PRELOAD])
+        multiprocessing.resource_tracker.ensure_running()
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            with _environment({**WORKER_ENV, "PYTHONSAFEPATH": "1"}):
+                multiprocessing.forkserver.ensure_running()
+        finally:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    _use_fork_server()
+
+
+def _use_fork_server() -> None:
+    """Have distributed start its workers from the fork server. Its own preload list is set here, in the
+    calling thread: setting it imports every package distributed knows of, which must not happen in
+    the cluster's start thread (a running server keeps the list it started with)."""
     import dask
     from distributed.utils import get_mp_context
 
     dask.config.set({"distributed.worker.multiprocessing-method": START_METHOD})
-    context = get_mp_context()  # distributed's modules to import in the server, set before it starts
-    if threading.current_thread() is not threading.main_thread():
-        return
-    context.set_forkserver_preload(["distributed", *WORKER_PRELOAD])
-    multiprocessing.resource_tracker.ensure_running()
-    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
-        with _environment({**WORKER_ENV, "PYTHONSAFEPATH": "1"}):
-            multiprocessing.forkserver.ensure_running()
-    finally:
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    get_mp_context()
 
 
 @contextlib.contextmanager

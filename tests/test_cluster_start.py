@@ -78,7 +78,12 @@ def server_state():
         "environ": {k.decode(): v.decode() for k, v in environ.items() if k.decode().endswith("_NUM_THREADS")},
         "stages_imported": "pipeline.stages.bin_tiles" in sys.modules,
         "pipeline": sys.modules["pipeline"].__file__,
+        "numba_ready": _numba_ready(),
     }
+
+def _numba_ready():
+    from numba.core.registry import cpu_target
+    return len(cpu_target.target_context._registries) > 0  # refreshed (pipeline.worker_start)
 
 def main():
     from pipeline.cluster import ClusterStart
@@ -98,7 +103,7 @@ def test_workers_fork_from_a_server_with_one_blas_thread_and_the_stages_imported
     """The server loads numpy and scipy for every worker; their BLAS pools take their size as
     they load, so the server itself must start with WORKER_ENV (two BLAS threads per worker made
     the fill stage 5 x slower on 2 cores). A folder named like holefill's package where holefill
-    runs from is not what the server imports."""
+    runs from is not what the server imports. numba's code generator comes set up (0.2-0.3 s a worker)."""
     import os
 
     from pipeline.cluster import WORKER_ENV
@@ -122,6 +127,7 @@ def test_workers_fork_from_a_server_with_one_blas_thread_and_the_stages_imported
     found = json.loads(done.stdout.strip().splitlines()[-1])
     assert found["server"]["environ"] == {k: v for k, v in WORKER_ENV.items() if k.endswith("_NUM_THREADS")}
     assert found["server"]["stages_imported"]
+    assert found["server"]["numba_ready"]  # set up once in the server, not in each worker
     assert not found["server"]["pipeline"].startswith(str(elsewhere)), found["server"]["pipeline"]
 
 

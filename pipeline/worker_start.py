@@ -1,0 +1,15 @@
+"""What every local worker needs ready before its first task, done once in the fork server.
+
+Imported by the server the local workers fork from (:func:`pipeline.cluster.start_fork_server`),
+never by the client: a forked worker inherits what the server set up. Each stage's numba
+kernels are loaded from numba's cache on their first call, and the first load of a process
+sets up numba's code generator (0.2-0.3 s, measured on the 2-core VM); set up here, before
+the fork, a worker's first kernel loads in about 15 ms.
+"""
+
+from numba.core.registry import cpu_target
+
+import pipeline.stages.bin_tiles  # noqa: F401  (the stages the first tasks run)
+import pipeline.stages.merge_cells  # noqa: F401
+
+cpu_target.target_context.refresh()
