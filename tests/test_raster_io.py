@@ -41,3 +41,26 @@ def test_codes_keep_codes_in_their_overviews(tmp_path, rng):
     for level in (0, 1):
         with rasterio.open(path, overview_level=level) as ds:
             assert set(np.unique(ds.read(1))) <= {0, 4, 7, 255}  # an average of 0 and 4 would make a 2
+
+
+def test_one_burn_of_summed_bits_gives_each_geometry_s_mask(rng):
+    """burn_sum with a bit per geometry: bit k holds exactly geometry_mask of geometry k, however
+    the geometries overlap (strips at random headings, a multipolygon, one cut to nothing)."""
+    import shapely
+    from shapely import affinity
+
+    from pipeline.io.raster import burn_sum, geometry_mask
+
+    transform = Affine(0.5, 0, 100.0, 0, -0.5, 260.0)
+    shape = (137, 181)
+    geometries = []
+    for _ in range(20):
+        strip = shapely.box(-200, -rng.uniform(3, 25), 200, rng.uniform(3, 25))
+        strip = affinity.rotate(strip, rng.uniform(0, 180), origin=(0, 0))
+        geometries.append(affinity.translate(strip, rng.uniform(110, 180), rng.uniform(200, 250)))
+    geometries.append(shapely.MultiPolygon([shapely.box(100, 200, 130, 230), shapely.box(130, 200, 150, 215)]))
+    geometries.append(shapely.box(0, 0, 1, 1))  # outside the window
+    burnt = burn_sum([(g, 1 << k) for k, g in enumerate(geometries)], transform, shape)
+    for k, geometry in enumerate(geometries):
+        assert np.array_equal((burnt >> k) & 1 == 1, geometry_mask(geometry, transform, shape)), k
+    assert burn_sum([], transform, shape).shape == shape

@@ -14,6 +14,7 @@ import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 from xml.sax.saxutils import escape
 
 import numpy as np
@@ -244,6 +245,17 @@ def _window_inside(transform: Affine, bounds: Bounds | None, width: int, height:
     r0 = max(0, math.floor((bounds[3] - t.f) / t.e + 1e-6))
     r1 = min(height, math.ceil((bounds[1] - t.f) / t.e - 1e-6))
     return Window(c0, r0, max(1, c1 - c0), max(1, r1 - r0))
+
+
+def burn_sum(shapes: list[tuple[Any, int]], transform: Affine, shape: tuple[int, int]) -> np.ndarray:
+    """The sum of the values of the ``(geometry, value)`` pairs whose geometry holds each pixel's centre
+    (uint32; the pixels :func:`geometry_mask` gives for each geometry), in one pass of GDAL."""
+    from rasterio.enums import MergeAlg
+    from rasterio.features import rasterize
+
+    if not shapes:
+        return np.zeros(shape, np.uint32)
+    return rasterize(shapes, out_shape=shape, transform=transform, fill=0, dtype="uint32", merge_alg=MergeAlg.add)
 
 
 def geometry_mask(geometry, transform: Affine, shape: tuple[int, int], *, all_touched: bool = False) -> np.ndarray:
