@@ -9,7 +9,8 @@ the fork, a worker's first kernel loads in about 15 ms.
 
 from numba.core.registry import cpu_target
 
-import pipeline.stages.bin_tiles  # noqa: F401  (the stages the first tasks run)
+# the stages the first tasks run (also distributed's preloads of each worker: imported once, here)
+import pipeline.stages.bin_tiles
 import pipeline.stages.merge_cells  # noqa: F401
 
 cpu_target.target_context.refresh()

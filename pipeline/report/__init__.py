@@ -17,7 +17,7 @@ and PNG encoding), :mod:`.inputs` (reading a run folder; the only one that reads
 files) and :mod:`.text` (formatters shared by the others).
 """
 
-from .inputs import read_report_inputs
+from .inputs import prepare_maps, read_report_inputs, with_route
 from .model import CAUSE_COLOURS, MAX_HOLE_VERTICES, MAX_MAP_PX, ZOOM_PX, MapHole, MapRaster, ReportInputs
 from .page import render_report, write_report
 from .png import encode_png, shaded_relief
@@ -31,8 +31,10 @@ __all__ = [
     "MapRaster",
     "ReportInputs",
     "encode_png",
+    "prepare_maps",
     "read_report_inputs",
     "render_report",
     "shaded_relief",
+    "with_route",
     "write_report",
 ]

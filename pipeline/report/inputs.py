@@ -9,6 +9,7 @@ functions, so importing the report stays light.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import os
 from collections.abc import Iterable
 from pathlib import Path
@@ -25,6 +26,7 @@ def read_report_inputs(
     max_px: int = MAX_MAP_PX,
     zooms: int = 4,
     zoom_px: int = ZOOM_PX,
+    route: bool = True,
 ) -> ReportInputs | None:
     """The report's map inputs, read from a run's output (or staging) folder.
 
@@ -38,6 +40,9 @@ def read_report_inputs(
     ----------
     folder : path-like
         A folder holding ``dsm.vrt`` (``OUT``, or the run's staging folder before commit).
+    route : bool
+        Read the re-flight route; without it, :func:`with_route` adds it later (a run reads the
+        maps while it plans the flights).
 
     Returns
     -------
@@ -68,10 +73,30 @@ def read_report_inputs(
         overview=overview,
         holes=holes,
         zooms=tuple(zoom_views),
-        route=_read_lines(folder / "flightplan.gpkg", "route", pixel),
+        route=_read_lines(folder / "flightplan.gpkg", "route", pixel) if route else (),
         survey_area=_read_rings(folder / "holes.gpkg", "survey_area", pixel),
         part_area_by_type=_read_part_areas(folder / "holes.gpkg"),
     )
+
+
+def prepare_maps(folder: str | os.PathLike) -> ReportInputs | None:
+    """:func:`read_report_inputs` without the route, each map's pictures drawn (:attr:`MapRaster.images`):
+    what a run makes while it plans the flights, :func:`with_route` adding the route after."""
+    inputs = read_report_inputs(folder, route=False)
+    if inputs is not None:
+        for view in (inputs.overview, *(zoom for _, zoom in inputs.zooms)):
+            view.images  # noqa: B018  (drawn now, kept on the map)
+    return inputs
+
+
+def with_route(inputs: ReportInputs, folder: str | os.PathLike) -> ReportInputs:
+    """``inputs`` with the re-flight route of ``folder``'s ``flightplan.gpkg`` (none where it holds none)."""
+    overview = inputs.overview
+    pixel = max(
+        (overview.bounds[2] - overview.bounds[0]) / overview.dsm.shape[1],
+        (overview.bounds[3] - overview.bounds[1]) / overview.dsm.shape[0],
+    )
+    return dataclasses.replace(inputs, route=_read_lines(Path(folder) / "flightplan.gpkg", "route", pixel))
 
 
 def _zoom_bounds(hole: Bounds, limit: Bounds) -> Bounds:

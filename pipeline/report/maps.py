@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from .model import _FILL_HATCH, _OTHER_COLOUR, CAUSE_COLOURS, Bounds, MapHole, MapRaster, ReportInputs
-from .png import _RAMP, _data_uri, encode_png, shaded_relief
+from .png import _RAMP, _data_uri
 from .text import _cause_name, _e, _fill_text, _unit_name
 
 
@@ -53,7 +53,6 @@ def _map_svg(
     inputs: ReportInputs,
     *,
     numbered: dict[int, int],
-    height_range: tuple[float, float],
     unit_m: float,
     map_id: str,
     display_px: float,
@@ -67,7 +66,7 @@ def _map_svg(
     """
     frame = _frame(view, inputs.route, display_px=display_px, show_whole_route=show_whole_route)
     route = [frame.to_px(line) for line in inputs.route if len(line)]
-    out = _raster_layers(view, frame, height_range=height_range, uid=map_id)
+    out = _raster_layers(view, frame, uid=map_id)
     out += _survey_area_layer(inputs.survey_area, frame)
     out += _hole_layer(inputs.holes, view.bounds, frame)
     out += _route_layer(route, frame.unit)
@@ -97,13 +96,14 @@ def _frame(view: MapRaster, route_xy: tuple[np.ndarray, ...], *, display_px: flo
     return _Frame(nx=nx, ny=ny, xmin=xmin, ymax=ymax, sx=sx, sy=sy, box=box, unit=(box[2] - box[0]) / display_px)
 
 
-def _raster_layers(view: MapRaster, frame: _Frame, *, height_range: tuple[float, float], uid: str) -> list[str]:
-    """The SVG's opening, its defs, the background, the shaded relief and the hatching of filled pixels."""
+def _raster_layers(view: MapRaster, frame: _Frame, *, uid: str) -> list[str]:
+    """The SVG's opening, its defs, the background, the shaded relief (heights coloured between the
+    map's own range) and the hatching of filled pixels."""
     nx, ny, box, unit = frame.nx, frame.ny, frame.box, frame.unit
     bw, bh = frame.width, frame.height
     hatch = 8 * unit
-    relief = shaded_relief(view.dsm, pixel_size=(frame.sx, frame.sy), height_range=height_range)
-    has_fill = view.filled is not None and bool(view.filled.any())
+    images = view.images
+    filled_png = images.filled_png
     out = [
         f"<svg class='map' xmlns='http://www.w3.org/2000/svg' viewBox='{box[0]:.1f} {box[1]:.1f} {bw:.1f} {bh:.1f}' "
         f"preserveAspectRatio='xMidYMid meet' role='img'>",
@@ -112,12 +112,11 @@ def _raster_layers(view: MapRaster, frame: _Frame, *, height_range: tuple[float,
         f"patternTransform='rotate(45)'><rect width='{hatch / 2:.3g}' height='{hatch:.3g}' fill='{_FILL_HATCH}'/>"
         "</pattern>",
     ]
-    if has_fill:
-        mask_png = encode_png(np.where(view.filled, 255, 0).astype(np.uint8))  # type: ignore[arg-type]
+    if filled_png is not None:
         out.append(
             f"<mask id='filled-{uid}' maskUnits='userSpaceOnUse' x='0' y='0' width='{nx}' height='{ny}'>"
             f"<image width='{nx}' height='{ny}' preserveAspectRatio='none' style='image-rendering:pixelated' "
-            f"href='{_data_uri(mask_png)}'/></mask>"
+            f"href='{_data_uri(filled_png)}'/></mask>"
         )
     out += [
         "</defs>",
@@ -126,9 +125,9 @@ def _raster_layers(view: MapRaster, frame: _Frame, *, height_range: tuple[float,
         # a map shown larger than its pixels (a zoom): show the DSM's pixels, not a blur
         f"<image width='{nx}' height='{ny}' preserveAspectRatio='none' "
         f"style='image-rendering:{'pixelated' if unit < 0.5 else 'auto'}' "
-        f"href='{_data_uri(encode_png(relief))}'/>",
+        f"href='{_data_uri(images.relief_png)}'/>",
     ]
-    if has_fill:
+    if filled_png is not None:
         out.append(
             f"<rect width='{nx}' height='{ny}' fill='url(#hatch-{uid})' opacity='0.75' mask='url(#filled-{uid})'/>"
         )

@@ -6,6 +6,7 @@ them from a run folder, the page and the maps only read them.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -59,6 +60,24 @@ class MapRaster:
         xmin, ymin, xmax, ymax = self.bounds
         if not (xmax > xmin and ymax > ymin):
             raise ValueError(f"MapRaster.bounds must be (xmin, ymin, xmax, ymax), got {self.bounds}")
+
+    @functools.cached_property
+    def images(self) -> MapImages:
+        """The map's shaded relief and its filled pixels' mask as PNG bytes: drawn once, from the map
+        alone (a run draws them while it plans the flights, :func:`pipeline.report.prepare_maps`)."""
+        from .png import map_images
+
+        return map_images(self)
+
+
+@dataclass(frozen=True)
+class MapImages:
+    """The pictures of a :class:`MapRaster`: PNG bytes of its shaded relief (heights coloured between
+    the map's own height range) and of its filled pixels (None: none filled)."""
+
+    relief_png: bytes
+    filled_png: bytes | None
+    height_range: tuple[float, float]
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,6 @@ import numpy as np
 
 from .maps import _legend, _map_svg
 from .model import ReportInputs
-from .png import _height_range
 from .text import _area, _cause_name, _count, _duration, _e, _fill_text, _number, _swatch, _table, _unit_m, _unit_name
 
 _STYLE = """
@@ -198,12 +197,11 @@ def _overview_section(
     view = inputs.overview
     drawn = [h for h in inputs.holes if h.rings]
     numbered = {hole_id: i + 1 for i, (hole_id, _) in enumerate(inputs.zooms)}
-    lo, hi = _height_range(view.dsm)
+    lo, hi = view.images.height_range
     svg = _map_svg(
         view,
         inputs,
         numbered=numbered,
-        height_range=(lo, hi),
         unit_m=_unit_m(manifest),
         map_id="ov",
         display_px=960,
@@ -233,7 +231,6 @@ def _overview_section(
                 zoom,
                 inputs,
                 numbered={},
-                height_range=_height_range(zoom.dsm),
                 unit_m=_unit_m(manifest),
                 map_id=f"z{i}",
                 display_px=470,
