@@ -1,7 +1,8 @@
 """The report's data: map rasters, hole outlines, their colours and size bounds.
 
 Plain frozen dataclasses (no I/O): :func:`pipeline.report.read_report_inputs` builds
-them from a run folder, the page and the maps only read them.
+them from a run folder, the page and the maps only read them; a map draws its own pictures
+once (:attr:`MapRaster.images`, with :mod:`.png`).
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ import functools
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from .png import _height_range, encode_png, shaded_relief
 
 #: Longest side, in pixels, of the overview map's rasters (bounds the report's size).
 MAX_MAP_PX = 1500
@@ -63,11 +66,18 @@ class MapRaster:
 
     @functools.cached_property
     def images(self) -> MapImages:
-        """The map's shaded relief and its filled pixels' mask as PNG bytes: drawn once, from the map
-        alone (a run draws them while it plans the flights, :func:`pipeline.report.prepare_maps`)."""
-        from .png import map_images
-
-        return map_images(self)
+        """The map's shaded relief (heights coloured between the map's own range) and its filled pixels'
+        mask as PNG bytes: drawn once, from the map alone (a run draws them while it plans the flights,
+        :func:`pipeline.report.prepare_maps`)."""
+        ny, nx = self.dsm.shape
+        xmin, ymin, xmax, ymax = self.bounds
+        height_range = _height_range(self.dsm)
+        pixel_size = ((xmax - xmin) / nx, (ymax - ymin) / ny)
+        relief = shaded_relief(self.dsm, pixel_size=pixel_size, height_range=height_range)
+        filled = None
+        if self.filled is not None and bool(self.filled.any()):
+            filled = encode_png(np.where(self.filled, 255, 0).astype(np.uint8))
+        return MapImages(relief_png=encode_png(relief), filled_png=filled, height_range=height_range)
 
 
 @dataclass(frozen=True)

@@ -6,12 +6,8 @@ import base64
 import math
 import struct
 import zlib
-from typing import TYPE_CHECKING
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from .model import MapImages, MapRaster
 
 #: Elevation ramp of the DSM (fraction of the 2-98 % height range -> RGB), shaded by the hillshade.
 _RAMP = (
@@ -123,17 +119,3 @@ def _height_range(dsm: np.ndarray) -> tuple[float, float]:
         return 0.0, 1.0
     lo, hi = np.percentile(finite, [2, 98])
     return float(lo), float(hi if hi > lo else lo + 1.0)
-
-
-def map_images(view: MapRaster) -> MapImages:
-    """:attr:`MapRaster.images`: the relief between the map's own height range, and the filled pixels' mask."""
-    from .model import MapImages
-
-    ny, nx = view.dsm.shape
-    xmin, ymin, xmax, ymax = view.bounds
-    height_range = _height_range(view.dsm)
-    relief = shaded_relief(view.dsm, pixel_size=((xmax - xmin) / nx, (ymax - ymin) / ny), height_range=height_range)
-    filled = None
-    if view.filled is not None and bool(view.filled.any()):
-        filled = encode_png(np.where(view.filled, 255, 0).astype(np.uint8))
-    return MapImages(relief_png=encode_png(relief), filled_png=filled, height_range=height_range)
