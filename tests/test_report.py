@@ -21,9 +21,11 @@ from pipeline.report import (
     MapRaster,
     ReportInputs,
     encode_png,
+    prepare_maps,
     read_report_inputs,
     render_report,
     shaded_relief,
+    with_route,
     write_report,
 )
 
@@ -289,6 +291,12 @@ def test_report_inputs_from_a_real_run(tmp_path, dask_client):
     assert 0 < len(got.zooms) <= 4
     page = render_report(manifest, manifest["holes"]["largest"], inputs=got)
     assert "<svg class='map'" in page
+    # the run drew its maps while it planned the flights and added the route after: the same page
+    assert got.route, "the demo's missed strip has a re-flight route"
+    prepared = prepare_maps(out)
+    assert prepared is not None and prepared.route == ()
+    assert render_report(manifest, manifest["holes"]["largest"], inputs=with_route(prepared, out)) == page
+    assert (out / "report.html").read_text(encoding="utf-8") == page
 
 
 @pytest.mark.slow
