@@ -32,3 +32,22 @@ def test_shared_statistics_are_read_once_read_only_and_again_when_rewritten(tmp_
     os.utime(path, ns=(1, 1))  # a rewritten file: another modification time
     again = load_shared_cell_statistics(path, names)
     assert again is not first and float(again.zmax[0, 0]) == 2.0
+
+
+def test_the_shared_cells_stay_within_their_byte_budget_least_recently_used_out(tmp_path, monkeypatch):
+    from pipeline.io import intermediate
+
+    names = ("zmax", "count")
+    one_cell = 4 * 5 * (4 + 4)  # the bytes of one small cell's two statistics
+    monkeypatch.setattr(intermediate, "_SHARED", intermediate._SharedCells(budget=3 * one_cell))
+    paths = []
+    for k in range(4):
+        paths.append(tmp_path / f"cell_{k}.npz")
+        save_cell_statistics(paths[-1], _statistics(float(k)))
+    first = [load_shared_cell_statistics(p, names) for p in paths[:3]]
+    assert load_shared_cell_statistics(paths[0], names) is first[0]  # used again: now the most recent
+    load_shared_cell_statistics(paths[3], names)  # over the budget: the least recently used (cell 1) goes
+    assert intermediate._SHARED.total == 3 * one_cell
+    assert load_shared_cell_statistics(paths[0], names) is first[0]
+    assert load_shared_cell_statistics(paths[2], names) is first[2]
+    assert load_shared_cell_statistics(paths[1], names) is not first[1]  # read again
