@@ -185,3 +185,29 @@ def test_label_polygons_keep_islands_of_every_size_as_gdal_gives_them():
     assert len(got[3].interiors) == 4
     for label, polygon in expected.items():
         assert shapely.to_wkb(got[label]) == shapely.to_wkb(polygon)
+
+
+def test_polygonized_pieces_become_the_polygons_their_rings_make_one_by_one(rng):
+    """The batched rings and polygons (label_outlines, label_polygons) are those a ring at a time
+    made: the same coordinates in the same order, holes included (8-connected blobs with gaps)."""
+    import scipy.ndimage as ndi
+    from affine import Affine
+    from rasterio.features import shapes
+
+    from pipeline.holes.outlines import _polygons
+
+    def one_by_one(geojson):
+        rings = [shapely.linearrings(np.asarray(ring, dtype=np.float64)) for ring in geojson["coordinates"]]
+        return shapely.polygons(rings[0], holes=rings[1:] or None)
+
+    blobs = ndi.binary_opening(rng.random((90, 70)) < 0.55) ^ (rng.random((90, 70)) < 0.05)
+    labels, _ = ndi.label(blobs, structure=np.ones((3, 3)))
+    found = list(
+        shapes(labels.astype(np.int32), mask=labels > 0, transform=Affine(0.5, 0, 10, 0, -0.5, 100), connectivity=8)
+    )
+    made = _polygons([geojson for geojson, _ in found])
+    assert len(made) == len(found) > 100
+    assert any(len(geojson["coordinates"]) > 1 for geojson, _ in found)  # some with holes
+    for (geojson, _), polygon in zip(found, made, strict=True):
+        assert shapely.to_wkb(polygon) == shapely.to_wkb(one_by_one(geojson))
+    assert _polygons([]) == []

@@ -91,14 +91,17 @@ def label_outlines(
     # the hole kernels loads no I/O library (tests/test_layering.py)
     from rasterio.features import shapes
 
+    found = list(
+        shapes(
+            labels.astype(np.int32, copy=False),
+            mask=mask,
+            connectivity=connectivity,
+            transform=Affine.translation(col_off, row_off),
+        )
+    )
     pieces: dict[int, list[Polygon]] = {}
-    for geojson, value in shapes(
-        labels.astype(np.int32, copy=False),
-        mask=mask,
-        connectivity=connectivity,
-        transform=Affine.translation(col_off, row_off),
-    ):
-        pieces.setdefault(int(value), []).append(_polygon(geojson))
+    for polygon, (_, value) in zip(_polygons([geojson for geojson, _ in found]), found, strict=True):
+        pieces.setdefault(int(value), []).append(polygon)
     return {label: _clean(polys) for label, polys in sorted(pieces.items())}
 
 
@@ -114,19 +117,29 @@ def label_polygons(labels: np.ndarray, transform: Affine, *, connectivity: int =
 
     pieces: dict[int, list] = {}
     data = np.ascontiguousarray(labels, dtype=np.int32)
-    for geometry, value in shapes(data, mask=data > 0, transform=transform, connectivity=connectivity):
-        pieces.setdefault(int(value), []).append(_polygon(geometry))
+    found = list(shapes(data, mask=data > 0, transform=transform, connectivity=connectivity))
+    for polygon, (_, value) in zip(_polygons([geometry for geometry, _ in found]), found, strict=True):
+        pieces.setdefault(int(value), []).append(polygon)
     return {label: parts[0] if len(parts) == 1 else shapely.union_all(parts) for label, parts in pieces.items()}
 
 
-def _polygon(geojson: dict) -> Polygon:
-    """A GeoJSON polygon of GDAL's polygonize as a shapely Polygon, its rings passed as arrays.
+def _polygons(geojsons: list[dict]) -> list[Polygon]:
+    """GeoJSON polygons of GDAL's polygonize as shapely Polygons: every ring of every polygon made in
+    one call, then every polygon in one more.
 
-    ``shapely.geometry.shape`` hands the rings over as lists of tuples, read vertex by
-    vertex in Python (two thirds of the vertical holes' outlines); the same coordinates.
+    ``shapely.geometry.shape`` hands the rings over as lists of tuples, read vertex by vertex
+    in Python (two thirds of the vertical holes' outlines); a call per ring and per polygon was
+    then most of what remained (9,000 vertical holes: 0.58 s). The same coordinates, in the same order.
     """
-    rings = [shapely.linearrings(np.asarray(ring, dtype=np.float64)) for ring in geojson["coordinates"]]
-    return shapely.polygons(rings[0], holes=rings[1:] or None)
+    if not geojsons:
+        return []
+    rings = [ring for geojson in geojsons for ring in geojson["coordinates"]]
+    sizes = np.fromiter((len(ring) for ring in rings), np.int64, len(rings))
+    coordinates = np.array([point for ring in rings for point in ring], dtype=np.float64)
+    made = shapely.linearrings(coordinates, indices=np.repeat(np.arange(len(rings)), sizes))
+    per_polygon = np.fromiter((len(geojson["coordinates"]) for geojson in geojsons), np.int64, len(geojsons))
+    # each polygon's rings, its shell first: the first ring of an index is the shell, the others its holes
+    return list(shapely.polygons(made, indices=np.repeat(np.arange(len(geojsons)), per_polygon)))
 
 
 def mask_outline(
