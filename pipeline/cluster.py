@@ -186,8 +186,10 @@ def start_fork_server() -> None:
     import multiprocessing.forkserver
     import multiprocessing.resource_tracker
 
-    if threading.current_thread() is threading.main_thread():
-        multiprocessing.get_context(START_METHOD).set_forkserver_preload(["distributed", *SERVER_PRELOAD])
+    context = multiprocessing.get_context(START_METHOD)
+    main = threading.current_thread() is threading.main_thread()
+    if main:
+        context.set_forkserver_preload(["distributed", *SERVER_PRELOAD])
         multiprocessing.resource_tracker.ensure_running()
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
@@ -196,6 +198,8 @@ def start_fork_server() -> None:
         finally:
             signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     _use_fork_server()
+    if main:  # distributed has set its own list: a server started again (one killed) imports the stages too
+        context.set_forkserver_preload(["distributed", *SERVER_PRELOAD])
 
 
 def _use_fork_server() -> None:
