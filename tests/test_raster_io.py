@@ -64,3 +64,27 @@ def test_one_burn_of_summed_bits_gives_each_geometry_s_mask(rng):
     for k, geometry in enumerate(geometries):
         assert np.array_equal((burnt >> k) & 1 == 1, geometry_mask(geometry, transform, shape)), k
     assert burn_sum([], transform, shape).shape == shape
+
+
+def test_a_mosaic_is_written_in_utf8_whatever_the_locale(tmp_path):
+    """A WKT2 holds '°' (pyproj's UTM zones): a process whose locale encodes ASCII only (a batch
+    job under LC_ALL=C without Python's UTF-8 mode) wrote no dsm.vrt at all (UnicodeEncodeError)."""
+    import os
+    import subprocess
+    import sys
+
+    vrt = tmp_path / "dsm.vrt"
+    script = (
+        "import sys, locale\n"
+        "from affine import Affine\n"
+        "from pyproj import CRS\n"
+        "from pipeline.io.raster import write_vrt\n"
+        "assert locale.getpreferredencoding(False).lower() not in ('utf-8', 'utf8'), locale.getpreferredencoding(False)\n"
+        "write_vrt(sys.argv[1], [], width=4, height=3, transform=Affine(1, 0, 500000, 0, -1, 5000003),"
+        " crs_wkt=CRS.from_epsg(32631).to_wkt())\n"
+    )
+    env = {**os.environ, "LC_ALL": "C", "PYTHONCOERCECLOCALE": "0", "PYTHONUTF8": "0"}
+    subprocess.run([sys.executable, "-c", script, str(vrt)], check=True, env=env, timeout=120)
+    assert "°" in vrt.read_text(encoding="utf-8")
+    with rasterio.open(vrt) as dataset:
+        assert dataset.crs.to_epsg() == 32631

@@ -151,6 +151,6 @@ def _benchmark_fills(paths: tuple[str, ...], config: Config, options: dict[str, 
         on_survey=progress,
     )
     table = format_table(benchmark)
-    (Path(out_dir) / "fill_eval.txt").write_text(table + "\n")
+    (Path(out_dir) / "fill_eval.txt").write_text(table + "\n", encoding="utf-8")
     click.echo(table)
     note(f"fill benchmark: {benchmark.seconds:.0f} s -> {Path(out_dir) / 'fill_eval.json'}")

@@ -87,7 +87,7 @@ def load_user_pipeline(path: str | os.PathLike, *, streaming: bool = True) -> Us
     import_pdal(f"read.pdal_pipeline = {str(path)!r}")
     where = f"{path} (read.pdal_pipeline)"
     try:
-        data = json.loads(Path(path).read_text())
+        data = json.loads(Path(path).read_text(encoding="utf-8"))  # JSON is UTF-8 (RFC 8259), whatever the locale
     except OSError as e:
         raise ConfigError(f"{where}: cannot be read: {e.strerror or e}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:

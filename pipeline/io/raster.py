@@ -169,7 +169,7 @@ def write_vrt(
     lines += ["  </VRTRasterBand>", "</VRTDataset>", ""]
     tmp = path.with_name(f".{path.name}.tmp")
     try:
-        tmp.write_text("\n".join(lines))
+        tmp.write_text("\n".join(lines), encoding="utf-8")  # XML's own default, whatever the locale ('°' in a WKT2)
         os.replace(tmp, path)
     except OSError as e:
         raise OutputError(f"{path}: cannot write VRT: {e}") from None
