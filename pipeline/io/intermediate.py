@@ -111,27 +111,27 @@ class _SharedCells:
 
     def __init__(self, budget: int) -> None:
         self.budget = budget
-        self.kept: collections.OrderedDict[tuple, PixelStatistics] = collections.OrderedDict()
-        self.sizes: dict[tuple, int] = {}
+        self.kept: collections.OrderedDict[tuple, tuple[PixelStatistics, int]] = collections.OrderedDict()  # and bytes
         self.total = 0
         self.lock = threading.Lock()  # a threaded cluster's tasks share the process
 
     def get(self, key: tuple) -> PixelStatistics | None:
         with self.lock:
             found = self.kept.get(key)
-            if found is not None:
-                self.kept.move_to_end(key)
-            return found
+            if found is None:
+                return None
+            self.kept.move_to_end(key)
+            return found[0]
 
     def put(self, key: tuple, statistics: PixelStatistics, size: int) -> None:
         with self.lock:
             if key in self.kept:
                 return
-            self.kept[key], self.sizes[key] = statistics, size
+            self.kept[key] = (statistics, size)
             self.total += size
             while self.total > self.budget and len(self.kept) > 1:
-                old, _ = self.kept.popitem(last=False)
-                self.total -= self.sizes.pop(old)
+                _, (_, freed) = self.kept.popitem(last=False)
+                self.total -= freed
 
 
 _SHARED = _SharedCells(SHARED_CELL_BYTES)

@@ -53,10 +53,7 @@ def read_report_inputs(
     if not (folder / "dsm.vrt").exists():
         return None
     overview = _read_view(folder, None, max_px)
-    pixel = max(
-        (overview.bounds[2] - overview.bounds[0]) / overview.dsm.shape[1],
-        (overview.bounds[3] - overview.bounds[1]) / overview.dsm.shape[0],
-    )
+    pixel = _map_pixel(overview)
     holes = _read_holes(folder / "holes.gpkg", pixel)
     survey = (overview.bounds[2] - overview.bounds[0], overview.bounds[3] - overview.bounds[1])
     zoom_views: list[tuple[int, MapRaster]] = []
@@ -91,12 +88,16 @@ def prepare_maps(folder: str | os.PathLike) -> ReportInputs | None:
 
 def with_route(inputs: ReportInputs, folder: str | os.PathLike) -> ReportInputs:
     """``inputs`` with the re-flight route of ``folder``'s ``flightplan.gpkg`` (none where it holds none)."""
-    overview = inputs.overview
-    pixel = max(
-        (overview.bounds[2] - overview.bounds[0]) / overview.dsm.shape[1],
-        (overview.bounds[3] - overview.bounds[1]) / overview.dsm.shape[0],
-    )
+    pixel = _map_pixel(inputs.overview)
     return dataclasses.replace(inputs, route=_read_lines(Path(folder) / "flightplan.gpkg", "route", pixel))
+
+
+def _map_pixel(view: MapRaster) -> float:
+    """The larger side of a map's pixel, in survey units: how finely outlines and lines are kept."""
+    return max(
+        (view.bounds[2] - view.bounds[0]) / view.dsm.shape[1],
+        (view.bounds[3] - view.bounds[1]) / view.dsm.shape[0],
+    )
 
 
 def _zoom_bounds(hole: Bounds, limit: Bounds) -> Bounds:

@@ -357,7 +357,7 @@ def _swath_masks(sight: SightInputs, grid: Grid, window: PixelWindow) -> SwathMa
     for first in range(0, len(sight.swaths), _LINES_PER_BURN):
         group = sight.swaths[first : first + _LINES_PER_BURN]
         shapes = [(shapely.from_wkb(swath), 1 << k) for k, swath in enumerate(group)]
-        burnt = burn_sum([(g, v) for g, v in shapes if not g.is_empty], transform, window.shape)
+        burnt = burn_sum([shape for shape in shapes if not shape[0].is_empty], transform, window.shape)
         for k in range(len(group)):
             masks[first + k] = (burnt >> k) & 1
     return SwathMasks(masks, window)
