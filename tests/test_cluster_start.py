@@ -145,3 +145,48 @@ def test_the_fork_server_environment_is_restored():
         assert os.environ["HOLEFILL_TEST_SET"] == "before"
     finally:
         os.environ.pop("HOLEFILL_TEST_SET", None)
+
+
+#: Run in a fresh interpreter: what the client imported to start the cluster, and the settings its workers run with.
+LIGHT_START_PROBE = """
+import json, sys
+
+def tick():
+    import dask
+    return dask.config.get("distributed.admin.tick.interval")
+
+def main():
+    from pipeline.cluster import LOCAL_CLUSTER_CONFIG, ClusterStart
+    from pipeline.config import load_config
+
+    start = ClusterStart.begin(load_config(None, ["dask.workers=1"]))
+    client = start.client()
+    found = {"pandas": "pandas" in sys.modules, "ticks": sorted(client.run(tick).values())}
+    start.close()
+    print(json.dumps(found))
+
+if __name__ == "__main__":
+    main()
+"""
+
+
+def test_the_client_starts_the_cluster_without_pandas_and_its_workers_tick_slowly(tmp_path):
+    """distributed's own fork-server preload list imported pandas into the client (0.3 s of its
+    start) only to name it to a server already running ours; the workers run with the local
+    cluster's settings (an event-loop check every second, not every 20 ms)."""
+    from pipeline.cluster import LOCAL_CLUSTER_CONFIG
+
+    probe = tmp_path / "probe.py"
+    probe.write_text(LIGHT_START_PROBE)
+    done = subprocess.run([sys.executable, str(probe)], capture_output=True, text=True, timeout=120, check=True)
+    found = json.loads(done.stdout.strip().splitlines()[-1])
+    assert found["pandas"] is False
+    assert found["ticks"] == [LOCAL_CLUSTER_CONFIG["distributed.admin.tick.interval"]]
+
+
+def test_the_run_module_leaves_scipy_optimize_to_the_fills_that_need_it():
+    """scipy.optimize (with linprog and HiGHS) was imported by every process importing the fill, at
+    its start; only a river's levels (least squares) and the linear fill (scipy.interpolate) use it."""
+    code = "import sys, pipeline.run; print(sorted(m for m in ('scipy.optimize', 'scipy.interpolate') if m in sys.modules))"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert done.stdout.strip().splitlines()[-1] == "[]"

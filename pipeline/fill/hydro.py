@@ -45,7 +45,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.ndimage as ndi
-from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
@@ -497,6 +496,10 @@ def _capped_fit(
     upper = np.concatenate([[np.inf], gaps + 1e-12])
     # the residuals are linear in the unknowns: their Jacobian is one constant matrix
     jacobian = np.vstack([root[:, None] * design, bends])
+    # imported here, where a river is fitted: scipy.optimize brings linprog and HiGHS with it (0.6 s),
+    # which every process importing the fill (the client, each worker) paid at its start
+    from scipy.optimize import least_squares
+
     found = least_squares(
         lambda x: np.concatenate([root * (design @ x - levels), bends @ x]),
         np.clip(start, lower, upper),

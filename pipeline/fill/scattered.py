@@ -29,7 +29,6 @@ from collections.abc import Callable
 
 import numpy as np
 from scipy import linalg
-from scipy.interpolate import LinearNDInterpolator
 from scipy.spatial import Delaunay, cKDTree
 from scipy.special import exp1
 
@@ -150,6 +149,10 @@ def fill_linear(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[C
 
 
 def _linear(points: np.ndarray, z: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    # imported where a hole is filled linearly: scipy.interpolate brings scipy.optimize with it, which
+    # every process importing the fill (the client, each worker) paid at its start
+    from scipy.interpolate import LinearNDInterpolator
+
     return LinearNDInterpolator(Delaunay(points), z)(queries)
 
 
