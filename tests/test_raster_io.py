@@ -7,7 +7,7 @@ import rasterio
 from affine import Affine
 from rasterio.crs import CRS
 
-from pipeline.io.raster import write_cog
+from pipeline.io.raster import read_view, write_cog
 
 
 def _write(tmp_path, array, **kwargs):
@@ -33,6 +33,22 @@ def test_heights_and_their_averaged_overviews(tmp_path, rng):
         expected = np.nanmean(blocks, axis=(1, 3))  # nodata left out of the average
     assert np.array_equal(coarse.mask, np.isnan(expected))
     assert np.allclose(coarse.filled(np.nan), expected, atol=1e-5, equal_nan=True)
+
+
+def test_a_map_larger_than_its_limit_is_read_from_an_overview_level(tmp_path, rng):
+    """200 x 136 pixels for at most 150: reduced 2 times (not 1.33), which is the first overview's
+    pixels as written, not GDAL's average of the full pixels."""
+    heights = rng.normal(10, 3, (200, 136)).astype(np.float32)
+    heights[rng.random(heights.shape) < 0.1] = np.nan
+    path = _write(tmp_path, heights)
+    view, bounds = read_view(path, None, 150)
+    with rasterio.open(path, overview_level=0) as half:
+        overview = half.read(1, masked=True).filled(np.nan)
+    assert view.shape == (100, 68)
+    assert np.array_equal(view, overview, equal_nan=True)
+    assert bounds == (0.0, 0.0, 136.0, 200.0)
+    small, _ = read_view(path, None, 400)  # within the limit: every pixel
+    assert np.array_equal(small, heights, equal_nan=True)
 
 
 def test_codes_keep_codes_in_their_overviews(tmp_path, rng):

@@ -230,7 +230,8 @@ def write_dsm(folder: Path, width: int, height: int, *, resolution: float = 1.0)
 def test_report_inputs_are_bounded_whatever_the_survey_size(tmp_path):
     write_dsm(tmp_path, 6000, 2400)
     got = read_report_inputs(tmp_path, max_px=800)
-    assert got is not None and got.overview.dsm.shape == (320, 800)
+    # 6000 pixels at most 800: reduced 8 times (an overview level's factor, not 7.5)
+    assert got is not None and got.overview.dsm.shape == (300, 750)
     assert got.overview.bounds == pytest.approx((500_000.0, 4_997_600.0, 506_000.0, 5_000_000.0))
     assert np.isnan(got.overview.dsm).any() and np.isfinite(got.overview.dsm).mean() > 0.9
     assert got.holes == () and got.route == () and got.zooms == ()
