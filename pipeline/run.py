@@ -42,7 +42,7 @@ from .plan import SurveyPlan, needs_density, plan_survey, plan_with_footprint
 from .progress import ProgressBars as _Progress
 from .progress import StageTimer as _StageTimer
 from .report import ReportInputs, prepare_maps, with_route, write_report
-from .stages.bin_tiles import BIN_TILES
+from .stages.bin_tiles import BIN_TILES, TileResult
 from .stages.registry import STAGES, RunResults, run_results
 from .stages.stage import Dependency, RunState, Stage
 from .staging import PARTIAL_PREFIX, Staging, disk_full, input_fingerprint, run_and_keep
@@ -156,7 +156,7 @@ def _run_and_publish(
     *,
     progress: bool,
     keep_work: bool,
-    settle: Callable[[RunState], RunState] | None = None,
+    settle: Callable[..., RunState] | None = None,
 ) -> RunSummary:
     """Every stage on the workers, then, the workers stopped (their memory freed), the products.
 
@@ -194,19 +194,37 @@ class _PlanAgain(Exception):
         self.plan, self.footprint = plan, footprint
 
 
-def settle_density(state: RunState, *, aoi: str | os.PathLike | None, budget: MemoryBudget | None = None) -> RunState:
+def count_footprint(plan: SurveyPlan, results: list[Any]) -> FootprintDensity | None:
+    """The density stage 1 counted on the data footprint, from its read tasks' block counts
+    (:mod:`pipeline.survey.footprint_density`); None where the plan needs none.
+
+    Added up block by block, so the same whatever the order or the split of the tasks.
+    """
+    if not plan.density_pending:
+        return None
+    parts = [r.pulse_blocks for r in results if isinstance(r, TileResult) and r.pulse_blocks is not None]
+    return footprint_from_counts(plan.survey, parts, time.perf_counter(), how="counted in stage 1")
+
+
+def settle_density(
+    state: RunState,
+    *,
+    aoi: str | os.PathLike | None,
+    budget: MemoryBudget | None = None,
+    footprint: FootprintDensity | None = None,
+) -> RunState:
     """After stage 1 of a plan sized by the headers' density: the density stage 1 counted on the
-    data footprint (the pre-pass's blocks, :mod:`pipeline.survey.footprint_density`), and the
+    data footprint (``footprint``, else :func:`count_footprint` of the gathered tiles), and the
     plan it gives. The same pixel and cell sizes: the run goes on with the settled plan (its hole
     parameters and local densities from the footprint); others: :class:`_PlanAgain`.
     """
     plan = state.plan
     if not plan.density_pending:
         return state
-    started = time.perf_counter()
     decoded = state[BIN_TILES]
-    parts = [t.pulse_blocks for t in decoded.tiles if t.pulse_blocks is not None]
-    footprint = footprint_from_counts(plan.survey, parts, started, how="counted in stage 1")
+    if footprint is None:
+        footprint = count_footprint(plan, list(decoded.tiles))
+    assert footprint is not None
     settled = plan_with_footprint(plan, footprint, state.config, aoi=aoi)
     if settled.grid != plan.grid:
         if budget is not None:
@@ -262,7 +280,7 @@ def _publish(
 
 
 def _run_stages(
-    runner: _Runner, state: RunState, timer: _StageTimer, *, settle: Callable[[RunState], RunState] | None = None
+    runner: _Runner, state: RunState, timer: _StageTimer, *, settle: Callable[..., RunState] | None = None
 ) -> RunState:
     """Walk the stages (:data:`pipeline.stages.registry.STAGES`) in order; returns the run state they gathered.
 
@@ -278,9 +296,14 @@ def _run_stages(
         decoding = any(stage is BIN_TILES for stage, _ in batch)
         if decoding:
             _import_for_products(state.config)
-        state = _gather_batch(runner, state, batch, timer)
+        # the footprint is counted as soon as stage 1's tiles are in, while the workers merge
+        # and write the last cells (0.3-0.5 s of the client's, which came after them)
+        counted: list[FootprintDensity | None] = []
+        plan = state.plan
+        when_gathered = {BIN_TILES.name: lambda results: counted.append(count_footprint(plan, results))}
+        state = _gather_batch(runner, state, batch, timer, when_gathered if settle is not None else {})
         if settle is not None and decoding:
-            state = settle(state)
+            state = settle(state, footprint=counted[0] if counted else None)
         return state
 
     batch: list[tuple[Stage, list[Any]]] = []
@@ -355,13 +378,19 @@ def _submit_stage(runner: _Runner, stage: Stage, state: RunState, submitted: dic
 
 
 def _gather_batch(
-    runner: _Runner, state: RunState, batch: list[tuple[Stage, list[Any]]], timer: _StageTimer
+    runner: _Runner,
+    state: RunState,
+    batch: list[tuple[Stage, list[Any]]],
+    timer: _StageTimer,
+    when_gathered: dict[str, Callable[[list[Any]], None]] | None = None,
 ) -> RunState:
     """Gather the stages submitted together in one loop (one progress bar each), then each stage's gather step.
 
-    A stage that streams into the next takes its lap as its last result arrives; the
-    batch's last stage, after the gather steps.
+    A stage that streams into the next takes its lap as its last result arrives, and
+    ``when_gathered[stage name]`` sees its results then, while the next stage's tasks run;
+    the batch's last stage takes its lap after the gather steps.
     """
+    when_gathered = when_gathered or {}
     bars = [runner.bar.add(stage.bar, total=len(futures)) for stage, futures in batch]
     found: list[list[Any]] = [[] for _ in batch]
     owner = [k for k, (_, futures) in enumerate(batch) for _ in futures]
@@ -372,8 +401,11 @@ def _gather_batch(
         points = stage.on_result(result) if stage.on_result is not None else 0
         found[k].append(result)
         runner.bar.advance(bars[k], points=points)
-        if stage.streams and stage.lap and len(found[k]) == len(futures):
-            timer.lap(stage.lap)
+        if len(found[k]) == len(futures):
+            if stage.streams and stage.lap:
+                timer.lap(stage.lap)
+            if stage.name in when_gathered:
+                when_gathered[stage.name](found[k])
 
     runner.gather_indexed([future for _, futures in batch for future in futures], collect)
     for (stage, _), results in zip(batch, found):

@@ -185,3 +185,36 @@ def test_unforeseen_worker_error_is_one_line_naming_the_task(dask_client):
     with pytest.raises(TaskError) as caught:
         runner.gather([future], lambda result: None)
     assert str(caught.value) == "cell 500_1000 (find holes): ZeroDivisionError: division by zero"
+
+
+def _quick(x):
+    return x
+
+
+def _slow(x, *after):
+    import time
+
+    time.sleep(0.5)
+    return x
+
+
+def test_a_streaming_stage_s_results_are_seen_while_the_next_stage_runs(dask_client):
+    """Stage 1's footprint is counted as soon as its tiles are in, while the workers merge the
+    last cells: ``when_gathered`` sees a streaming stage's results before the batch is done."""
+    from pipeline.run import _gather_batch, _Progress, _Runner, _StageTimer
+    from pipeline.stages.stage import RunState, Stage
+
+    first = Stage(name="first", worker=_quick, gather=lambda state, results: sorted(results), streams=True)
+    second = Stage(name="second", worker=_slow, gather=lambda state, results: sorted(results))
+    runner = _Runner(dask_client, _Progress(False))
+    quick = [runner.submit(_quick, i, label=f"q{i}", key=f"quick-{i}") for i in range(4)]
+    slow = [runner.submit(_slow, i, quick[i], label=f"s{i}", key=f"slow-{i}") for i in range(4)]
+    seen = []
+
+    def when_first_done(results):
+        seen.append((sorted(results), sum(f.done() for f in slow)))
+
+    state = RunState(plan=None, config=load_config(None), staging=None)
+    state = _gather_batch(runner, state, [(first, quick), (second, slow)], _StageTimer(0.0), {"first": when_first_done})
+    assert seen == [([0, 1, 2, 3], seen[0][1])] and seen[0][1] < 4  # before the second stage was done
+    assert state[second] == [0, 1, 2, 3]
