@@ -39,3 +39,21 @@ def test_round_blobs_have_no_direction_and_axial_mean_wraps():
         [179.0, 1.0], [1.0, 1.0]
     ) == pytest.approx(180.0, abs=1e-9)
     assert axial_mean([10.0, 30.0], [1.0, 3.0]) == pytest.approx(25.0, abs=0.5)
+
+
+@pytest.mark.parametrize("largest", [11, 65_534, 5_000_000])
+def test_moments_are_the_same_whether_the_lines_are_counted_or_sorted(rng, largest):
+    """Point source ids are counted into their lines (no sort); ids too large to count are sorted."""
+    ids = rng.choice(np.array([0, 3, largest]), size=(40, 30))
+    ids[rng.random(ids.shape) < 0.2] = -1
+    got = line_moments(ids, row_off=7, col_off=-3)
+    rows, cols = np.nonzero(ids >= 0)
+    assert list(got["line"]) == sorted(set(ids[rows, cols].tolist()))
+    for m in got:
+        mine = ids == m["line"]
+        r, c = np.nonzero(mine)
+        r, c = r + 7.0, c - 3.0
+        assert m["n"] == mine.sum()
+        assert np.allclose(
+            [m["r"], m["c"], m["rr"], m["cc"], m["rc"]], [r.sum(), c.sum(), (r * r).sum(), (c * c).sum(), (r * c).sum()]
+        )

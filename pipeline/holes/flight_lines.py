@@ -33,12 +33,23 @@ def line_moments(line_ids: np.ndarray, *, row_off: int, col_off: int) -> np.ndar
     lines = line_ids[rows, cols].astype(np.int64)
     r = rows.astype(np.float64) + row_off
     c = cols.astype(np.float64) + col_off
-    unique, index = np.unique(lines, return_inverse=True)
+    unique, index = _small_ids(lines)
     out = np.zeros(len(unique), LINE_MOMENT_DTYPE)
     out["line"] = unique
     for name, values in (("n", np.ones_like(r)), ("r", r), ("c", c), ("rr", r * r), ("cc", c * c), ("rc", r * c)):
         out[name] = np.bincount(index, weights=values, minlength=len(unique))
     return out
+
+
+def _small_ids(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(ids, return_inverse=True)`` of non-negative ids: counted, not sorted, where they are
+    small (point source ids are 16-bit: a cell's 62,500 pixels in 0.5 ms, not 3 ms)."""
+    if len(ids) == 0 or int(ids.max()) >= 1 << 20:
+        return np.unique(ids, return_inverse=True)
+    unique = np.flatnonzero(np.bincount(ids))
+    position = np.zeros(int(unique[-1]) + 1, np.int64)
+    position[unique] = np.arange(len(unique))
+    return unique, position[ids]
 
 
 def merge_line_moments(parts: list[np.ndarray]) -> np.ndarray:
