@@ -381,3 +381,17 @@ def test_the_low_side_of_a_step_but_the_whole_rim_of_a_slope(seed):
     foot[20, 14] = True
     support = lower_side_support(np.where(foot, np.nan, band), foot, jump_threshold=2.5)
     assert not support[20, 13] and support[20, 15] and support[19, 14] and support[21, 14]
+
+
+def test_linear_quantiles_are_numpy_s_value_for_value(rng):
+    """The rim levels take numpy's quantiles without its per-call set-up: the same doubles, ties and ends included."""
+    from pipeline.fill._problem import linear_quantiles
+
+    for _ in range(2000):
+        values = rng.normal(0, 10, int(rng.integers(1, 40)))
+        if rng.random() < 0.3:
+            values = np.round(values)  # ties
+        quantiles = (0.0, 0.1, 0.5, 0.9, 1.0, float(rng.random()))
+        assert linear_quantiles(values, quantiles) == list(np.quantile(values, quantiles))
+        percentile = float(rng.integers(0, 101))
+        assert linear_quantiles(values, (percentile / 100,)) == [np.percentile(values, percentile)]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.ndimage as ndi
 
-from ._problem import CROSS, fit_plane
+from ._problem import CROSS, fit_plane, linear_quantiles
 
 __all__ = ["clamp_to_rim", "lower_side_support", "rim_level"]
 
@@ -90,7 +90,7 @@ def lower_side_support(
     low = np.full(n + 1, np.nan)
     bounds = np.searchsorted(pl, np.arange(n + 2))
     for k in np.unique(pl):
-        low[k] = np.quantile(z[bounds[k] : bounds[k + 1]], quantile)
+        (low[k],) = linear_quantiles(z[bounds[k] : bounds[k + 1]], (quantile,))
     keep = z <= low[pl] + jump_threshold
     stepped = np.unique(pl[~keep])
     boxes = ndi.find_objects(lab) if len(stepped) else []
@@ -131,7 +131,7 @@ def _slope_not_step(
     z = heights.ravel()[rim]
     if len(z) < 4:
         return False
-    low, high = np.quantile(z, (0.1, 0.9))
+    low, high = linear_quantiles(z, (0.1, 0.9))
     rim_range = float(high - low)
     r0, r1 = max(box[0].start - SLOPE_CHECK_PX, 0), min(box[0].stop + SLOPE_CHECK_PX, h)
     c0, c1 = max(box[1].start - SLOPE_CHECK_PX, 0), min(box[1].stop + SLOPE_CHECK_PX, w)
@@ -176,7 +176,7 @@ def rim_level(
     z = heights.ravel()[pi]
     bounds = np.searchsorted(pl, np.arange(n + 2))
     for k in np.unique(pl):
-        levels[k] = np.percentile(z[bounds[k] : bounds[k + 1]], percentile)
+        (levels[k],) = linear_quantiles(z[bounds[k] : bounds[k + 1]], (percentile / 100,))
     return levels
 
 
