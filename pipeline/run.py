@@ -345,15 +345,21 @@ def _import_for_products(config: Config) -> None:
     """Import what only the client's last steps need, while the workers decode stage 1.
 
     The GeoPackage writer (pyogrio, which imports pandas and geopandas: 0.5-0.7 s) and, where
-    flights are planned, the planner (0.5 s). Imported at the start they held back the first
-    tasks (the client's imports were the start's longest path); imported where they are used
-    they lengthened the run's tail, when the workers are done. The client's main thread only
-    waits for results meanwhile.
+    flights are planned, the planner (0.5 s) and numba's code generator, which the planner's
+    kernels (lines of sight, the take-off search) are the client's first to need (0.3-0.5 s
+    at the first kernel, as in :mod:`pipeline.worker_start`). Imported at the start they held
+    back the first tasks (the client's imports were the start's longest path); imported where
+    they are used they lengthened the run's tail, when the workers are done. The client's main
+    thread only waits for results meanwhile.
     """
     import pyogrio  # noqa: F401
 
     if config.holes.enabled and config.flightplan.enabled:
+        from numba.core.registry import cpu_target
+
         from . import flight_planning  # noqa: F401
+
+        cpu_target.target_context.refresh()
 
 
 def _submit_stage(runner: _Runner, stage: Stage, state: RunState, submitted: dict[Dependency, Any]) -> list[Any]:
