@@ -12,7 +12,9 @@ and the batch script passes its own TERM on). The rule:
   clean-up short (a stale ``OUT/.holefill.lock`` was left by one ``scancel`` in three);
 - a TERM whose ``KeyboardInterrupt`` was swallowed (raised inside a garbage-collection
   callback, where Python only prints it) is raised again, every
-  :data:`RERAISE_AFTER_S` seconds, until the run answers it (:func:`acknowledge`).
+  :data:`RERAISE_AFTER_S` seconds, until the run answers it (:func:`acknowledge`); Python's
+  print of the swallowed one ("Exception ignored in ...", a traceback) is left out
+  (:func:`_unraisable`): the user gets the run's one line.
 
 The state is per process (a signal handler's is), kept in :data:`STATE`.
 """
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import threading
 from dataclasses import dataclass
 from typing import Any
@@ -72,7 +75,28 @@ def _reraise_until_answered(epoch: int) -> None:
 def install() -> Any:
     """Make SIGTERM stop the run (main thread only); returns the handler it replaces."""
     STATE.reset()
+    if sys.unraisablehook is not _unraisable:
+        global _previous_unraisable
+        _previous_unraisable = sys.unraisablehook
+        sys.unraisablehook = _unraisable
     return signal.signal(signal.SIGTERM, on_terminate)
+
+
+_previous_unraisable = sys.unraisablehook
+
+
+def _unraisable(unraisable: Any) -> None:
+    """Python's report of an exception it cannot raise, less a TERM's: that one is raised again.
+
+    A TERM's ``KeyboardInterrupt`` raised inside a callback Python runs between bytecodes (a
+    garbage-collection callback, distributed's among them) cannot leave it; Python prints it
+    with a traceback and goes on, and the watchdog raises it again where the run answers it.
+    Frequent while the client imports (allocations run the collector): one ``scancel`` in a
+    few dozen printed a traceback above the run's one line.
+    """
+    if STATE.requested and unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
+        return
+    _previous_unraisable(unraisable)
 
 
 def acknowledge() -> None:

@@ -53,3 +53,44 @@ def test_a_pending_term_stops_the_run_at_the_commit(handler):
     with pytest.raises(KeyboardInterrupt):
         interrupt.begin_commit()
     interrupt.acknowledge()
+
+
+def test_a_term_swallowed_by_a_gc_callback_prints_no_traceback(handler):
+    """Python reports an exception a garbage-collection callback raises ("Exception ignored in",
+    a traceback); a TERM's is raised again by the watchdog, so it is not reported. Others still are."""
+    import gc
+    import sys
+
+    pytest_hook = sys.unraisablehook  # pytest sets its own around each test's call
+    interrupt.install()
+    reported = []
+    interrupt._previous_unraisable = reported.append  # where a report goes on (Python's printer)
+
+    def raising(phase, info):
+        if phase == "start":
+            term()
+
+    def failing(phase, info):
+        if phase == "start":
+            raise ValueError("a callback's own failure")
+
+    try:
+        gc.callbacks.append(raising)
+        try:
+            gc.collect()
+        finally:
+            gc.callbacks.remove(raising)
+        assert reported == []
+        with pytest.raises(KeyboardInterrupt):  # raised again where the run can answer it
+            deadline = time.monotonic() + 5 * interrupt.RERAISE_AFTER_S
+            while time.monotonic() < deadline:
+                time.sleep(0.05)
+        interrupt.acknowledge()
+        gc.callbacks.append(failing)
+        try:
+            gc.collect()
+        finally:
+            gc.callbacks.remove(failing)
+        assert [r.exc_type for r in reported] == [ValueError]
+    finally:
+        sys.unraisablehook = interrupt._previous_unraisable = pytest_hook
