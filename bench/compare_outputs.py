@@ -5,10 +5,11 @@ default settings (plus the CRS a file lacks) on the demo survey and on every fil
 ../shared/data, one output folder each; ``compare`` then checks, for two snapshots
 taken before and after a change:
 
-- every DSM raster (``dsm/*.tif``) is byte-identical (and, if not, by how much the
-  pixel values differ);
-- every layer of ``holes.gpkg`` has the same features with the same values in every
-  column it had before (columns added since are reported by name, not compared).
+- every raster tile (``dsm/*.tif``, and the fill's ``fill_mask/*.tif``,
+  ``fill_distance/*.tif``, ``dsm_unfilled/*.tif`` where a run writes them) is byte-identical
+  (and, if not, by how much the pixel values differ);
+- every layer of ``holes.gpkg`` and ``flightplan.gpkg`` has the same features with the same
+  values in every column it had before (columns added since are reported by name, not compared).
 
 The comparison is of a restructure, so take both snapshots with the same settings
 (``--set fill.enabled=false`` compares the unfilled DSM).
@@ -82,51 +83,65 @@ def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+#: The raster products whose tiles are compared (a folder of tiles each, where a run writes it).
+RASTER_PRODUCTS = ("dsm", "fill_mask", "fill_distance", "dsm_unfilled")
+#: The GeoPackages whose layers are compared.
+GEOPACKAGES = ("holes.gpkg", "flightplan.gpkg")
+
+
 def compare_rasters(before: Path, after: Path) -> list[str]:
+    return [problem for product in RASTER_PRODUCTS for problem in _compare_tiles(before, after, product)]
+
+
+def _compare_tiles(before: Path, after: Path, product: str) -> list[str]:
     import numpy as np
     import rasterio
 
     problems = []
-    names_before = sorted(p.name for p in (before / "dsm").glob("*.tif")) if (before / "dsm").is_dir() else []
-    names_after = sorted(p.name for p in (after / "dsm").glob("*.tif")) if (after / "dsm").is_dir() else []
+    names_before = sorted(p.name for p in (before / product).glob("*.tif")) if (before / product).is_dir() else []
+    names_after = sorted(p.name for p in (after / product).glob("*.tif")) if (after / product).is_dir() else []
     if names_before != names_after:
-        return [f"DSM tiles differ: {len(names_before)} before, {len(names_after)} after"]
+        return [f"{product} tiles differ: {len(names_before)} before, {len(names_after)} after"]
     for name in names_before:
-        a, b = before / "dsm" / name, after / "dsm" / name
+        a, b = before / product / name, after / product / name
         if _digest(a) == _digest(b):
             continue
         with rasterio.open(a) as ra, rasterio.open(b) as rb:
             va, vb = ra.read(1, masked=True), rb.read(1, masked=True)
         if va.shape != vb.shape or (va.mask != vb.mask).any():
-            problems.append(f"dsm/{name}: shape or nodata differs")
+            problems.append(f"{product}/{name}: shape or nodata differs")
             continue
         diff = np.abs(va.filled(0).astype(np.float64) - vb.filled(0))
-        problems.append(f"dsm/{name}: bytes differ (max pixel difference {diff.max():.6g})")
+        problems.append(f"{product}/{name}: bytes differ (max pixel difference {diff.max():.6g})")
     return problems
 
 
 def compare_layers(before: Path, after: Path) -> list[str]:
+    return [problem for gpkg in GEOPACKAGES for problem in _compare_gpkg(before, after, gpkg)]
+
+
+def _compare_gpkg(before: Path, after: Path, gpkg: str) -> list[str]:
     import pyogrio
 
-    a, b = before / "holes.gpkg", after / "holes.gpkg"
+    a, b = before / gpkg, after / gpkg
     if not a.exists() and not b.exists():
         return []
     if a.exists() != b.exists():
-        return ["holes.gpkg exists on one side only"]
+        return [f"{gpkg} exists on one side only"]
     layers_a = [name for name, _ in pyogrio.list_layers(a)]
     layers_b = [name for name, _ in pyogrio.list_layers(b)]
     if sorted(layers_a) != sorted(layers_b):
-        return [f"holes.gpkg layers differ: {layers_a} against {layers_b}"]
+        return [f"{gpkg} layers differ: {layers_a} against {layers_b}"]
     problems = []
     for layer in layers_a:
         fa = pyogrio.read_dataframe(a, layer=layer)
         fb = pyogrio.read_dataframe(b, layer=layer)
         missing = [c for c in fa.columns if c not in fb.columns]
         if missing:
-            problems.append(f"holes.gpkg/{layer}: columns gone: {missing}")
+            problems.append(f"{gpkg}/{layer}: columns gone: {missing}")
             continue
         if len(fa) != len(fb):
-            problems.append(f"holes.gpkg/{layer}: {len(fa)} features before, {len(fb)} after")
+            problems.append(f"{gpkg}/{layer}: {len(fa)} features before, {len(fb)} after")
             continue
         for column in fa.columns:
             if column == "geometry":
@@ -134,13 +149,13 @@ def compare_layers(before: Path, after: Path) -> list[str]:
                     fa.geometry.isna() & fb.geometry.isna()
                 )
                 if not same.all():
-                    problems.append(f"holes.gpkg/{layer}: {int((~same).sum())} geometries differ")
+                    problems.append(f"{gpkg}/{layer}: {int((~same).sum())} geometries differ")
                 continue
             for i, (x, y) in enumerate(zip(fa[column].tolist(), fb[column].tolist())):
                 if column == "path":  # inputs generated inside each snapshot: compare their names
                     x, y = Path(x).name, Path(y).name
                 if not _same_value(x, y):
-                    problems.append(f"holes.gpkg/{layer}: row {i} column {column}: {x!r} against {y!r}")
+                    problems.append(f"{gpkg}/{layer}: row {i} column {column}: {x!r} against {y!r}")
                     break
     return problems
 
