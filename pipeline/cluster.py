@@ -202,9 +202,8 @@ def start_fork_server() -> None:
     import multiprocessing.resource_tracker
 
     context = multiprocessing.get_context(START_METHOD)
-    main = threading.current_thread() is threading.main_thread()
-    if main:
-        context.set_forkserver_preload(["distributed", *SERVER_PRELOAD])
+    context.set_forkserver_preload(["distributed", *SERVER_PRELOAD])  # also for a server the first worker starts
+    if threading.current_thread() is threading.main_thread():
         multiprocessing.resource_tracker.ensure_running()
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
@@ -213,8 +212,8 @@ def start_fork_server() -> None:
         finally:
             signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     _use_fork_server()
-    if main:  # whatever distributed set: a server started again (one killed) imports the stages too
-        context.set_forkserver_preload(["distributed", *SERVER_PRELOAD])
+    # whatever distributed set: a server started again (one killed) imports the stages too
+    context.set_forkserver_preload(["distributed", *SERVER_PRELOAD])
 
 
 def _use_fork_server() -> None:

@@ -72,6 +72,10 @@ def _reraise_until_answered(epoch: int) -> None:
         os.kill(os.getpid(), signal.SIGTERM)  # the handler runs again in the main thread
 
 
+#: The report of unraisable exceptions that :func:`_unraisable` hands the others to.
+_previous_unraisable = sys.unraisablehook
+
+
 def install() -> Any:
     """Make SIGTERM stop the run (main thread only); returns the handler it replaces."""
     STATE.reset()
@@ -80,9 +84,6 @@ def install() -> Any:
         _previous_unraisable = sys.unraisablehook
         sys.unraisablehook = _unraisable
     return signal.signal(signal.SIGTERM, on_terminate)
-
-
-_previous_unraisable = sys.unraisablehook
 
 
 def _unraisable(unraisable: Any) -> None:

@@ -301,7 +301,7 @@ def _run_stages(
         counted: list[FootprintDensity | None] = []
         plan = state.plan
         when_gathered = {BIN_TILES.name: lambda results: counted.append(count_footprint(plan, results))}
-        state = _gather_batch(runner, state, batch, timer, when_gathered if settle is not None else {})
+        state = _gather_batch(runner, state, batch, timer, when_gathered if settle is not None and decoding else None)
         if settle is not None and decoding:
             state = settle(state, footprint=counted[0] if counted else None)
         return state
