@@ -1,4 +1,4 @@
-"""How a run stops on SIGTERM: exactly one outcome, whatever the timing.
+"""How a run stops on SIGTERM or Ctrl-C (SIGINT): exactly one outcome, whatever the timing.
 
 A scheduler stops a job with SIGTERM (``timeout``, ``scancel``, ``sbatch --signal``,
 systemd, Kubernetes), often twice (``scancel`` signals every process of the job,
@@ -10,6 +10,9 @@ and the batch script passes its own TERM on). The rule:
 - a TERM once the commit has begun is ignored: the run completes, exit 0;
 - a second TERM while the first is being handled is ignored, so it cannot cut the
   clean-up short (a stale ``OUT/.holefill.lock`` was left by one ``scancel`` in three);
+- Ctrl-C is answered the same way (where the process does not ignore SIGINT: a run
+  started in the background of a shell does), so that a Ctrl-C swallowed like the TERM
+  below is not lost either, and a second one cannot cut the clean-up short;
 - a TERM whose ``KeyboardInterrupt`` was swallowed (raised inside a garbage-collection
   callback, where Python only prints it) is raised again, every
   :data:`RERAISE_AFTER_S` seconds, until the run answers it (:func:`acknowledge`); Python's
@@ -37,12 +40,14 @@ class _State:
     requested: bool = False  # a TERM arrived
     acknowledged: bool = False  # the run is stopping (its handler caught the KeyboardInterrupt)
     committed: bool = False  # the commit began: later TERMs are ignored
+    signum: int = signal.SIGTERM  # the signal that asked for the stop (the watchdog sends it again)
     watchdog: threading.Thread | None = None
     epoch: int = 0  # counts installs: a watchdog of an earlier run stops
 
     def reset(self) -> None:
         self.requested = self.acknowledged = self.committed = False
         self.watchdog = None
+        self.signum = signal.SIGTERM
         self.epoch += 1
 
 
@@ -50,11 +55,12 @@ STATE = _State()
 
 
 def on_terminate(signum: int, frame: Any) -> None:
-    """The SIGTERM handler: raise ``KeyboardInterrupt`` while a stop is pending and not yet answered."""
+    """The SIGTERM and SIGINT handler: raise ``KeyboardInterrupt`` while a stop is pending and not yet answered."""
     if STATE.committed or STATE.acknowledged:
         return
     if not STATE.requested:
         STATE.requested = True
+        STATE.signum = signum
         STATE.watchdog = threading.Thread(
             target=_reraise_until_answered, args=(STATE.epoch,), name="holefill-term", daemon=True
         )
@@ -67,23 +73,36 @@ def _reraise_until_answered(epoch: int) -> None:
     while not stopped.wait(RERAISE_AFTER_S):
         if STATE.acknowledged or STATE.committed or STATE.epoch != epoch:
             return
-        if signal.getsignal(signal.SIGTERM) is not on_terminate:
+        if signal.getsignal(STATE.signum) is not on_terminate:
             return  # the handler is gone (the command ended): never kill the process
-        os.kill(os.getpid(), signal.SIGTERM)  # the handler runs again in the main thread
+        os.kill(os.getpid(), STATE.signum)  # the handler runs again in the main thread
 
 
 #: The report of unraisable exceptions that :func:`_unraisable` hands the others to.
 _previous_unraisable = sys.unraisablehook
 
 
-def install() -> Any:
-    """Make SIGTERM stop the run (main thread only); returns the handler it replaces."""
+def install() -> dict[int, Any]:
+    """Make SIGTERM and SIGINT stop the run (main thread only); returns the handlers it replaces, by signal.
+
+    SIGINT is left alone where the process ignores it (started in a shell's background:
+    the shell's way of keeping a terminal's Ctrl-C from it).
+    """
     STATE.reset()
     if sys.unraisablehook is not _unraisable:
         global _previous_unraisable
         _previous_unraisable = sys.unraisablehook
         sys.unraisablehook = _unraisable
-    return signal.signal(signal.SIGTERM, on_terminate)
+    previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, on_terminate)}
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, on_terminate)
+    return previous
+
+
+def restore(previous: dict[int, Any]) -> None:
+    """Put back the handlers :func:`install` replaced."""
+    for signum, handler in previous.items():
+        signal.signal(signum, handler)
 
 
 def _unraisable(unraisable: Any) -> None:
@@ -117,4 +136,4 @@ def settled() -> bool:
     return STATE.committed or STATE.acknowledged
 
 
-__all__ = ["RERAISE_AFTER_S", "STATE", "acknowledge", "begin_commit", "install", "on_terminate", "settled"]
+__all__ = ["RERAISE_AFTER_S", "STATE", "acknowledge", "begin_commit", "install", "on_terminate", "restore", "settled"]

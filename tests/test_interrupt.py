@@ -1,4 +1,4 @@
-"""SIGTERM has one outcome whatever its timing: stop (130, tasks kept) before the commit, nothing after."""
+"""SIGTERM and Ctrl-C have one outcome whatever their timing: stop (130, tasks kept) before the commit, nothing after."""
 
 from __future__ import annotations
 
@@ -16,12 +16,12 @@ def handler():
     previous = interrupt.install()
     yield
     interrupt.STATE.reset()  # before the handler goes: a watchdog left over stops
-    signal.signal(signal.SIGTERM, previous)
+    interrupt.restore(previous)
     time.sleep(interrupt.RERAISE_AFTER_S + 0.2)  # and has stopped before the next test
 
 
-def term() -> None:
-    os.kill(os.getpid(), signal.SIGTERM)
+def term(signum: int = signal.SIGTERM) -> None:
+    os.kill(os.getpid(), signum)
     time.sleep(0.05)  # the handler runs in the main thread at the next bytecode
 
 
@@ -37,6 +37,37 @@ def test_a_swallowed_term_is_raised_again_until_the_run_answers_it(handler):
     interrupt.acknowledge()
     term()  # the clean-up is under way: a second TERM (scancel and the batch script's trap) is ignored
     time.sleep(interrupt.RERAISE_AFTER_S + 0.5)  # and the watchdog stops
+
+
+def test_a_swallowed_ctrl_c_is_raised_again_and_a_second_one_is_ignored(handler):
+    """A Ctrl-C lost in a gc callback used to be lost for good: the run went on as if none came."""
+    seen = []
+    try:
+        term(signal.SIGINT)
+    except KeyboardInterrupt:
+        pass  # swallowed
+    with pytest.raises(KeyboardInterrupt):
+        deadline = time.monotonic() + 5 * interrupt.RERAISE_AFTER_S
+        while time.monotonic() < deadline:
+            time.sleep(0.05)
+    seen.append(interrupt.STATE.signum)
+    interrupt.acknowledge()
+    term(signal.SIGINT)  # a second Ctrl-C during the clean-up is ignored
+    assert seen == [signal.SIGINT]
+    time.sleep(interrupt.RERAISE_AFTER_S + 0.5)
+
+
+def test_ctrl_c_stays_ignored_where_the_process_ignores_it():
+    """A run started in a shell's background inherits SIGINT ignored: install leaves it so."""
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        previous = interrupt.install()
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        assert set(previous) == {signal.SIGTERM}
+        interrupt.STATE.reset()
+        interrupt.restore(previous)
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def test_a_term_after_the_commit_began_is_ignored(handler):

@@ -60,9 +60,12 @@ class _Group(click.Group):
             )
             ctx.exit(EXIT_INTERRUPTED)
         finally:
-            # the holefill command exits now, its outcome settled: a TERM while Python shuts
-            # down (Dask's atexit clean-up) must not turn it into 143
-            signal.signal(signal.SIGTERM, signal.SIG_IGN if _is_the_command() else previous)
+            # the holefill command exits now, its outcome settled: a TERM or Ctrl-C while Python
+            # shuts down (Dask's atexit clean-up) must not turn it into 143 or a traceback
+            if _is_the_command():
+                interrupt.restore({signum: signal.SIG_IGN for signum in previous})
+            else:
+                interrupt.restore(previous)
 
 
 def _is_the_command() -> bool:
