@@ -384,8 +384,9 @@ def test_the_low_side_of_a_step_but_the_whole_rim_of_a_slope(seed):
 
 
 def test_linear_quantiles_are_numpy_s_value_for_value(rng):
-    """The rim levels take numpy's quantiles without its per-call set-up: the same doubles, ties and ends included."""
-    from pipeline.fill._problem import linear_quantiles
+    """The rim levels and the walls' steps take numpy's quantiles without its per-call set-up: the same doubles,
+    ties, ends and NaN-skipping percentiles included."""
+    from pipeline.quantiles import linear_quantiles
 
     for _ in range(2000):
         values = rng.normal(0, 10, int(rng.integers(1, 40)))
@@ -395,3 +396,7 @@ def test_linear_quantiles_are_numpy_s_value_for_value(rng):
         assert linear_quantiles(values, quantiles) == list(np.quantile(values, quantiles))
         percentile = float(rng.integers(0, 101))
         assert linear_quantiles(values, (percentile / 100,)) == [np.percentile(values, percentile)]
+        with_gaps = np.where(rng.random(len(values)) < 0.2, np.nan, values)  # a wall's lows: NaN where no lowest point
+        if np.isfinite(with_gaps).any():
+            finite = with_gaps[np.isfinite(with_gaps)]
+            assert linear_quantiles(finite, (0.2,)) == [np.nanpercentile(with_gaps, 20)]

@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.ndimage as ndi
 
-from ._problem import CROSS, fit_plane, linear_quantiles
+from ..quantiles import linear_quantiles
+from ._problem import CROSS, fit_plane
 
 __all__ = ["clamp_to_rim", "lower_side_support", "rim_level"]
 

@@ -42,6 +42,7 @@ from affine import Affine
 from scipy import sparse
 from scipy.sparse import csgraph
 
+from ..quantiles import linear_quantiles
 from .masks import height_jumps
 from .wall_step import LOGISTIC_NODES, bounded_least_squares, soft_l1_cost
 
@@ -363,8 +364,10 @@ def _fit_support(
         return None, 0
     lows = np.concatenate([sp.zn[measured & (d0 < -0.5)], sp.zx[measured & (d0 < -0.5)]])
     highs = sp.zx[measured & (d0 > 0.5)]
-    low0 = float(np.nanpercentile(lows, 20)) if np.isfinite(lows).any() else float(np.nanmin(sp.zx))
-    high0 = float(np.percentile(highs, 80)) if len(highs) else float(np.nanmax(sp.zx))
+    lows = lows[np.isfinite(lows)]
+    # np.nanpercentile(lows, 20) and np.percentile(highs, 80), value for value, without numpy's set-up per call
+    (low0,) = linear_quantiles(lows, (0.2,)) if len(lows) else (float(np.nanmin(sp.zx)),)
+    (high0,) = linear_quantiles(highs, (0.8,)) if len(highs) else (float(np.nanmax(sp.zx)),)
     if not high0 > low0:
         return None, 0
     step0 = high0 - low0
