@@ -93,7 +93,7 @@ def install() -> dict[int, Any]:
         global _previous_unraisable
         _previous_unraisable = sys.unraisablehook
         sys.unraisablehook = _unraisable
-    previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, on_terminate)}
+    previous: dict[int, Any] = {signal.SIGTERM: signal.signal(signal.SIGTERM, on_terminate)}
     if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
         previous[signal.SIGINT] = signal.signal(signal.SIGINT, on_terminate)
     return previous
