@@ -13,10 +13,14 @@ from pipeline import interrupt
 
 @pytest.fixture
 def handler():
+    # as in a terminal's foreground: a suite started in a shell's background inherits SIGINT ignored
+    # (a run there leaves it so; test_ctrl_c_stays_ignored_where_the_process_ignores_it)
+    outer = signal.signal(signal.SIGINT, signal.default_int_handler)
     previous = interrupt.install()
     yield
     interrupt.STATE.reset()  # before the handler goes: a watchdog left over stops
     interrupt.restore(previous)
+    signal.signal(signal.SIGINT, outer)
     time.sleep(interrupt.RERAISE_AFTER_S + 0.2)  # and has stopped before the next test
 
 
