@@ -292,7 +292,6 @@ def _run_stages(
     """
 
     def close(state: RunState, batch: list[tuple[Stage, list[Any]]], submitted: dict[Dependency, Any]) -> RunState:
-        _submit_background(runner, state, batch, submitted)
         decoding = any(stage is BIN_TILES for stage, _ in batch)
         if decoding:
             _import_for_products(state.config)
@@ -322,7 +321,7 @@ def _run_stages(
             if stage.lap:
                 timer.lap(stage.lap)
             continue
-        batch.append((stage, [] if stage.background else _submit_stage(runner, stage, state, submitted)))
+        batch.append((stage, _submit_stage(runner, stage, state, submitted)))
         if not stage.streams:
             state, batch, submitted = close(state, batch, submitted), [], {}
     if batch:
@@ -330,15 +329,6 @@ def _run_stages(
     for stage_futures in deferred:
         state = _gather_batch(runner, state, [stage_futures], timer)
     return state
-
-
-def _submit_background(
-    runner: _Runner, state: RunState, batch: list[tuple[Stage, list[Any]]], submitted: dict[Dependency, Any]
-) -> None:
-    """Submit the batch's background stages (after the others: idle workers start on the real work)."""
-    for stage, futures in batch:
-        if stage.background:
-            futures.extend(_submit_stage(runner, stage, state, submitted))
 
 
 def _import_for_products(config: Config) -> None:

@@ -172,8 +172,8 @@ class Staging:
     def adopt(self, key: str) -> bool:
         """Link the previous run's result of task ``key`` and the files it names into this run.
 
-        Only stage-1 (``rasterize-<tile folder>``), stage-2 (``merge-<digest>-<cell id>``)
-        and input checksum (``sha256-<tile folder>``) results are adopted: their keys
+        Only stage-1 (``rasterize-<tile folder>``, the file's checksum in it) and stage-2
+        (``merge-<digest>-<cell id>``) results are adopted: their keys
         say everything they are made of. Returns whether the result (and its files)
         is now here.
         """
@@ -183,8 +183,6 @@ class Staging:
             data = [Path("tiles") / key.removeprefix("rasterize-")]
         elif kind == "merge":
             data = [Path("cells") / f"cell_{key.split('-', 2)[2]}.npz"]
-        elif kind == "sha256":
-            data = []
         else:
             return False
         sources = [self.reuse_from / "done" / f"{key}.npz", *(self.reuse_from / d for d in data)]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -38,6 +39,10 @@ def test_a_result_inside_the_input_folder_is_not_read_back(runner, tiles):
         assert result.exit_code == 0, result.output
         manifest = json.loads((out / "manifest.json").read_text())
         assert sorted(Path(i["path"]).name for i in manifest["inputs"]) == ["a.laz", "b.laz"]
+        for entry in manifest["inputs"]:  # hashed by the task that decoded the file
+            path = Path(entry["path"])
+            assert entry["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+            assert entry["bytes"] == path.stat().st_size and entry["mtime"] == path.stat().st_mtime
     assert sorted(p.name for p in (out / "points").iterdir()) == ["a.laz", "b.laz"]
     # a repaired point cloud named as an input is refused: its run would replace it
     result = run(

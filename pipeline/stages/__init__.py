@@ -19,9 +19,9 @@ turns what they gathered into one frozen ``RunResults`` for the products.
 
 Stages, in the order they run (a module imports only stages before it):
 
-- :mod:`.bin_tiles`     one task per input tile: decode once, bin into statistics
+- :mod:`.bin_tiles`     one task per input tile: decode once, bin into statistics; the file's
+                        size, time and SHA-256 for the manifest
 - :mod:`.merge_cells`   one task per cell: merge the tiles touching it
-- :mod:`.checksums`     one task per input file: size, time, SHA-256 for the manifest
 - :mod:`.detect_holes`  one task per cell: hole parts, vertical holes, walls
 - :mod:`.link_holes`    on the client: holes linked across cells, causes
 - :mod:`.fill_holes`    one task per cell owning holes: each hole filled whole

@@ -2,9 +2,8 @@
 
 :mod:`pipeline.run` walks :data:`STAGES`: a stage that does not run in this
 configuration is passed over, a stage without a worker runs on the client, and the
-stages that stream (the checksums, stage 1, the merge) are submitted with the next
-one and gathered in the same loop, so that a cell runs as soon as its tiles are done
-(a background stage, the checksums, is submitted last in its loop).
+stages that stream (stage 1, the merge) are submitted with the next one and gathered
+in the same loop, so that a cell runs as soon as its tiles are done.
 A new stage is one module in ``pipeline/stages/`` with its :class:`~.stage.Stage`
 record, and one entry here, after the stages whose results it reads.
 """
@@ -18,7 +17,6 @@ from typing import Any
 from ..plan import SurveyPlan
 from ..survey.ground_level import GroundLevel
 from .bin_tiles import BIN_TILES, READ_TASKS, TileResult
-from .checksums import CHECKSUMS
 from .detect_holes import COVERAGE, DETECT_HOLES, GAP_VOIDS, DetectResult
 from .fill_holes import FILL_HOLES, PLAN_FILLS, HoleFill
 from .find_walls import FIND_WALLS, WallResult
@@ -31,8 +29,7 @@ from .write_rasters import WRITE_FILLED, WRITE_MERGED, WriteResult
 #: Every stage, in the order it runs (a stage reads only the results of stages before it).
 STAGES: tuple[Stage[Any, Any], ...] = (
     READ_TASKS,  # client: stage 1's recipes
-    CHECKSUMS,  # per file: size, time, SHA-256 (background)            } one graph, one
-    BIN_TILES,  # per read task: decode once, bin                       } gather loop
+    BIN_TILES,  # per read task: decode once, bin; the file's SHA-256    } one graph, one gather loop
     MERGE_CELLS,  # per cell: merge the tiles touching it               }
     WRITE_MERGED,  # per cell: the rasters, when nothing is filled      }
     FIND_WALLS,  # per cell: walls, vertical holes (deferred: gathered last, while the workers are idle)
@@ -82,7 +79,7 @@ def run_results(state: RunState, *, resumed_tasks: int = 0, reused_tasks: int = 
         failed=decoded.failed,
         cells=state[MERGE_CELLS],
         written=state.get(WRITE_FILLED, state[WRITE_MERGED]),
-        inputs=state[CHECKSUMS],
+        inputs=decoded.inputs,
         detected=state.get(DETECT_HOLES, ()),
         walls=state.get(FIND_WALLS, ()),
         holes=state.get(LINK_HOLES, None),

@@ -93,7 +93,6 @@ class Stage(Generic[T, R_co]):
     adopt: Callable[[T, Any], Any] | None = None  # a previous run's result of the same key -> this run's
     on_result: Callable[[Any], int] | None = None  # as each result arrives: tell the user; its points (bar rate)
     streams: bool = False  # submitted with the next stage and gathered in the same loop (its tasks wait for ours)
-    background: bool = False  # submitted after the other stages of its batch (no task of the batch waits for it)
     deferred: bool = False  # submitted when reached, gathered after every other stage (no stage reads its result)
     lap: str | None = None  # the timer lap taken when the stage is done (manifest ``stage_seconds``)
 
