@@ -93,9 +93,8 @@ class TileResult:
     ground: GroundLevel = GroundLevel()  # ground-class points binned, and those at z = 0
     trajectory: TrajectorySums = field(default_factory=TrajectorySums.empty)  # per flight line and time bin
     pulse_blocks: BlockPart | None = None  # the footprint's block counts, when counting
-    input: dict[str, Any] | None = (
-        None  # the file's size, time and SHA-256 (the task reading it whole, or its top task)
-    )
+    #: The file's size, time and SHA-256 for the manifest (from the task reading it whole, or its top task).
+    input: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
