@@ -106,9 +106,9 @@ def restore(previous: dict[int, Any]) -> None:
 
 
 def _unraisable(unraisable: Any) -> None:
-    """Python's report of an exception it cannot raise, less a TERM's: that one is raised again.
+    """Python's report of an exception it cannot raise, less a stop's (TERM or Ctrl-C): that one is raised again.
 
-    A TERM's ``KeyboardInterrupt`` raised inside a callback Python runs between bytecodes (a
+    A stop's ``KeyboardInterrupt`` raised inside a callback Python runs between bytecodes (a
     garbage-collection callback, distributed's among them) cannot leave it; Python prints it
     with a traceback and goes on, and the watchdog raises it again where the run answers it.
     Frequent while the client imports (allocations run the collector): one ``scancel`` in a

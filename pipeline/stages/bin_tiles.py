@@ -493,7 +493,7 @@ class DecodedTiles:
 
     tiles: tuple[TileResult, ...]
     failed: tuple[dict[str, str], ...]  # {"path", "reason"}: skipped, or none of its points passes the filter
-    inputs: Mapping[str, dict[str, Any]] = field(default_factory=dict)  # path -> size, time and SHA-256
+    inputs: Mapping[str, dict[str, Any]]  # path -> size, time and SHA-256
 
 
 def bin_tile(task: TileTask, *after: object) -> TileResult | TileFailure:
