@@ -13,8 +13,12 @@ and the batch script passes its own TERM on). The rule:
 - Ctrl-C is answered the same way (where the process does not ignore SIGINT: a run
   started in the background of a shell does), so that a Ctrl-C swallowed like the TERM
   below is not lost either, and a second one cannot cut the clean-up short;
-- a TERM whose ``KeyboardInterrupt`` was swallowed (raised inside a garbage-collection
-  callback, where Python only prints it) is raised again, every
+- a TERM that comes while a garbage-collection callback runs is not raised there: Python
+  would only print it, and the callback would be cut short half-way (distributed's
+  ``GCDiagnosis`` then fails an assertion at the next full collection, with a traceback
+  above the run's one line). It is raised :data:`DEFERRED_S` later, outside the callback;
+- a TERM whose ``KeyboardInterrupt`` was swallowed all the same (raised inside a
+  finalizer, where Python only prints it) is raised again, every
   :data:`RERAISE_AFTER_S` seconds, until the run answers it (:func:`acknowledge`); Python's
   print of the swallowed one ("Exception ignored in ...", a traceback) is left out
   (:func:`_unraisable`): the user gets the run's one line.
@@ -24,15 +28,20 @@ The state is per process (a signal handler's is), kept in :data:`STATE`.
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import sys
 import threading
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from typing import Any
 
 #: Seconds after which a TERM the run has not answered is raised again.
 RERAISE_AFTER_S = 2.0
+
+#: Seconds after which a TERM that came during a garbage-collection callback is sent again.
+DEFERRED_S = 0.02
 
 
 @dataclass
@@ -42,11 +51,13 @@ class _State:
     committed: bool = False  # the commit began: later TERMs are ignored
     signum: int = signal.SIGTERM  # the signal that asked for the stop (the watchdog sends it again)
     watchdog: threading.Thread | None = None
+    deferred: threading.Event = field(default_factory=threading.Event)  # a TERM waits outside a gc callback
     epoch: int = 0  # counts installs: a watchdog of an earlier run stops
 
     def reset(self) -> None:
         self.requested = self.acknowledged = self.committed = False
         self.watchdog = None
+        self.deferred = threading.Event()
         self.signum = signal.SIGTERM
         self.epoch += 1
 
@@ -62,15 +73,31 @@ def on_terminate(signum: int, frame: Any) -> None:
         STATE.requested = True
         STATE.signum = signum
         STATE.watchdog = threading.Thread(
-            target=_reraise_until_answered, args=(STATE.epoch,), name="holefill-term", daemon=True
+            target=_reraise_until_answered, args=(STATE.epoch, STATE.deferred), name="holefill-term", daemon=True
         )
         STATE.watchdog.start()
+    if _inside_gc_callback(frame):
+        STATE.deferred.set()  # the watchdog sends it again in a moment
+        return
     raise KeyboardInterrupt
 
 
-def _reraise_until_answered(epoch: int) -> None:
-    stopped = threading.Event()
-    while not stopped.wait(RERAISE_AFTER_S):
+def _inside_gc_callback(frame: Any) -> bool:
+    """Whether the main thread is running one of ``gc.callbacks`` (or what it calls)."""
+    codes = {getattr(getattr(callback, "__func__", callback), "__code__", None) for callback in gc.callbacks}
+    codes.discard(None)
+    while frame is not None:
+        if frame.f_code in codes:
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _reraise_until_answered(epoch: int, deferred: threading.Event) -> None:
+    while True:
+        if deferred.wait(RERAISE_AFTER_S):
+            deferred.clear()
+            time.sleep(DEFERRED_S)  # the callback has returned by then, or defers again
         if STATE.acknowledged or STATE.committed or STATE.epoch != epoch:
             return
         if signal.getsignal(STATE.signum) is not on_terminate:
@@ -136,4 +163,14 @@ def settled() -> bool:
     return STATE.committed or STATE.acknowledged
 
 
-__all__ = ["RERAISE_AFTER_S", "STATE", "acknowledge", "begin_commit", "install", "on_terminate", "restore", "settled"]
+__all__ = [
+    "DEFERRED_S",
+    "RERAISE_AFTER_S",
+    "STATE",
+    "acknowledge",
+    "begin_commit",
+    "install",
+    "on_terminate",
+    "restore",
+    "settled",
+]
