@@ -151,9 +151,10 @@ def test_the_fork_server_environment_is_restored():
 LIGHT_START_PROBE = """
 import json, sys
 
-def tick():
+def tick(dask_worker):
     import dask
-    return dask.config.get("distributed.admin.tick.interval")
+
+    return dask.config.get("distributed.admin.tick.interval"), "profile" in dask_worker.periodic_callbacks
 
 def main():
     from pipeline.cluster import LOCAL_CLUSTER_CONFIG, ClusterStart
@@ -173,7 +174,7 @@ if __name__ == "__main__":
 def test_the_client_starts_the_cluster_without_pandas_and_its_workers_tick_slowly(tmp_path):
     """distributed's own fork-server preload list imported pandas into the client (0.3 s of its
     start) only to name it to a server already running ours; the workers run with the local
-    cluster's settings (an event-loop check every second, not every 20 ms)."""
+    cluster's settings (an event-loop check every second, not every 20 ms; no statistical profiler)."""
     from pipeline.cluster import LOCAL_CLUSTER_CONFIG
 
     probe = tmp_path / "probe.py"
@@ -181,7 +182,7 @@ def test_the_client_starts_the_cluster_without_pandas_and_its_workers_tick_slowl
     done = subprocess.run([sys.executable, str(probe)], capture_output=True, text=True, timeout=120, check=True)
     found = json.loads(done.stdout.strip().splitlines()[-1])
     assert found["pandas"] is False
-    assert found["ticks"] == [LOCAL_CLUSTER_CONFIG["distributed.admin.tick.interval"]]
+    assert found["ticks"] == [[LOCAL_CLUSTER_CONFIG["distributed.admin.tick.interval"], False]]  # and no profiler
 
 
 def test_the_run_module_leaves_scipy_optimize_to_the_fills_that_need_it():
