@@ -127,15 +127,18 @@ class RunSummary:
 
 
 def write_layers(staging: Staging, plan: SurveyPlan, config: Config, results: RunResults) -> dict[str, Any]:
-    """The mosaics and the layers of ``holes.gpkg``; returns the holes' figures (empty without hole detection)."""
+    """The mosaics and the layers of ``holes.gpkg`` but the walls'; returns the holes' figures (empty
+    without hole detection).
+
+    The walls' layers (:func:`write_wall_layers`) come from a stage gathered last: the flight plans
+    and the report's maps are made from these products while the workers fit the last walls.
+    """
     write_mosaics(staging, plan, results.written)
     gpkg = staging.product("holes.gpkg")
     write_survey_layers(gpkg, plan, results.tiles, results.cells, results.written, results.skipped(plan))
     if results.holes is None:
         return {}
-    return write_hole_layers(
-        gpkg, plan, config, results.holes, results.detected, results.fills, results.written, walls=results.walls
-    )
+    return write_hole_layers(gpkg, plan, config, results.holes, results.detected, results.fills, results.written)
 
 
 def run_summary(
@@ -352,13 +355,11 @@ def write_hole_layers(
     detected: Sequence[DetectResult],
     fills: Sequence[HoleFill] | None = None,
     written: Sequence[WriteResult] | None = None,
-    *,
-    walls: Sequence[WallResult] = (),
 ) -> dict[str, Any]:
-    """The ``holes``, ``hole_parts``, ``vertical_holes`` and ``walls`` layers; returns the report's counts.
+    """The ``holes``, ``hole_parts``, ``flight_lines`` and ``swaths`` layers; returns the report's counts.
 
     ``written``: the writer stage's results, whose filled pixels (those of ``fill_mask``)
-    the fill figures add up. ``walls``: each cell's walls and vertical holes.
+    the fill figures add up.
     """
     crs = plan.grid.crs_wkt
     part_outlines = {
@@ -369,14 +370,10 @@ def write_hole_layers(
     hole_records, hole_geometries = _hole_records(plan, config, holes, part_outlines, fills)
     listed = {r["hole_id"] for r in hole_records}
     part_records, part_geometries, counts_by_type = _part_records(plan, holes, part_outlines, listed)
-    vertical_records, vertical_geometries = _vertical_records(plan, walls)
-    wall_records, wall_geometries = _wall_records(plan, walls)
     line_records, line_geometries, swath_geometries = _flight_line_records(holes)
     for layer, records, geometries, geometry_type in (
         ("holes", hole_records, hole_geometries, "MultiPolygon"),
         ("hole_parts", part_records, part_geometries, "MultiPolygon"),
-        ("vertical_holes", vertical_records, vertical_geometries, "MultiPolygon"),
-        ("walls", wall_records, wall_geometries, "LineString"),
         ("flight_lines", line_records, line_geometries, "LineString Z"),
         ("swaths", line_records, swath_geometries, "MultiPolygon"),
     ):
@@ -397,14 +394,43 @@ def write_hole_layers(
         "sampling_gap_width_m": round(plan.hole_params.sampling_gap_px * plan.pixel_size_m, 4),
         "sampling_gaps": holes.sampling_gaps,
         "sampling_gap_area_m2": round(holes.sampling_gap_px * plan.pixel_area_m2, 2),
-        "vertical_hole_groups": len(vertical_records),
-        "walls": len(wall_records),
-        "height_jump_px": int(sum(w.jump_px for w in walls)),
         "aoi_area_m2": round(sum(d.aoi_px for d in detected) * plan.pixel_area_m2, 2),
         "assumed_heights": _assumed_heights(holes, config),
         "largest": sorted(hole_records, key=lambda r: -r["area_m2"])[:20],
         "fill": _fill_counts(plan, catalog, fills, listed, written or []) if fills is not None else {},
     }
+
+
+def write_wall_layers(gpkg: Path, plan: SurveyPlan, walls: Sequence[WallResult]) -> dict[str, int]:
+    """The ``vertical_holes`` and ``walls`` layers, from each cell's walls and vertical holes; returns their counts
+    (for the report's figures beside :func:`write_hole_layers`'s)."""
+    crs = plan.grid.crs_wkt
+    vertical_records, vertical_geometries = _vertical_records(plan, walls)
+    wall_records, wall_geometries = _wall_records(plan, walls)
+    for layer, records, geometries, geometry_type in (
+        ("vertical_holes", vertical_records, vertical_geometries, "MultiPolygon"),
+        ("walls", wall_records, wall_geometries, "LineString"),
+    ):
+        write_layer(
+            gpkg, layer, records, geometries, crs_wkt=crs, geometry_type=geometry_type, fields=LAYER_FIELDS[layer]
+        )
+    return {
+        "vertical_hole_groups": len(vertical_records),
+        "walls": len(wall_records),
+        "height_jump_px": int(sum(w.jump_px for w in walls)),
+    }
+
+
+def with_wall_counts(hole_summary: dict[str, Any], wall_counts: dict[str, int]) -> dict[str, Any]:
+    """The holes' figures with :func:`write_wall_layers`'s counts, where the report and the manifest have
+    always listed them (after the sampling gaps)."""
+    merged: dict[str, Any] = {}
+    for key, value in hole_summary.items():
+        merged[key] = value
+        if key == "sampling_gap_area_m2":
+            merged.update(wall_counts)
+    merged.update({k: v for k, v in wall_counts.items() if k not in merged})
+    return merged
 
 
 def _assumed_heights(holes: HoleSet, config: Config) -> dict | None:

@@ -140,6 +140,15 @@ def test_outputs_are_valid_cogs_and_layers(tmp_path, survey_points, dask_client)
     tasks = profile["worker_task_seconds"]
     assert tasks["bin_tiles"]["tasks"] == 4 and tasks["bin_tiles"]["seconds"] > 0
     assert tasks["merge_cells"]["tasks"] == tasks["detect_holes"]["tasks"] == summary.cells
+    # the flight plans and the other layers are made while the workers fit the walls (gathered last);
+    # the walls' layers and counts join them after, where the manifest has always listed them
+    laps = list(profile["stage_seconds"])
+    assert laps.index("outputs") < laps.index("flightplan") < laps.index("walls")
+    assert {"walls", "vertical_holes", "holes", "flight_lines"} <= set(list_layers(out / "holes.gpkg"))
+    holes = list(manifest["holes"])
+    after_gaps = holes.index("sampling_gap_area_m2") + 1
+    assert holes[after_gaps : after_gaps + 3] == ["vertical_hole_groups", "walls", "height_jump_px"]
+    assert manifest["holes"]["walls"] == len(read_layer(out / "holes.gpkg", "walls"))
     # inputs are never modified
     assert digests == {p: hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in inputs}
 
