@@ -106,3 +106,20 @@ def test_object_arrays_are_not_kept(tmp_path):
     with pytest.raises(TypeError):
         save_object(tmp_path / "r.npz", np.array([object()]))
     assert not list(tmp_path.iterdir())
+
+
+def test_a_write_cut_short_leaves_nothing_a_result_glob_finds(tmp_path, monkeypatch):
+    """A task killed between writing its result and renaming it left ``<name>.tmp.npz``, which
+    ``rasterize-*.npz`` counted as a kept result (a resume test saw 6 kept and 5 resumed)."""
+    target = tmp_path / "rasterize-tile-part003.npz"
+    save_object(target, TileResult(0, "a.laz", "out", PixelWindow(0, 0, 1, 1), 1, 1, 0, 0.1))
+    assert [p.name for p in tmp_path.iterdir()] == [target.name]
+
+    def killed(source, destination):
+        raise KeyboardInterrupt  # the process dies before the rename
+
+    monkeypatch.setattr(os, "replace", killed)
+    with pytest.raises(KeyboardInterrupt):
+        save_object(tmp_path / "rasterize-tile-part004.npz", 1)
+    assert [p.name for p in tmp_path.glob("rasterize-*.npz")] == [target.name]
+    assert load_object(target).tile_index == 0

@@ -244,6 +244,4 @@ def _window_array(window: PixelWindow) -> np.ndarray:
 
 
 def _save_npz(path: str | os.PathLike, **arrays: np.ndarray) -> None:
-    tmp = f"{path}.tmp.npz"
-    np.savez(tmp, allow_pickle=False, **arrays)
-    os.replace(tmp, path)
+    plain_data.write_npz_atomically(path, arrays)

@@ -57,13 +57,24 @@ _SIMPLE_TYPES: dict[str, tuple[type, ...]] = {
 
 
 def dump(path: str | os.PathLike, value: Any, *, version: int) -> None:
-    """Write ``value`` as a data-only file (under a temporary name, then renamed)."""
+    """Write ``value`` as a data-only file (under a temporary name, then renamed).
+
+    The temporary name is hidden (``.<name>.tmp``): one left by a killed process must not pass
+    for a result (``<name>.tmp.npz`` matched ``rasterize-*.npz``).
+    """
     arrays: list[np.ndarray] = []
     tree = {"version": version, "value": _encode(value, arrays)}
     payload = {f"a{i}": a for i, a in enumerate(arrays)}
     payload["tree"] = np.frombuffer(json.dumps(tree).encode(), dtype=np.uint8)
-    tmp = f"{path}.tmp.npz"
-    np.savez(tmp, allow_pickle=False, **payload)
+    write_npz_atomically(path, payload)
+
+
+def write_npz_atomically(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> None:
+    """``np.savez`` of ``arrays`` to ``path``, written under a hidden temporary name and renamed."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as fh:  # a file object: numpy appends no ".npz"
+        np.savez(fh, allow_pickle=False, **arrays)
     os.replace(tmp, path)
 
 
