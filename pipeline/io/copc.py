@@ -31,6 +31,7 @@ from laspy.point.record import PackedPointRecord
 from ..errors import InputDataError
 from .copc_octree import NODE_DTYPE, CopcOctree, read_copc_octree
 from .las import NEEDED_LAYERS, SENSOR_LAYERS, PointChunk, PulseFields, point_chunk
+from .plain_data import write_npz_atomically
 
 __all__ = ["CopcOctree", "iter_copc_nodes", "load_point_chunk", "read_copc_octree", "save_point_chunk", "write_copc"]
 
@@ -250,13 +251,12 @@ def _write_file(path, header: laspy.LasHeader, points: np.ndarray, entries, cent
 def save_point_chunk(path: str | os.PathLike, chunk: PointChunk, keep: np.ndarray) -> None:
     """Keep the points ``keep`` of a decoded chunk for another task (``.npz``, the raw fields)."""
     pulses = {} if chunk.pulses is None else {f"pulse_{k}": v[keep] for k, v in vars(chunk.pulses).items()}
-    np.savez(
-        path,
+    write_npz_atomically(path, dict(
         X=chunk.X[keep], Y=chunk.Y[keep], Z=chunk.Z[keep],
         classification=chunk.classification[keep], withheld=chunk.withheld[keep],
         point_source_id=chunk.point_source_id[keep],
         scales=np.array(chunk.scales), offsets=np.array(chunk.offsets), **pulses,
-    )  # fmt: skip
+    ))  # fmt: skip
 
 
 def load_point_chunk(path: str | os.PathLike) -> PointChunk:
