@@ -221,12 +221,17 @@ def test_stage_1_counts_the_pre_pass_blocks_and_plans_again_where_the_boxes_misl
                 assert np.array_equal(src.read(1), auto, equal_nan=True)
 
 
-def test_a_run_that_planned_again_resumes_on_the_counted_density(tmp_path):
+@pytest.mark.parametrize("dense", [False, True])
+def test_a_run_that_planned_again_resumes_on_the_counted_density(tmp_path, dense):
     """The footprint that made a run start again is kept in its partial folder, for --resume alone."""
     from pipeline.staging import Staging
-    from pipeline.survey.blocks import BlockCounts, FootprintDensity
+    from pipeline.survey.blocks import BlockCounts, DenseBlockCounts, FootprintDensity
 
-    blocks = BlockCounts(1.0, np.array([0, 1]), np.array([5, 5]), np.array([9, 12]))
+    if dense:
+        blocks = DenseBlockCounts(1.0, 0, 5, np.array([[9], [12]]))
+        assert blocks.occupied == 2  # cached on the instance: not kept with the fields
+    else:
+        blocks = BlockCounts(1.0, np.array([0, 1]), np.array([5, 5]), np.array([9, 12]))
     footprint = FootprintDensity(blocks, 30, 21, True, 2.0, 0.1)
     staging = Staging.create(tmp_path / "out", run_key="k")
     (staging.work / "done" / "stale.npz").write_bytes(b"from the first grid")
@@ -236,6 +241,7 @@ def test_a_run_that_planned_again_resumes_on_the_counted_density(tmp_path):
     resumed = Staging.create(tmp_path / "out", run_key="k", resume=True)
     kept = resumed.kept_footprint()
     assert kept is not None and kept.pulses == 21 and np.array_equal(kept.blocks.count, blocks.count)
+    assert type(kept.blocks) is type(blocks) and np.array_equal(kept.blocks.ix, [0, 1])
     resumed.keep_for_resume()
     assert Staging.create(tmp_path / "out", run_key="k").kept_footprint() is None  # a fresh run counts anew
 
@@ -303,3 +309,37 @@ def test_local_density_is_the_median_around_each_box_whatever_the_blocks_order()
         near = (ix >= lo_x) & (ix <= hi_x) & (iy >= lo_y) & (iy <= hi_y)
         expected = np.median(count[near]) / block**2 if near.any() else np.nan
         np.testing.assert_allclose(found, expected)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_dense_and_listed_counts_are_the_same_blocks_at_every_level(seed):
+    """A tiled survey's footprint is kept as a dense box; its blocks, totals, coarser levels, chosen level
+    and local densities are those of the same counts listed block by block (origins on either side of 0)."""
+    from pipeline.survey.blocks import BlockCounts, DenseBlockCounts
+    from pipeline.survey.footprint_density import local_pulses_per_m2
+
+    rng = np.random.default_rng(seed)
+    cols, rows = int(rng.integers(1, 90)), int(rng.integers(1, 90))
+    x0, y0 = int(rng.integers(-300, 300)), int(rng.integers(-300, 300))
+    grid = np.where(rng.random((cols, rows)) < rng.uniform(0.3, 1.0), rng.integers(1, 12, (cols, rows)), 0)
+    dense = DenseBlockCounts(0.5, x0, y0, grid.astype(np.int64))
+    ix, iy = np.nonzero(grid)
+    listed = BlockCounts(0.5, ix + x0, iy + y0, grid[ix, iy].astype(np.int64))
+    assert np.array_equal(dense.ix, listed.ix) and np.array_equal(dense.iy, listed.iy)
+    assert np.array_equal(dense.count, listed.count)
+    for factor in (1, 2, 4, 8, 64):
+        a, b = dense.coarsen(factor), listed.coarsen(factor)
+        assert (a.block, a.occupied, a.total) == (b.block, b.occupied, b.total)
+        assert all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("ix", "iy", "count"))
+        # the reference: each block's count added into the coarse block holding it
+        expected: dict[tuple[int, int], int] = {}
+        for i, j, c in zip(listed.ix // factor, listed.iy // factor, listed.count):
+            expected[(int(i), int(j))] = expected.get((int(i), int(j)), 0) + int(c)
+        assert dict(zip(zip(a.ix.tolist(), a.iy.tolist()), a.count.tolist())) == expected
+    for min_mean in (1.0, 8.0, 40.0, 1e9):
+        a, b = choose_level(dense, min_mean=min_mean), choose_level(listed, min_mean=min_mean)
+        assert (a.block, a.occupied, a.total) == (b.block, b.occupied, b.total)
+    span_x, span_y = (x0 - 10) * 0.5, (y0 - 10) * 0.5
+    corners = rng.uniform([span_x, span_y], [span_x + (cols + 20) * 0.5, span_y + (rows + 20) * 0.5], (40, 2))
+    boxes = np.column_stack([corners, corners + rng.uniform(0, 6, (40, 2))])
+    np.testing.assert_array_equal(local_pulses_per_m2(dense, boxes), local_pulses_per_m2(listed, boxes))
