@@ -176,6 +176,10 @@ CLUSTER_MODULES = (
 )
 
 
+#: What the fork server imports, in order: the garbage collector paused (until
+#: :mod:`pipeline.worker_start` freezes what the others made: :mod:`pipeline.gc_pause`), distributed, the stages.
+SERVER_MODULES = ["pipeline.fork_server_start", "distributed", *SERVER_PRELOAD]
+
 #: How local workers are started: forked from a server process (see :class:`ClusterStart`).
 START_METHOD = "forkserver"
 
@@ -205,7 +209,7 @@ def start_fork_server() -> None:
     import multiprocessing.resource_tracker
 
     context = multiprocessing.get_context(START_METHOD)
-    context.set_forkserver_preload(["distributed", *SERVER_PRELOAD])  # also for a server the first worker starts
+    context.set_forkserver_preload(SERVER_MODULES)  # also for a server the first worker starts
     if threading.current_thread() is threading.main_thread():
         multiprocessing.resource_tracker.ensure_running()
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
@@ -216,7 +220,7 @@ def start_fork_server() -> None:
             signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     _use_fork_server()
     # whatever distributed set: a server started again (one killed) imports the stages too
-    context.set_forkserver_preload(["distributed", *SERVER_PRELOAD])
+    context.set_forkserver_preload(SERVER_MODULES)
 
 
 def _use_fork_server() -> None:

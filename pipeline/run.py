@@ -34,6 +34,7 @@ from .budget import MemoryBudget, check_plan_memory, memory_budget
 from .cluster import ClusterStart, WorkerWatch, dask_client, quiet_shutdown, task_stream
 from .config import Config, config_key, to_dict
 from .errors import ClusterError, DiskFullError, HolefillError, InputDataError, TaskError
+from .gc_pause import collector_paused
 from .io.checksums import output_records
 from .io.vector import read_survey_area
 from .output_guard import check_before_run, check_same_survey
@@ -380,14 +381,15 @@ def _import_for_products(config: Config) -> None:
     they are used they lengthened the run's tail, when the workers are done. The client's main
     thread only waits for results meanwhile.
     """
-    import pyogrio  # noqa: F401
+    with collector_paused():  # pipeline.gc_pause
+        import pyogrio  # noqa: F401
 
-    if config.holes.enabled and config.flightplan.enabled:
-        from numba.core.registry import cpu_target
+        if config.holes.enabled and config.flightplan.enabled:
+            from numba.core.registry import cpu_target
 
-        from . import flight_planning  # noqa: F401
+            from . import flight_planning  # noqa: F401
 
-        cpu_target.target_context.refresh()
+            cpu_target.target_context.refresh()
 
 
 def _submit_stage(runner: _Runner, stage: Stage, state: RunState, submitted: dict[Dependency, Any]) -> list[Any]:

@@ -12,5 +12,10 @@ from numba.core.registry import cpu_target
 # the stages the first tasks run (also distributed's preloads of each worker: imported once, here)
 import pipeline.stages.bin_tiles
 import pipeline.stages.merge_cells  # noqa: F401
+from pipeline.gc_pause import freeze_imports
 
 cpu_target.target_context.refresh()
+
+# the last preload: what the imports made is frozen and the collector runs again (paused by
+# pipeline.fork_server_start, the first), so the workers fork with it running over their own objects
+freeze_imports()

@@ -153,8 +153,14 @@ import json, sys
 
 def tick(dask_worker):
     import dask
+    import gc
 
-    return dask.config.get("distributed.admin.tick.interval"), "profile" in dask_worker.periodic_callbacks
+    return (
+        dask.config.get("distributed.admin.tick.interval"),
+        "profile" in dask_worker.periodic_callbacks,
+        gc.isenabled(),
+        gc.get_freeze_count(),
+    )
 
 def main():
     from pipeline.cluster import LOCAL_CLUSTER_CONFIG, ClusterStart
@@ -174,7 +180,8 @@ if __name__ == "__main__":
 def test_the_client_starts_the_cluster_without_pandas_and_its_workers_tick_slowly(tmp_path):
     """distributed's own fork-server preload list imported pandas into the client (0.3 s of its
     start) only to name it to a server already running ours; the workers run with the local
-    cluster's settings (an event-loop check every second, not every 20 ms; no statistical profiler)."""
+    cluster's settings (an event-loop check every second, not every 20 ms; no statistical profiler),
+    and with the garbage collector running over their own objects: the fork server's imports frozen."""
     from pipeline.cluster import LOCAL_CLUSTER_CONFIG
 
     probe = tmp_path / "probe.py"
@@ -182,7 +189,9 @@ def test_the_client_starts_the_cluster_without_pandas_and_its_workers_tick_slowl
     done = subprocess.run([sys.executable, str(probe)], capture_output=True, text=True, timeout=120, check=True)
     found = json.loads(done.stdout.strip().splitlines()[-1])
     assert found["pandas"] is False
-    assert found["ticks"] == [[LOCAL_CLUSTER_CONFIG["distributed.admin.tick.interval"], False]]  # and no profiler
+    [(tick, profiler, collecting, frozen)] = found["ticks"]
+    assert (tick, profiler) == (LOCAL_CLUSTER_CONFIG["distributed.admin.tick.interval"], False)  # and no profiler
+    assert collecting and frozen > 100_000  # distributed, numpy, numba and the stages: some 400,000 objects
 
 
 def test_the_run_module_leaves_scipy_optimize_to_the_fills_that_need_it():

@@ -56,18 +56,22 @@ if TYPE_CHECKING:
 )
 def run_command(inputs: tuple[str, ...], out_dir: str, **options: Any) -> None:
     """Build the DSM of a survey. INPUT may be files, folders or globs of LAS/LAZ/COPC."""
-    from ..cluster import ClusterStart
+    from ..gc_pause import collector_paused
 
-    config = _config(options)
-    for name, path in (("AOI", options["aoi"]), ("water", options["water"])):
-        if path is not None and not Path(path).exists():
-            raise InputDataError(path, f"{name} file not found")
-    scheduler = options["scheduler"]
-    # the workers start while the pipeline's modules are imported and the headers scanned
-    starting = None if scheduler else ClusterStart.begin(config)
+    with collector_paused():  # the start's imports (0.2 s of collections: pipeline.gc_pause)
+        from ..cluster import ClusterStart
+
+        config = _config(options)
+        for name, path in (("AOI", options["aoi"]), ("water", options["water"])):
+            if path is not None and not Path(path).exists():
+                raise InputDataError(path, f"{name} file not found")
+        scheduler = options["scheduler"]
+        # the workers start while the pipeline's modules are imported and the headers scanned
+        starting = None if scheduler else ClusterStart.begin(config)
     summary = None
     try:
-        from ..run import run_survey
+        with collector_paused():
+            from ..run import run_survey
 
         summary = run_survey(
             inputs,
