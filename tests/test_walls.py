@@ -318,3 +318,13 @@ def _forward_differences(params, upper, observations):
         shifted[j] += h
         columns.append((step_residuals(shifted, *observations) - base) / (shifted[j] - params[j]))
     return np.column_stack(columns)
+
+
+def test_a_segment_s_middle_pixel_is_numpy_s_median_truncated():
+    """find_walls fits a segment in the cell holding its median pixel: the same pixel as int(np.median)."""
+    from pipeline.holes.walls import _median_index
+
+    rng = np.random.default_rng(11)
+    for _ in range(2000):
+        indices = rng.integers(0, int(rng.integers(1, 3000)), int(rng.integers(1, 60)))
+        assert _median_index(indices) == int(np.median(indices))

@@ -421,20 +421,21 @@ def _support(
     pad = int(math.ceil(support_px)) + 2
     r0, r1 = max(int(segment.rows.min()) - pad, 0), min(int(segment.rows.max()) + pad + 1, h)
     c0, c1 = max(int(segment.cols.min()) - pad, 0), min(int(segment.cols.max()) + pad + 1, w)
-    rr, cc = np.mgrid[r0:r1, c0:c1]
-    xc, yc = cc.ravel() + 0.5, rr.ravel() + 0.5
+    # pixel centres of the box as a row and a column, broadcast: the same values as a full grid of them
+    xc, yc = (np.arange(c0, c1) + 0.5)[None, :], (np.arange(r0, r1) + 0.5)[:, None]
     d0 = xc * n0[0] + yc * n0[1] - rho0
     tt = xc * along0[0] + yc * along0[1]
     near = (np.abs(d0) <= support_px) & (tt >= t_lo) & (tt <= t_hi)
-    zx = zmax[r0:r1, c0:c1].ravel()[near]
-    zn = zmin_arr[r0:r1, c0:c1].ravel()[near] if zmin_arr is not None else np.full(len(zx), np.nan)
+    near_rows, near_cols = np.nonzero(near)  # row by row, as the box's pixels are ordered
+    zx = zmax[r0:r1, c0:c1][near_rows, near_cols]
+    zn = zmin_arr[r0:r1, c0:c1][near_rows, near_cols] if zmin_arr is not None else np.full(len(zx), np.nan)
     if pixel_values == "centre":
         k = np.ones(len(zx))
     elif count is not None:
-        k = np.asarray(count, dtype=np.float64)[r0:r1, c0:c1].ravel()[near]
+        k = np.asarray(count, dtype=np.float64)[r0:r1, c0:c1][near_rows, near_cols]
     else:
         k = np.full(len(zx), float(points_per_pixel))
-    return _Support(xc[near], yc[near], d0[near], zx, zn, k)
+    return _Support(xc[0, near_cols], yc[near_rows, 0], d0[near_rows, near_cols], zx, zn, k)
 
 
 class _StepFit(NamedTuple):
@@ -573,7 +574,7 @@ def find_walls(
     walls = []
     for seg in segments:
         if region is not None:
-            row, col = int(np.median(seg.rows)), int(np.median(seg.cols))
+            row, col = _median_index(seg.rows), _median_index(seg.cols)
             rows, cols = region
             if not (rows.start <= row < rows.stop and cols.start <= col < cols.stop):
                 continue
@@ -590,6 +591,15 @@ def find_walls(
         if wall is not None:
             walls.append(wall)
     return walls
+
+
+def _median_index(indices: np.ndarray) -> int:
+    """``int(np.median(indices))`` of non-negative integers (the two middle values' mean, truncated),
+    without numpy's median set-up (0.3 s of a 42 M-point survey's 4,700 segments)."""
+    n = len(indices)
+    lower, upper = (n - 1) // 2, n // 2
+    middle = np.partition(indices, (lower, upper))
+    return (int(middle[lower]) + int(middle[upper])) // 2
 
 
 def _uphill(zmax: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
