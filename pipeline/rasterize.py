@@ -125,6 +125,11 @@ class VoxelSet:
             _rehash(self.table, new)
             self.table = new
 
+    @property
+    def room(self) -> int:
+        """Keys that fit before the load factor passes 1/2."""
+        return len(self.table) // 2 - self.size
+
     def keys(self) -> np.ndarray:
         return self.table[self.table != _EMPTY_KEY]
 
@@ -201,26 +206,33 @@ class HeightMapAccumulator:
         used, outside : int
             Points binned, and kept points that fell outside the window.
         """
-        self.overflow.reserve(int(len(x)))
         w = self.window
         s = self.statistics
         if water is None:
             water = np.zeros(len(x), bool)
         if source is None:
             source = np.full(len(x), np.iinfo(np.uint16).max, np.uint16)  # +1 wraps to 0: no line
-        used, outside, added = _bin_points_kernel(
-            x, y, z, keep, water, source,
-            float(scales[0]), float(scales[1]), float(scales[2]),
-            float(offsets[0]), float(offsets[1]), float(offsets[2]),
-            *self._geometry,
-            w.row_off, w.col_off, w.height, w.width,
-            self.voxel_height,
-            s.zmax.reshape(-1), s.zmin.reshape(-1), s.count.reshape(-1), s.voxels.reshape(-1),
-            s.water.reshape(-1), s.source.reshape(-1),
-            self.voxel_base.reshape(-1), self.voxel_bits.reshape(-1),
-            self.overflow.table,
-        )  # fmt: skip
-        self.overflow.size += added
+        # the overflow set grows as it fills: the kernel stops before a point while the set is at
+        # its load limit and goes on from there (a set sized for every point of a chunk to overflow
+        # was 16 MB written a 650,000-point tile, against a few thousand keys)
+        used = outside = start = 0
+        while start < len(x):
+            if self.overflow.room <= 0:
+                self.overflow.reserve(max(self.overflow.size, 1 << 10))
+            chunk_used, chunk_outside, added, start = _bin_points_kernel(
+                x, y, z, keep, water, source, start, self.overflow.room,
+                float(scales[0]), float(scales[1]), float(scales[2]),
+                float(offsets[0]), float(offsets[1]), float(offsets[2]),
+                *self._geometry,
+                w.row_off, w.col_off, w.height, w.width,
+                self.voxel_height,
+                s.zmax.reshape(-1), s.zmin.reshape(-1), s.count.reshape(-1), s.voxels.reshape(-1),
+                s.water.reshape(-1), s.source.reshape(-1),
+                self.voxel_base.reshape(-1), self.voxel_bits.reshape(-1),
+                self.overflow.table,
+            )  # fmt: skip
+            self.overflow.size += added
+            used, outside = used + chunk_used, outside + chunk_outside
         return int(used), int(outside)
 
     def add_counts(
@@ -443,7 +455,7 @@ def _rehash(old, new):
 
 @numba.njit(cache=True, nogil=True)
 def _bin_points_kernel(
-    x, y, z, keep, water, source,
+    x, y, z, keep, water, source, start, room,
     scale_x, scale_y, scale_z, offset_x, offset_y, offset_z,
     resolution, col_min, row_top, grid_width, lattice_offset,
     win_row_off, win_col_off, win_height, win_width,
@@ -454,7 +466,9 @@ def _bin_points_kernel(
     used = 0
     outside = 0
     added = 0
-    for i in range(len(x)):
+    for i in range(start, len(x)):
+        if added >= room:  # the overflow set at its load limit: the caller grows it and goes on from point i
+            return used, outside, added, i
         if not keep[i]:
             continue
         px = np.float64(x[i]) * scale_x + offset_x
@@ -506,4 +520,4 @@ def _bin_points_kernel(
                 added += 1
                 if voxels[p] < 65535:
                     voxels[p] += 1
-    return used, outside, added
+    return used, outside, added, len(x)

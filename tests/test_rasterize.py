@@ -84,6 +84,27 @@ def test_kernel_matches_numpy_reference(rng, resolution, chunk):
     assert len(keys) == voxels[5:25, 7:37].sum()
 
 
+def test_the_overflow_set_grows_as_it_fills_and_binning_resumes_where_it_stopped(rng):
+    """Voxels beyond a pixel's 64-level mask go to a set that starts small and grows when half full: the
+    kernel stops before the point that would pass the limit and the next call goes on from it, so every
+    statistic is the reference's, with the set sized by its keys, not by the points of a chunk."""
+    n = 30_000
+    x, y = rng.uniform(100.0, 104.0, n), rng.uniform(200.0, 204.0, n)  # 16 pixels
+    # one point in ten far above or below its pixel's first: about 2,500 keys, grown from 512 in steps
+    z = np.where(rng.random(n) < 0.1, rng.uniform(-50.0, 950.0, n), rng.normal(20.0, 2.0, n))
+    keep = rng.random(n) < 0.9
+    grid = Grid.covering([(100, 200, 104, 204)], resolution=1.0, cell_px=32, halo_px=0, crs_wkt="")
+    acc, used, outside = accumulate(grid, grid.window, x, y, z, keep, n)
+    zmax, zmin, count, voxels = reference_statistics(grid, x[keep], y[keep], z[keep], 0.5)
+    assert (used, outside) == (keep.sum(), 0)
+    np.testing.assert_array_equal(acc.statistics.count, count)
+    np.testing.assert_array_equal(acc.statistics.zmax, zmax)
+    np.testing.assert_array_equal(acc.statistics.voxels, voxels)
+    in_masks = int(np.unpackbits(acc.voxel_bits.view(np.uint8)).sum())
+    assert acc.overflow.size == voxels.sum() - in_masks > 1024
+    assert acc.overflow.size < len(acc.overflow.table) <= 4 * acc.overflow.size  # doubled as it filled
+
+
 def test_points_outside_the_window_are_counted_not_binned(rng):
     x, y, z = make_points(rng, 5_000)
     grid = Grid.covering([(100, 200, 160, 250)], resolution=1.0, cell_px=32, halo_px=2, crs_wkt="")
