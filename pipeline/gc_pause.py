@@ -9,6 +9,9 @@ a generation no collection visits), later collections walk only what the run its
 In the fork server the freeze also keeps the workers it forks from writing the collector's
 marks into the pages they share with it (each write a page copied).
 
+Only a process that is holefill's own freezes (:func:`own_process`: the ``holefill`` script and
+the fork server): a frozen object is never collected, so a program that calls holefill in its
+own process, again and again, keeps its collector as it was, paused over the imports only.
 Import-time objects live as long as the process in any case; a cycle of garbage made while
 importing stays (a few kilobytes), the price the documentation of :func:`gc.freeze` names.
 """
@@ -19,16 +22,28 @@ import contextlib
 import gc
 from collections.abc import Iterator
 
+_own_process = False
+
+
+def own_process() -> None:
+    """Mark this process as holefill's own (the ``holefill`` script, the fork server): its imports may be frozen."""
+    global _own_process
+    _own_process = True
+
 
 @contextlib.contextmanager
 def collector_paused() -> Iterator[None]:
-    """Pause the collector over a block of imports; on leaving, freeze what exists and collect as before."""
+    """Pause the collector over a block of imports; on leaving, freeze what exists (holefill's own
+    process only) and collect as before."""
     was_enabled = gc.isenabled()
     gc.disable()
     try:
         yield
     finally:
-        freeze_imports(enable=was_enabled)
+        if _own_process:
+            gc.freeze()
+        if was_enabled:
+            gc.enable()
 
 
 def pause() -> None:
@@ -36,8 +51,7 @@ def pause() -> None:
     gc.disable()
 
 
-def freeze_imports(*, enable: bool = True) -> None:
-    """Freeze every object made so far, then let the collector run again (where ``enable``)."""
+def freeze_imports() -> None:
+    """Freeze every object made so far, then let the collector run again (the fork server, after its preloads)."""
     gc.freeze()
-    if enable:
-        gc.enable()
+    gc.enable()

@@ -104,6 +104,9 @@ def console_main() -> NoReturn:
     clean-up), stdout and stderr are flushed; then the process leaves with its status. A
     program calling :data:`main` in-process keeps Python's ordinary exit.
     """
+    from ..gc_pause import own_process
+
+    own_process()  # the script's process is holefill's: what it imports is frozen (pipeline.gc_pause)
     try:
         main()  # click's standalone mode: always raises SystemExit
         status: object = 0
