@@ -8,6 +8,7 @@ default, decode, ...) so every command sees the same machine state; best of N.
 
     .venv/bin/python bench/bench_command.py                       # ~42 M points
     .venv/bin/python bench/bench_command.py --points 200e6        # ~211 M points, 320 tiles
+    .venv/bin/python bench/bench_command.py --tile-m 500          # the same points in 16 tiles (issue 18's layout)
     .venv/bin/python bench/bench_command.py --workers 16,4,1      # scaling: each count in turn
     .venv/bin/python bench/bench_command.py --compare before=/tmp/old-checkout   # and another version
 
@@ -108,15 +109,16 @@ def timed(command: list[str], pythonpath: str | None = None) -> tuple[float, int
     return result["s"], result["peak"], result["out"]
 
 
-def base_survey(bench_dir: Path) -> Path:
+def base_survey(bench_dir: Path, tile_m: float = 250.0) -> Path:
+    """The 42 M-point survey in tiles of ``tile_m`` (250 m: 64 tiles; 500 m: 16), generated once."""
     from pipeline.synth import generate_survey, preset
 
-    folder = bench_dir / "survey_2000m_250m"
+    folder = bench_dir / f"survey_2000m_{tile_m:g}m"
     marker = folder / "complete.json"
     if not marker.exists():
         shutil.rmtree(folder, ignore_errors=True)
         t0 = time.perf_counter()
-        spec = preset("bench", width_m=2000.0, height_m=2000.0, tile_size_m=250.0)
+        spec = preset("bench", width_m=2000.0, height_m=2000.0, tile_size_m=tile_m)
         synthetic = generate_survey(folder, spec, keep_truth=False)
         seconds = time.perf_counter() - t0
         marker.write_text(
@@ -142,7 +144,8 @@ def large_survey(bench_dir: Path, base: Path, copies: int, columns: int | None =
     if copies == 1:
         return base
     columns = columns or copies
-    folder = bench_dir / (f"survey_2000m_x{copies}" + (f"_{columns}cols" if columns < copies else ""))
+    tiles = "" if base.name == "survey_2000m_250m" else "_" + base.name.rsplit("_", 1)[1]  # e.g. "_500m"
+    folder = bench_dir / (f"survey_2000m_x{copies}{tiles}" + (f"_{columns}cols" if columns < copies else ""))
     marker = folder / "complete.json"
     if not marker.exists():
         shutil.rmtree(folder, ignore_errors=True)
@@ -178,6 +181,12 @@ def main() -> None:
     parser.add_argument("--json", type=Path, help="also write the figures to this file (after every command)")
     parser.add_argument("--tiles", type=int, help="time only the first N tiles of the survey (a quick check)")
     parser.add_argument(
+        "--tile-m",
+        type=float,
+        default=250.0,
+        help="tile size of the generated survey in metres: 250 (64 tiles a 42 M copy, the default) or 500 (16)",
+    )
+    parser.add_argument(
         "--time-limit",
         type=float,
         help="seconds: start no repeat of a command that would end after this (the first round always runs)",
@@ -199,7 +208,7 @@ def main() -> None:
     started = time.perf_counter()
 
     args.bench_dir = args.bench_dir.resolve()  # the compared checkouts' commands start elsewhere
-    base = base_survey(args.bench_dir)
+    base = base_survey(args.bench_dir, args.tile_m)
     per_copy = json.loads((base / "complete.json").read_text())["points"]
     survey = large_survey(args.bench_dir, base, max(1, -(-int(args.points) // per_copy)), args.columns)
     files = sorted(str(p) for p in survey.glob("*.laz"))
