@@ -594,12 +594,9 @@ def find_walls(
 
 
 def _median_index(indices: np.ndarray) -> int:
-    """``int(np.median(indices))`` of non-negative integers (the two middle values' mean, truncated),
-    without numpy's median set-up (0.3 s of a 42 M-point survey's 4,700 segments)."""
-    n = len(indices)
-    lower, upper = (n - 1) // 2, n // 2
-    middle = np.partition(indices, (lower, upper))
-    return (int(middle[lower]) + int(middle[upper])) // 2
+    """``int(np.median(indices))``, through :func:`~pipeline.quantiles.linear_quantiles`: without numpy's
+    median set-up per call (0.3 s of a 42 M-point survey's 4,700 segments)."""
+    return int(linear_quantiles(indices, (0.5,))[0])
 
 
 def _uphill(zmax: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
