@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import struct
 
+import laspy
 import numpy as np
 import pytest
 from pyproj import CRS
 
 from pipeline.errors import CRSError, InputDataError
-from pipeline.io.las import decode_only, header_bounds, read_header
+from pipeline.io import las
+from pipeline.io.las import decode_only, header_bounds, iter_point_chunks, read_header
 from pipeline.survey.scan import find_inputs, scan_survey
 
 from .lasfiles import random_points, write_points
@@ -98,6 +100,27 @@ def test_truncated_laz_fails_on_decoding(tmp_path, rng):
     read_header(path)  # the header alone is intact
     with pytest.raises(InputDataError, match=r"cut\.laz: point data cannot be decoded.*truncated"):
         decode_only(path, 10_000)
+
+
+def test_decoding_on_every_core_gives_the_same_points_and_the_same_errors(tmp_path, rng):
+    """``parallel`` (the flight planner's ground) decodes the LAZ chunks on lazrs's threads: same points, same checks."""
+    x, y, z = random_points(rng, 180_000)  # four LAZ chunks of 50,000 points
+    classes = rng.choice(np.array([1, 2, 6, 9], np.uint8), len(x))
+    path = write_points(tmp_path / "t.laz", x, y, z, classification=classes, withheld=rng.random(len(x)) < 0.01)
+
+    def decoded(parallel):
+        chunks = list(iter_point_chunks(path, 70_000, parallel=parallel))
+        return [np.concatenate([getattr(c, f) for c in chunks]) for f in ("X", "Y", "Z", "classification", "withheld")]
+
+    assert las._laz_backend(parallel=True) is laspy.LazBackend.LazrsParallel
+    serial, parallel = decoded(False), decoded(True)
+    assert len(serial[0]) == len(x)
+    for a, b in zip(serial, parallel, strict=True):
+        np.testing.assert_array_equal(a, b)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputDataError, match=r"t\.laz: point data cannot be decoded.*truncated"):
+        decoded(True)
 
 
 @pytest.mark.parametrize("suffix", [".las", ".laz"])

@@ -220,7 +220,8 @@ def read_ground(
     for path, b in zip(point_files, bounds if bounds is not None else file_bounds(point_files), strict=True):
         if b[2] < x0 or b[0] > x1 or b[3] < y0 or b[1] > y1:
             continue
-        for chunk in iter_point_chunks(path, _CHUNK_POINTS):
+        # on every core: a run's client plans beside the workers' last tasks, then alone; `holefill plan` has the machine
+        for chunk in iter_point_chunks(path, _CHUNK_POINTS, parallel=True):
             x, y, z = chunk.coordinates()
             c = np.floor((x - t.c) / t.a).astype(np.int64)
             r = np.floor((y - t.f) / t.e).astype(np.int64)

@@ -289,6 +289,7 @@ def iter_point_chunks(
     *,
     selection: laspy.DecompressionSelection = NEEDED_LAYERS,
     pulses: bool = False,
+    parallel: bool = False,
 ) -> Iterator[PointChunk]:
     """Decode a file once, ``chunk_points`` points at a time.
 
@@ -297,10 +298,13 @@ def iter_point_chunks(
     default). A file that ends early, or decodes fewer points than its header
     declares, raises :class:`InputDataError`. With ``pulses``, the sensor's layers
     (``SENSOR_LAYERS``) are decoded too and each chunk carries its :class:`PulseFields`.
+    With ``parallel``, the LAZ chunks of each read are decompressed on every core (lazrs's
+    threads): for a process that decodes while the cores are otherwise free (the flight
+    planner's ground), never for a worker, whose cores the other workers use.
     """
     if pulses:
         selection = selection | SENSOR_LAYERS
-    for records, scales, offsets in _iter_records(path, chunk_points, selection):
+    for records, scales, offsets in _iter_records(path, chunk_points, selection, parallel=parallel):
         yield point_chunk(records, scales, offsets, pulses=pulses)
 
 
@@ -327,14 +331,14 @@ def _return_numbers(records: np.ndarray) -> np.ndarray:
 
 
 def _iter_records(
-    path: str | os.PathLike, chunk_points: int, selection: laspy.DecompressionSelection
+    path: str | os.PathLike, chunk_points: int, selection: laspy.DecompressionSelection, *, parallel: bool = False
 ) -> Iterator[tuple[np.ndarray, tuple[float, float, float], tuple[float, float, float]]]:
     """A file's raw point records, chunk by chunk, with the header's scales and offsets."""
     path = Path(path)
     decoded = 0
     expected = None
     try:
-        backend = laspy.LazBackend.Lazrs if laspy.LazBackend.Lazrs.is_available() else None
+        backend = _laz_backend(parallel)
         with laspy.open(path, laz_backend=backend, decompression_selection=selection) as reader:
             header = reader.header
             expected = int(header.point_count)
@@ -354,6 +358,13 @@ def _iter_records(
         raise InputDataError(path, f"point data cannot be decoded {where}: {e} (file corrupt or truncated)") from None
     if expected is not None and decoded < expected:
         raise InputDataError(path, f"header point count is {expected:,} but only {decoded:,} points could be decoded")
+
+
+def _laz_backend(parallel: bool) -> laspy.LazBackend | None:
+    """lazrs, on every core with ``parallel`` (None: laspy picks whatever backend is installed)."""
+    if parallel and laspy.LazBackend.LazrsParallel.is_available():
+        return laspy.LazBackend.LazrsParallel
+    return laspy.LazBackend.Lazrs if laspy.LazBackend.Lazrs.is_available() else None
 
 
 #: A header whose box leaves more than this area (CRS units squared) per point is not believed.
