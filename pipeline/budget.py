@@ -8,7 +8,8 @@ how large every array will be, so such a run is refused at planning with one lin
 The estimates are per pixel (or per footprint block) of what the stages allocate:
 
 * a stage-1 read task holds its window's accumulators (:class:`pipeline.rasterize.
-  HeightMapAccumulator`: six statistics and two voxel masks, :data:`READ_BYTES_PER_PX`);
+  HeightMapAccumulator`: seven statistics and two voxel masks, :data:`READ_BYTES_PER_PX`, and
+  the ground's sums where flights are planned, :data:`GROUND_BYTES_PER_PX`);
 * a cell task (merge, detection, filling, writing) holds a few statistics and masks of
   its cell with its halo (:data:`CELL_BYTES_PER_PX`);
 * the client holds the survey's footprint map, one byte per block of the data's
@@ -29,8 +30,10 @@ from .config import AUTO, Config
 from .errors import ConfigError, InputDataError
 
 #: Bytes per pixel of a read task's accumulators: zmax, zmin, count (4 each), voxels,
-#: water, source (2 each), the voxel base and bits (8 each).
-READ_BYTES_PER_PX = 34
+#: water, source, covered (2 each), the voxel base and bits (8 each).
+READ_BYTES_PER_PX = 36
+#: ... and where flights are planned, the ground points' height sums and counts (8 + 4).
+GROUND_BYTES_PER_PX = 12
 #: Bytes per pixel of a cell task with its halo (statistics, masks, labels, heights).
 CELL_BYTES_PER_PX = 64
 #: Bytes per footprint block of the survey's footprint map on the client (the map, its
@@ -108,8 +111,9 @@ def _check_footprint(plan, budget: MemoryBudget) -> None:
 
 
 def _check_tasks(plan, config: Config, budget: MemoryBudget) -> None:
+    per_px = READ_BYTES_PER_PX + (GROUND_BYTES_PER_PX if config.plans_flights else 0)
     reads = [
-        (w.height * w.width * READ_BYTES_PER_PX, plan.survey.tiles[plan.reads[i].tile_index].path, w)
+        (w.height * w.width * per_px, plan.survey.tiles[plan.reads[i].tile_index].path, w)
         for i, w in enumerate(plan.read_windows)
     ]
     cells = [

@@ -461,6 +461,12 @@ class Config:
     flightplan: FlightPlanConfig = field(default_factory=FlightPlanConfig)
     fill: FillConfig = field(default_factory=FillConfig)
 
+    @property
+    def plans_flights(self) -> bool:
+        """Whether a run plans re-flights (holes found and ``flightplan.enabled``): then stage 1 also sums the
+        ground points' heights for the take-off (:class:`pipeline.parameters.ReadParams`)."""
+        return self.holes.enabled and self.flightplan.enabled
+
     def replace(self, section: str, *, source: str = "replace()", **values: Any) -> Config:
         """Return a copy with some keys of one section changed, validated like a file.
 

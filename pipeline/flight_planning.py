@@ -29,7 +29,16 @@ from .errors import CRSError, InputDataError
 from .flightplan.altitude import ellipsoid_transformer, vertical_crs_for
 from .flightplan.mission import FlightPlan, HoleInput, plan_mission
 from .flightplan.takeoff_search import TAKEOFF_MAX_M, BoxGrid, GroundGrid
-from .io.flightplan_files import DsmWindows, file_bounds, open_dsm, read_ground, read_holes, write_flightplan
+from .io.flightplan_files import (
+    CellGround,
+    DsmWindows,
+    file_bounds,
+    open_dsm,
+    read_cell_ground,
+    read_ground,
+    read_holes,
+    write_flightplan,
+)
 from .parameters import flight_params
 
 __all__ = ["plan_flights", "run_point_files", "summarize"]
@@ -45,6 +54,7 @@ def plan_flights(
     *,
     home: tuple[float, float] | None = None,
     point_files: Sequence[str | os.PathLike] | None = None,
+    cell_ground: CellGround | None = None,
 ) -> dict[str, Any]:
     """Plan re-flights for the holes of ``holes_gpkg`` over ``dsm_path`` and write all files.
 
@@ -58,6 +68,9 @@ def plan_flights(
         The survey's LAS/LAZ files (in the DSM's CRS), for the ground-class points at
         take-off; default: the inputs listed in ``manifest.json`` beside ``holes_gpkg``,
         where they still exist. Without any, home and its height come from the DSM.
+    cell_ground : CellGround, optional
+        A run's own: the ground points' sums stage 1 kept with the cells, read instead of
+        the point files wherever they were kept.
 
     Returns
     -------
@@ -84,7 +97,10 @@ def plan_flights(
     with open_dsm(dsm_path, bounds) as (dsm, transform, dsm_crs):
         if not _same_crs(dsm_crs, holes_crs):
             raise CRSError(dsm_path, f"the DSM's CRS differs from the holes' CRS ({pyproj.CRS(holes_crs).name})")
-        plan = _plan_over(dsm, transform, dsm_crs, (holes, holes_crs), config, home=home, point_files=point_files)
+        plan = _plan_over(
+            dsm, transform, dsm_crs, (holes, holes_crs), config,
+            home=home, point_files=point_files, cell_ground=cell_ground,
+        )  # fmt: skip
     if plan.home_warning:
         logger.warning("flight plan: %s", plan.home_warning)
     files = write_flightplan(
@@ -102,21 +118,27 @@ def _plan_over(
     *,
     home: tuple[float, float] | None,
     point_files: Sequence[str | os.PathLike],
+    cell_ground: CellGround | None = None,
 ) -> FlightPlan:
-    """The mission over the DSM window, the ground read near the take-off from ``point_files``."""
+    """The mission over the DSM window, the ground read near the take-off from ``cell_ground`` or ``point_files``."""
     holes, holes_crs = holes_and_crs
     params = flight_params(config)
     ground = None
-    if point_files:
+    if point_files or cell_ground is not None:
         inputs = list(point_files)
         headers: list[tuple[float, float, float, float]] = []  # the files' bounds, read at the first box
 
         def read_box(box: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
             r0, c0, r1, c1 = box
             corner = transform @ Affine.translation(c0, r0)
+            shape = (r1 - r0, c1 - c0)
+            if cell_ground is not None and (kept := read_cell_ground(cell_ground, corner, shape)) is not None:
+                return kept
+            if not inputs:  # neither kept sums nor points: no ground known in the box
+                return np.full(shape, np.nan), np.zeros(shape)
             if not headers:
                 headers.extend(file_bounds(inputs))
-            return read_ground(inputs, corner, (r1 - r0, c1 - c0), headers)
+            return read_ground(inputs, corner, shape, headers)
 
         # the ground is read in boxes near the take-off: grids that hold those boxes alone
         ground = GroundGrid(BoxGrid(dsm.shape, np.nan), BoxGrid(dsm.shape, 0.0), reader=read_box)

@@ -110,6 +110,55 @@ class PixelStatistics:
         return PixelStatistics(window, **{name: getattr(self, name)[rows, cols] for name in STATISTIC_NAMES})
 
 
+@dataclass
+class GroundSums:
+    """Ground-class points (ASPRS 2, not withheld) of a window: the sum of their heights and their number per pixel.
+
+    Kept with stage 1's statistics where flights are planned: the take-off height is the
+    ground's mean height at the take-off pixel (:mod:`pipeline.flightplan.takeoff`), and
+    summing it while the points are decoded anyway spares the planner a second decoding of
+    the files near the take-off. Every ground point counts, whatever the class filter keeps:
+    the drone stands on the ground, not on the model.
+    """
+
+    window: PixelWindow
+    height_sum: np.ndarray  # float64, (M, N)
+    count: np.ndarray  # uint32, (M, N)
+
+    @classmethod
+    def empty(cls, window: PixelWindow) -> GroundSums:
+        return cls(window, np.zeros(window.shape, np.float64), np.zeros(window.shape, np.uint32))
+
+    def crop(self, window: PixelWindow) -> GroundSums:
+        """The sums of a sub-window (views, not copies)."""
+        rows, cols = window.slices_within(self.window)
+        return GroundSums(window, self.height_sum[rows, cols], self.count[rows, cols])
+
+    def mean_height(self) -> np.ndarray:
+        """Mean ground height per pixel; NaN where no ground point fell."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(self.count > 0, self.height_sum / np.maximum(self.count, 1), np.nan)
+
+
+def merge_ground_sums(window: PixelWindow, parts: list[GroundSums]) -> GroundSums:
+    """The ground sums of ``window`` from several tiles' (stage 2): sums and counts add, tiles overlapping or not."""
+    merged = GroundSums.empty(window)
+    for part in parts:
+        overlap = part.window.intersection(window)
+        if overlap.is_empty:
+            continue
+        src, dst = part.crop(overlap), merged.crop(overlap)
+        dst.height_sum += src.height_sum
+        dst.count += src.count
+    return merged
+
+
+#: The kernel's arguments where no ground is summed.
+_NO_POINTS = np.zeros(0, bool)
+_NO_SUMS = np.zeros(0, np.float64)
+_NO_COUNTS = np.zeros(0, np.uint32)
+
+
 class VoxelSet:
     """A growable open-addressing hash set of int64 voxel keys (the overflow of the bit masks)."""
 
@@ -147,6 +196,9 @@ class HeightMapAccumulator:
         ``row_top - floor(y / resolution + offset)``.
     voxel_height : float
         In z units.
+    ground : bool
+        Also sum the ground-class points' heights per pixel (:attr:`ground`), whatever the
+        class filter keeps: the flight planner's take-off height, from the one decoding.
     """
 
     def __init__(
@@ -159,8 +211,10 @@ class HeightMapAccumulator:
         grid_width: int,
         voxel_height: float,
         offset: float = 0.0,
+        ground: bool = False,
     ) -> None:
         self.statistics = PixelStatistics.empty(window)
+        self.ground = GroundSums.empty(window) if ground else None
         self.voxel_base = np.zeros(window.shape, np.int64)
         self.voxel_bits = np.zeros(window.shape, np.uint64)
         self.overflow = VoxelSet()
@@ -180,6 +234,7 @@ class HeightMapAccumulator:
         *,
         water: np.ndarray | None = None,
         source: np.ndarray | None = None,
+        ground: np.ndarray | None = None,
         scales: tuple[float, float, float] = (1.0, 1.0, 1.0),
         offsets: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> tuple[int, int]:
@@ -198,6 +253,9 @@ class HeightMapAccumulator:
             Points of the water class.
         source : ndarray of uint16, shape (P,), optional
             ``point_source_id`` of each point (the flight line).
+        ground : ndarray of bool, shape (P,), optional
+            Ground points (ASPRS 2, not withheld), summed into :attr:`ground` where the
+            accumulator keeps it, kept by the filter or not.
         scales, offsets : tuple of 3 floats
             Of the integer coordinates; the defaults leave floats unchanged.
 
@@ -212,6 +270,11 @@ class HeightMapAccumulator:
             water = np.zeros(len(x), bool)
         if source is None:
             source = np.full(len(x), np.iinfo(np.uint16).max, np.uint16)  # +1 wraps to 0: no line
+        sums = self.ground
+        if sums is None or ground is None:  # nothing summed: empty arrays tell the kernel
+            ground, ground_sum, ground_count = _NO_POINTS, _NO_SUMS, _NO_COUNTS
+        else:
+            ground_sum, ground_count = sums.height_sum.reshape(-1), sums.count.reshape(-1)
         # the overflow set grows as it fills: the kernel stops before a point while the set is at
         # its load limit and goes on from there (a set sized for every point of a chunk to overflow
         # was 16 MB written a 650,000-point tile, against a few thousand keys)
@@ -230,6 +293,7 @@ class HeightMapAccumulator:
                 s.water.reshape(-1), s.source.reshape(-1),
                 self.voxel_base.reshape(-1), self.voxel_bits.reshape(-1),
                 self.overflow.table,
+                ground, ground_sum, ground_count,
             )  # fmt: skip
             self.overflow.size += added
             used, outside = used + chunk_used, outside + chunk_outside
@@ -462,14 +526,17 @@ def _bin_points_kernel(
     voxel_height,
     zmax, zmin, count, voxels, water_count, source_max, voxel_base, voxel_bits,
     table,
+    ground, ground_sum, ground_count,
 ):  # fmt: skip
     used = 0
     outside = 0
     added = 0
+    summing = len(ground_sum) > 0
     for i in range(start, len(x)):
         if added >= room:  # the overflow set at its load limit: the caller grows it and goes on from point i
             return used, outside, added, i
-        if not keep[i]:
+        on_ground = summing and ground[i]
+        if not keep[i] and not on_ground:
             continue
         px = np.float64(x[i]) * scale_x + offset_x
         py = np.float64(y[i]) * scale_y + offset_y
@@ -479,9 +546,15 @@ def _bin_points_kernel(
         local_row = row - win_row_off
         local_col = col - win_col_off
         if local_row < 0 or local_row >= win_height or local_col < 0 or local_col >= win_width:
-            outside += 1
+            if keep[i]:
+                outside += 1
             continue
         p = local_row * win_width + local_col
+        if on_ground:
+            ground_sum[p] += pz
+            ground_count[p] += 1
+            if not keep[i]:
+                continue
         height = np.float32(pz)
         level = np.int64(np.floor(pz / voxel_height))
         if level < -LEVEL_OFFSET:

@@ -384,7 +384,7 @@ def _import_for_products(config: Config) -> None:
     with collector_paused():  # pipeline.gc_pause
         import pyogrio  # noqa: F401
 
-        if config.holes.enabled and config.flightplan.enabled:
+        if config.plans_flights:
             from numba.core.registry import cpu_target
 
             from . import flight_planning  # noqa: F401
@@ -600,13 +600,17 @@ def _plan_flights(
     if results.ground.normalised:  # safe heights need the terrain, which these heights have taken out
         flight_summary = {"not_planned": NO_TERRAIN} if hole_summary.get("listed") else {}
     else:
-        # home: flightplan.home, else the open ground nearest to the holes, from the ground points
+        # home: flightplan.home, else the open ground nearest to the holes, from the ground points: their
+        # sums stage 1 kept with the cells (parameters.ReadParams.ground), the survey's files where a cell has none
         points = [] if plan.survey.reproject else [t.path for t in plan.survey.tiles]
         # imported here: 0.5 s of modules (the planner, its file formats) a run without holes never needs
         from .flight_planning import plan_flights
+        from .io.flightplan_files import CellGround
 
+        cells = tuple((str(staging.cell_statistics(cell.id)), cell.window) for cell in plan.cells)
+        kept = CellGround(cells, plan.grid.transform)
         try:
-            flight_summary = plan_flights(gpkg, vrt, config, staging.root, point_files=points)
+            flight_summary = plan_flights(gpkg, vrt, config, staging.root, point_files=points, cell_ground=kept)
         except InputDataError as e:  # the survey's products stand; only the re-flight cannot be planned
             flight_summary = {"not_planned": e.reason}
     timer.lap("flightplan")

@@ -9,7 +9,9 @@ from pipeline.grid import Grid, PixelWindow
 from pipeline.rasterize import (
     LEVEL_BITS,
     LEVEL_OFFSET,
+    GroundSums,
     HeightMapAccumulator,
+    merge_ground_sums,
     merge_statistics,
     point_filter_mask,
     shared_pixel_mask,
@@ -103,6 +105,58 @@ def test_the_overflow_set_grows_as_it_fills_and_binning_resumes_where_it_stopped
     in_masks = int(np.unpackbits(acc.voxel_bits.view(np.uint8)).sum())
     assert acc.overflow.size == voxels.sum() - in_masks > 1024
     assert acc.overflow.size < len(acc.overflow.table) <= 4 * acc.overflow.size  # doubled as it filled
+
+
+@pytest.mark.parametrize("chunk", [1_009, 40_000])
+def test_ground_sums_take_every_ground_point_in_the_window_whatever_the_filter_keeps(rng, chunk):
+    """The take-off's ground: each pixel's ground points' heights summed and counted, points the class filter
+    dropped included, points outside the window not, none twice where the overflow set made the kernel stop."""
+    n = 40_000
+    x, y = rng.uniform(100.0, 130.0, n), rng.uniform(200.0, 225.0, n)
+    z = np.round(np.where(rng.random(n) < 0.1, rng.uniform(-50.0, 950.0, n), rng.normal(20.0, 2.0, n)), 2)
+    ground, keep = rng.random(n) < 0.4, rng.random(n) < 0.8
+    grid = Grid.covering([(100, 200, 130, 225)], resolution=1.0, cell_px=32, halo_px=0, crs_wkt="")
+    window = PixelWindow(3, 4, 15, 20)  # part of the grid: the others' points are outside
+    acc = HeightMapAccumulator(
+        window, resolution=1.0, col_min=grid.col_min, row_top=grid.row_top, grid_width=grid.width,
+        voxel_height=0.5, ground=True,
+    )  # fmt: skip
+    used = outside = 0
+    for start in range(0, n, chunk):
+        s = slice(start, start + chunk)
+        u, o = acc.add(x[s], y[s], z[s], keep[s], ground=ground[s])
+        used, outside = used + u, outside + o
+    rows, cols = grid.pixel_rows_cols(x, y)
+    rows, cols = rows - window.row_off, cols - window.col_off
+    inside = (rows >= 0) & (rows < window.height) & (cols >= 0) & (cols < window.width)
+    assert (used, outside) == ((keep & inside).sum(), (keep & ~inside).sum())  # the counts of kept points alone
+    pixel = (rows * window.width + cols)[inside & ground]
+    counts = np.bincount(pixel, minlength=window.height * window.width).reshape(window.shape)
+    sums = np.bincount(pixel, weights=z[inside & ground], minlength=counts.size).reshape(window.shape)
+    assert acc.ground is not None and acc.overflow.size > 0
+    np.testing.assert_array_equal(acc.ground.count, counts)
+    np.testing.assert_allclose(acc.ground.height_sum, sums, rtol=1e-12, atol=1e-9)
+    assert (ground & ~keep & inside).sum() > 1000  # the filter dropped ground points, and they count
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_allclose(acc.ground.mean_height(), np.where(counts > 0, sums / counts, np.nan), rtol=1e-12)
+    # the statistics are those of the kept points alone
+    zmax, _, count, _ = reference_statistics(grid, x[keep], y[keep], z[keep], 0.5)
+    np.testing.assert_array_equal(acc.statistics.count, count[window.slices_within(grid.window)])
+    np.testing.assert_array_equal(acc.statistics.zmax, zmax[window.slices_within(grid.window)])
+    # tiles overlapping a cell: sums and counts add
+    halves = [acc.ground.crop(PixelWindow(3, 4, 15, 12)), acc.ground.crop(PixelWindow(3, 10, 15, 14))]
+    merged = merge_ground_sums(window, [GroundSums(h.window, h.height_sum.copy(), h.count.copy()) for h in halves])
+    overlap = PixelWindow(3, 10, 15, 6).slices_within(window)
+    expected = acc.ground.count.copy()
+    expected[overlap] *= 2
+    np.testing.assert_array_equal(merged.count, expected)
+
+
+def test_no_ground_sums_unless_asked(rng):
+    x, y, z = make_points(rng, 2_000)
+    grid = Grid.covering([(100, 200, 160, 250)], resolution=1.0, cell_px=32, halo_px=2, crs_wkt="")
+    acc, _, _ = accumulate(grid, grid.window, x, y, z, np.ones(len(x), bool), 1000)
+    assert acc.ground is None
 
 
 def test_points_outside_the_window_are_counted_not_binned(rng):

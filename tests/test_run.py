@@ -103,6 +103,56 @@ def test_dsm_does_not_depend_on_cell_size_or_tiling(tmp_path, survey_points, das
 
 
 @pytest.mark.slow
+def test_the_take_off_ground_stage_1_keeps_is_the_ground_points_read_again_whatever_the_tiling(
+    tmp_path, survey_points, dask_client
+):
+    """A run planning flights sums the ground points' heights per pixel while it decodes them (every
+    ground point not withheld, the class filter's choice aside); the planner reads those sums from the
+    cells instead of decoding the files again: the same mean heights and water points as
+    ``read_ground`` over the files, whatever the tiling and the cells."""
+    from pipeline.io.flightplan_files import CellGround, read_cell_ground, read_ground
+    from pipeline.io.intermediate import load_cell_ground
+
+    x, y, z = survey_points
+    rng = np.random.default_rng(11)
+    classes = rng.choice(np.array([1, 2, 2, 5, 6, 9], np.uint8), len(x))
+    withheld = rng.random(len(x)) < 0.05
+    kept = {}
+    for tiling, cell_m in [("one", 1000.0), ("quadrants", 32.0), ("strips", 20.0)]:
+        folder = tmp_path / "in" / tiling
+        folder.mkdir(parents=True)
+        groups = {"one": [np.ones(len(x), bool)], "quadrants": [x < 1047.3, x >= 1047.3]}.get(
+            tiling, [(x < 1040) | ((x < 1065) & (rng.random(len(x)) < 0.5))]
+        )
+        if tiling == "strips":
+            groups.append(~groups[0])
+        inputs = [
+            str(write_points(folder / f"{i}.laz", x[g], y[g], z[g], classification=classes[g], withheld=withheld[g]))
+            for i, g in enumerate(groups)
+        ]
+        out = tmp_path / f"out_{tiling}"
+        # the filter keeps buildings alone: ground points count for the take-off all the same
+        run(inputs, out, dask_client, f"grid.cell_size_m={cell_m}", "filter.keep_classes=[6]", "holes.enabled=true")
+        with rasterio.open(out / "dsm.vrt") as dsm:
+            transform, shape = dsm.transform, dsm.shape
+        cells = []
+        for path in sorted((out / "work" / "cells").glob("*.npz")):
+            found = load_cell_ground(path)
+            assert found is not None, path
+            cells.append((str(path), found[0].window))
+        from_cells = read_cell_ground(CellGround(tuple(cells), transform), transform, shape)
+        assert from_cells is not None
+        from_points = read_ground(inputs, transform, shape)
+        np.testing.assert_allclose(from_cells[0], from_points[0], rtol=0, atol=1e-9, equal_nan=True)
+        np.testing.assert_array_equal(from_cells[1], from_points[1])
+        kept[tiling] = from_cells
+    assert np.isfinite(kept["one"][0]).sum() > 0.3 * kept["one"][0].size and kept["one"][1].sum() > 100
+    for tiling in ("quadrants", "strips"):
+        np.testing.assert_allclose(kept[tiling][0], kept["one"][0], rtol=0, atol=1e-9, equal_nan=True)
+        np.testing.assert_array_equal(kept[tiling][1], kept["one"][1])
+
+
+@pytest.mark.slow
 def test_outputs_are_valid_cogs_and_layers(tmp_path, survey_points, dask_client):
     inputs = write_tiling(tmp_path / "in", survey_points, "quadrants")
     digests = {p: hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in inputs}

@@ -16,6 +16,7 @@ import math
 import os
 from collections import OrderedDict
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,11 +28,22 @@ from shapely.geometry import LineString, Point
 
 from ..errors import CRSError, InputDataError, OutputError
 from ..flightplan.mission import FlightPlan, HoleInput
+from ..grid import PixelWindow
 from .flightplan_formats import write_kml, write_kmz, write_plan, write_waypoints
+from .intermediate import load_cell_ground
 from .las import header_bounds, iter_point_chunks
 from .vector import write_layer
 
-__all__ = ["DsmWindows", "open_dsm", "read_ground", "read_holes", "sortie_file_names", "write_flightplan"]
+__all__ = [
+    "CellGround",
+    "DsmWindows",
+    "open_dsm",
+    "read_cell_ground",
+    "read_ground",
+    "read_holes",
+    "sortie_file_names",
+    "write_flightplan",
+]
 
 #: ASPRS classes read for the take-off point: ground, and water (not to take off beside).
 _GROUND, _WATER = 2, 9
@@ -214,6 +226,7 @@ def read_ground(
     rows, cols = shape
     x0, x1 = sorted((t.c, t.c + t.a * cols))
     y0, y1 = sorted((t.f, t.f + t.e * rows))
+    place = _lattice_of(t)
     total = np.zeros(rows * cols)
     count = np.zeros(rows * cols)
     water = np.zeros(rows * cols)
@@ -223,8 +236,7 @@ def read_ground(
         # on every core: a run's client plans beside the workers' last tasks, then alone; `holefill plan` has the machine
         for chunk in iter_point_chunks(path, _CHUNK_POINTS, parallel=True):
             x, y, z = chunk.coordinates()
-            c = np.floor((x - t.c) / t.a).astype(np.int64)
-            r = np.floor((y - t.f) / t.e).astype(np.int64)
+            r, c = place(x, y)
             inside = (r >= 0) & (r < rows) & (c >= 0) & (c < cols) & ~chunk.withheld
             index = r * cols + c
             is_ground = inside & (chunk.classification == _GROUND)
@@ -235,6 +247,88 @@ def read_ground(
     with np.errstate(invalid="ignore", divide="ignore"):
         ground = np.where(count > 0, total / np.maximum(count, 1.0), np.nan)
     return ground.reshape(shape), water.reshape(shape)
+
+
+@dataclass(frozen=True)
+class CellGround:
+    """Where a run's stage 1 kept the ground sums: each cell's statistics file and core window, on the grid.
+
+    ``transform``: the grid's (its top-left pixel), to place a DSM window's pixels on it.
+    """
+
+    cells: tuple[tuple[str, PixelWindow], ...]
+    transform: Any
+
+
+def read_cell_ground(
+    source: CellGround, transform: Any, shape: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`read_ground`'s grids from the ground sums stage 1 kept with the cells: no point decoded again.
+
+    The mean height of the ground points per pixel, and the water-class points per pixel
+    (the cells' ``water`` statistic: the water points the DSM kept and those its class filter
+    left out). None where the window is not on the grid's lattice or a cell it meets kept no
+    sums (a run that did not plan flights): the caller reads the points instead.
+    """
+    grid = source.transform
+    if not (math.isclose(transform.a, grid.a) and math.isclose(transform.e, grid.e)):
+        return None
+    col, row = (transform.c - grid.c) / grid.a, (transform.f - grid.f) / grid.e
+    if not (math.isclose(col, round(col), abs_tol=1e-6) and math.isclose(row, round(row), abs_tol=1e-6)):
+        return None
+    box = PixelWindow(round(row), round(col), *shape)
+    total = np.zeros(shape)
+    count = np.zeros(shape)
+    water = np.zeros(shape)
+    for path, core in source.cells:
+        overlap = core.intersection(box)
+        if overlap.is_empty:
+            continue
+        kept = load_cell_ground(path)
+        if kept is None:
+            return None
+        ground, cell_water = kept
+        within = ground.window.intersection(overlap)
+        if within != overlap:
+            return None
+        part = ground.crop(overlap)
+        target = overlap.slices_within(box)
+        total[target] = part.height_sum
+        count[target] = part.count
+        water[target] = cell_water[overlap.slices_within(ground.window)]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > 0, total / np.maximum(count, 1.0), np.nan)
+    return mean, water
+
+
+def _lattice_of(transform: Any):
+    """Row and column of points in a north-up raster, placed as stage 1 places them on its grid.
+
+    A point on a pixel edge goes to the pixel east of it and the one *north* of it
+    (``floor(y / resolution + offset)``, :meth:`pipeline.grid.Grid.pixel_rows_cols`), not to the
+    row below as ``floor((y - top) / -resolution)`` would: the ground binned here is then binned
+    like the DSM it stands under, and like the sums a run keeps (:func:`read_cell_ground`).
+    """
+    t = transform
+    if t.b != 0 or t.d != 0 or t.e >= 0 or not math.isclose(t.a, -t.e):
+        # not a north-up raster of square pixels: the raster's own pixel edges
+        def by_transform(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return np.floor((y - t.f) / t.e).astype(np.int64), np.floor((x - t.c) / t.a).astype(np.int64)
+
+        return by_transform
+    resolution = t.a
+    offset = -(t.c / resolution) % 1.0  # pixel edges on multiples of the pixel (0), or its centres (0.5)
+    for lattice in (0.0, 0.5, 1.0):
+        if abs(offset - lattice) < 1e-6:
+            offset = lattice % 1.0
+    col_min = round(t.c / resolution + offset)
+    row_top = round(t.f / resolution + offset) - 1
+
+    def on_lattice(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cols = np.floor(x / resolution + offset).astype(np.int64) - col_min
+        return row_top - np.floor(y / resolution + offset).astype(np.int64), cols
+
+    return on_lattice
 
 
 def sortie_file_names(n_sorties: int) -> list[str]:

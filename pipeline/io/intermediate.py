@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..grid import PixelWindow
-from ..rasterize import STATISTIC_DTYPES, STATISTIC_NAMES, PixelStatistics
+from ..rasterize import STATISTIC_DTYPES, STATISTIC_NAMES, GroundSums, PixelStatistics
 from . import plain_data
 
 #: Bumped whenever the layout of a kept result changes, so stale files are never read.
@@ -75,16 +75,61 @@ def load_tile_statistics(folder: str | os.PathLike, tile_window: PixelWindow, wi
     return PixelStatistics(window=window, **arrays)
 
 
+def save_tile_ground(folder: str | os.PathLike, ground: GroundSums) -> None:
+    """Store one tile's ground sums (its window), beside its statistics."""
+    save_raw(Path(folder) / "ground_sum.bin", ground.height_sum)
+    save_raw(Path(folder) / "ground_count.bin", ground.count)
+
+
+def load_tile_ground(folder: str | os.PathLike, tile_window: PixelWindow, window: PixelWindow) -> GroundSums | None:
+    """The part of a tile's ground sums inside ``window``; None where the tile kept none."""
+    folder = Path(folder)
+    if not (folder / "ground_count.bin").exists():
+        return None
+    rows, cols = window.slices_within(tile_window)
+    arrays = [
+        np.array(np.memmap(folder / f"{name}.bin", dtype=dtype, mode="r", shape=tile_window.shape)[rows, cols])
+        for name, dtype in (("ground_sum", np.float64), ("ground_count", np.uint32))
+    ]
+    return GroundSums(window, *arrays)
+
+
 def load_tile_shared_keys(folder: str | os.PathLike) -> np.ndarray:
     """The voxel keys a tile wrote for the pixels it shares with other tiles."""
     return np.fromfile(Path(folder) / "shared_keys.bin", dtype=np.int64)
 
 
-def save_cell_statistics(path: str | os.PathLike, statistics: PixelStatistics) -> None:
-    """Store a cell's merged statistics (core + halo) for the later stages."""
+def save_cell_statistics(
+    path: str | os.PathLike, statistics: PixelStatistics, ground: GroundSums | None = None
+) -> None:
+    """Store a cell's merged statistics (core + halo) for the later stages, and its core's ground sums if kept."""
+    extra = {}
+    if ground is not None:
+        extra = {
+            "ground_window": _window_array(ground.window),
+            "ground_sum": ground.height_sum,
+            "ground_count": ground.count,
+        }
     _save_npz(
-        path, window=_window_array(statistics.window), **{name: getattr(statistics, name) for name in STATISTIC_NAMES}
+        path,
+        window=_window_array(statistics.window),
+        **{name: getattr(statistics, name) for name in STATISTIC_NAMES},
+        **extra,
     )
+
+
+def load_cell_ground(path: str | os.PathLike) -> tuple[GroundSums, np.ndarray] | None:
+    """A cell's ground sums and its water-class points per pixel over the same window; None where none were kept."""
+    with np.load(path) as data:
+        if "ground_sum" not in data.files:
+            return None
+        window = PixelWindow(*(int(v) for v in data["ground_window"]))
+        ground = GroundSums(window, data["ground_sum"], data["ground_count"])
+        if ground.height_sum.shape != window.shape or ground.count.shape != window.shape:
+            raise ValueError(f"{path}: ground sums of shape {ground.height_sum.shape}, not the window's {window.shape}")
+        cell_window = PixelWindow(*(int(v) for v in data["window"]))
+        rows, cols = window.slices_within(cell_window)
+        return ground, np.array(data["water"][rows, cols])
 
 
 def load_cell_statistics(path: str | os.PathLike, names: tuple[str, ...] = STATISTIC_NAMES) -> PixelStatistics:

@@ -26,7 +26,7 @@ from ..grid import Grid, PixelWindow
 from ..io import pdal_reader
 from ..io.checksums import input_record
 from ..io.copc import iter_copc_nodes, load_point_chunk, save_point_chunk
-from ..io.intermediate import save_tile_statistics
+from ..io.intermediate import save_tile_ground, save_tile_statistics
 from ..io.las import PointChunk, PulseFields, iter_point_chunks
 from ..parameters import read_params
 from ..plan import SurveyPlan
@@ -76,6 +76,7 @@ class TileTask:
     sensor: bool = False  # decode the pulses' fields and sum them for the flight lines' trajectories
     skip_bad_tile: bool = False  # survey.on_error = "skip": a tile that cannot be decoded is reported, not raised
     counting: PulseCounting | None = None  # count the pulses in the footprint's blocks (the density, run.py)
+    ground: bool = False  # sum the ground points' heights per pixel (the flight planner's take-off height)
 
 
 @dataclass(frozen=True)
@@ -119,6 +120,7 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
     top_dirs: dict[int, str] = {}
     cells: dict[int, list[tuple[int, int]]] = {}
     block, first_only = pulse_counting(plan.survey) if plan.density_pending else (0.0, False)
+    ground = params.ground
     tasks = []
     for read_index, (read, window) in enumerate(zip(plan.reads, plan.read_windows)):
         tile = plan.survey.tiles[read.tile_index]
@@ -130,6 +132,7 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
         key: tuple[object, ...] = (grid.resolution, grid.col_min, grid.row_top, grid.offset, source_crs)
         sensor = params.sensor
         key += (point_filter, voxel_height, sensor) + (() if pdal is None else (pdal,))
+        key += ("ground",) if ground else ()  # a tile's result says whether it holds the ground sums
         if read.is_whole_file:
             fingerprint = input_fingerprint(tile.path, window, *key)
         else:
@@ -161,6 +164,7 @@ def tile_tasks(plan: SurveyPlan, config: Config, staging: Staging) -> list[TileT
                 pdal=pdal,
                 sensor=sensor,
                 counting=PulseCounting(tile.bounds, block, first_only) if plan.density_pending else None,
+                ground=ground,
             )
         )
     tasks = [replace(t, cells=tuple(cells[t.tile_index])) if t.role == "top" else t for t in tasks]
@@ -283,7 +287,7 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
     grid = task.grid
     accumulator = HeightMapAccumulator(
         task.window, resolution=grid.resolution, col_min=grid.col_min, row_top=grid.row_top,
-        grid_width=grid.width, voxel_height=task.voxel_height, offset=grid.offset,
+        grid_width=grid.width, voxel_height=task.voxel_height, offset=grid.offset, ground=task.ground,
     )  # fmt: skip
     transformer = _transformer(task)
     read = used = outside = 0
@@ -304,6 +308,8 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
         )
         evidence = {"water": chunk.classification == WATER_CLASS, "source": chunk.point_source_id}
         is_ground = keep & (chunk.classification == GROUND_CLASS)
+        if task.ground:  # every ground point the sensor did not withhold, kept by the filter or not
+            evidence["ground"] = (chunk.classification == GROUND_CLASS) & ~chunk.withheld
         removed = removed_by_class_filter(chunk.classification, chunk.withheld, keep, filters_classes=f.filters_classes)
         # the sensor's geometry comes from every return but noise, whatever the model keeps
         sensed = keep if removed is None else keep | removed
@@ -332,6 +338,8 @@ def rasterize_tile(task: TileTask, *after: object) -> TileResult:
         outside += n_outside
     _check_header_bounds(task, transformer is None, read, outside)
     save_tile_statistics(task.output_dir, accumulator.statistics, accumulator.voxel_keys(task.shared_windows))
+    if accumulator.ground is not None:
+        save_tile_ground(task.output_dir, accumulator.ground)
     return TileResult(
         tile_index=task.tile_index,
         path=task.path,

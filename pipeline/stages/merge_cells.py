@@ -21,10 +21,16 @@ from ..config import Config
 from ..grid import Cell, Grid, PixelWindow
 from ..holes.coverage import CoverageGaps, coverage_gaps, keep_void_gaps
 from ..holes.flight_lines import line_moments, merge_line_moments
-from ..io.intermediate import load_cell_statistics, load_tile_shared_keys, load_tile_statistics, save_cell_statistics
+from ..io.intermediate import (
+    load_cell_statistics,
+    load_tile_ground,
+    load_tile_shared_keys,
+    load_tile_statistics,
+    save_cell_statistics,
+)
 from ..io.raster import geometry_mask
 from ..plan import SurveyPlan
-from ..rasterize import merge_statistics, shared_pixel_mask
+from ..rasterize import GroundSums, merge_ground_sums, merge_statistics, shared_pixel_mask
 from ..staging import Staging
 from ..survey.footprint import BlockMap, block_of, footprint_map, occupied_blocks
 from .bin_tiles import BIN_TILES, READ_TASKS, TileFailure, TileResult, TileTask, result_folder
@@ -47,6 +53,7 @@ class CellTask:
     statistics_path: str
     block_px: int
     reads: tuple[str, ...] = ()  # result folders of the read tasks touching the cell (their results are its arguments)
+    ground: bool = False  # keep the core's ground sums (stage 1 summed them: TileTask.ground)
 
 
 @dataclass(frozen=True)
@@ -69,6 +76,7 @@ def merge_tasks(plan: SurveyPlan, tiles: list[TileTask], staging: Staging) -> li
     bounds where no octree node lies (as it would be were the file read whole).
     """
     windows = {t.read_index: t.window for t in tiles}
+    ground = any(t.ground for t in tiles)
     recipes = []
     for cell in plan.cells:
         touching = [i for i in plan.reads_of_cell[cell.id] if i in windows]
@@ -78,6 +86,7 @@ def merge_tasks(plan: SurveyPlan, tiles: list[TileTask], staging: Staging) -> li
             planned_windows=tuple(windows[i] for i in touching),
             statistics_path=str(staging.cell_statistics(cell.id)),
             block_px=plan.block_px,
+            ground=ground,
         )
         recipes.append((task, touching))
     return recipes
@@ -94,7 +103,7 @@ def merge_key(task: CellTask) -> str:
         task.planned_windows,
         task.block_px,
         sorted(task.reads),
-    )
+    ) + (("ground",) if task.ground else ())
     return f"merge-{hashlib.sha1(repr(made_of).encode()).hexdigest()[:12]}-{task.cell.id}"
 
 
@@ -112,6 +121,7 @@ def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
     cell, grid = task.cell, task.grid
     window = cell.halo_window
     parts = []
+    ground_parts: list[GroundSums | None] = []
     failed = tuple(tile.tile_index for tile in tiles if isinstance(tile, TileFailure))
     for tile in tiles:
         if not isinstance(tile, TileResult):
@@ -121,9 +131,16 @@ def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
             continue
         statistics = load_tile_statistics(tile.output_dir, tile.window, overlap)
         parts.append((statistics, load_tile_shared_keys(tile.output_dir)))
+        in_core = tile.window.intersection(cell.window)
+        if not in_core.is_empty:
+            ground_parts.append(load_tile_ground(tile.output_dir, tile.window, in_core))
     shared = shared_pixel_mask(window, task.planned_windows)
     merged = merge_statistics(window, parts, shared=shared, grid_width=grid.width)
-    save_cell_statistics(task.statistics_path, merged)
+    # the core's ground sums for the take-off (a run planning flights), where every tile kept them
+    ground = None
+    if task.ground and all(part is not None for part in ground_parts):
+        ground = merge_ground_sums(cell.window, [part for part in ground_parts if part is not None])
+    save_cell_statistics(task.statistics_path, merged, ground)
     core = merged.crop(cell.window)
     return CellResult(
         cell_id=cell.id,
