@@ -44,6 +44,12 @@ LOCAL_CLUSTER_CONFIG = {
     # the workers' statistical profiler samples the task thread's stack every 10 ms for a
     # dashboard a local run never shows: 30 ms of CPU a second per idle worker (37 -> 8 with it off)
     "distributed.worker.profile.enabled": False,
+    # a worker is handed up to three ready tasks, not 1.1 (one and the next): the scheduler lives in
+    # the client's process, whose main thread holds the GIL while it writes the layers and plans the
+    # flights, and the walls' 80 ms tasks waited on it, both workers idle 0.13-0.22 s four times
+    # in a 42 M-point run's outputs lap (interleaved A/B, 4 rounds: 20.2 -> 19.4 s mean). A task
+    # handed over holds no memory until it runs.
+    "distributed.scheduler.worker-saturation": 3.0,
 }
 
 #: Seconds to wait for a ``--scheduler`` before giving up with one line.

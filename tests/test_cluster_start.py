@@ -169,6 +169,7 @@ def main():
     start = ClusterStart.begin(load_config(None, ["dask.workers=1"]))
     client = start.client()
     found = {"pandas": "pandas" in sys.modules, "ticks": sorted(client.run(tick).values())}
+    found["saturation"] = client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.WORKER_SATURATION)
     start.close()
     print(json.dumps(found))
 
@@ -192,6 +193,9 @@ def test_the_client_starts_the_cluster_without_pandas_and_its_workers_tick_slowl
     [(tick, profiler, collecting, frozen)] = found["ticks"]
     assert (tick, profiler) == (LOCAL_CLUSTER_CONFIG["distributed.admin.tick.interval"], False)  # and no profiler
     assert collecting and frozen > 100_000  # distributed, numpy, numba and the stages: some 400,000 objects
+    # each worker holds three ready tasks, not one and a tenth: walls tasks of 80 ms do not wait on a
+    # scheduler whose thread the client's writing holds up
+    assert found["saturation"] == LOCAL_CLUSTER_CONFIG["distributed.scheduler.worker-saturation"] == 3.0
 
 
 def test_the_run_module_leaves_scipy_optimize_to_the_fills_that_need_it():
