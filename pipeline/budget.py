@@ -9,7 +9,7 @@ The estimates are per pixel (or per footprint block) of what the stages allocate
 
 * a stage-1 read task holds its window's accumulators (:class:`pipeline.rasterize.
   HeightMapAccumulator`: seven statistics and two voxel masks, :data:`READ_BYTES_PER_PX`, and
-  the ground's sums where flights are planned, :data:`GROUND_BYTES_PER_PX`);
+  the ground's sums where holes are sought, :data:`GROUND_BYTES_PER_PX`);
 * a cell task (merge, detection, filling, writing) holds a few statistics and masks of
   its cell with its halo (:data:`CELL_BYTES_PER_PX`);
 * the client holds the survey's footprint map, one byte per block of the data's
@@ -32,7 +32,7 @@ from .errors import ConfigError, InputDataError
 #: Bytes per pixel of a read task's accumulators: zmax, zmin, count (4 each), voxels,
 #: water, source, covered (2 each), the voxel base and bits (8 each).
 READ_BYTES_PER_PX = 36
-#: ... and where flights are planned, the ground points' height sums and counts (8 + 4).
+#: ... and where holes are sought, the ground points' height sums and counts (8 + 4): the take-off's.
 GROUND_BYTES_PER_PX = 12
 #: Bytes per pixel of a cell task with its halo (statistics, masks, labels, heights).
 CELL_BYTES_PER_PX = 64
@@ -111,7 +111,7 @@ def _check_footprint(plan, budget: MemoryBudget) -> None:
 
 
 def _check_tasks(plan, config: Config, budget: MemoryBudget) -> None:
-    per_px = READ_BYTES_PER_PX + (GROUND_BYTES_PER_PX if config.plans_flights else 0)
+    per_px = READ_BYTES_PER_PX + (GROUND_BYTES_PER_PX if config.holes.enabled else 0)
     reads = [
         (w.height * w.width * per_px, plan.survey.tiles[plan.reads[i].tile_index].path, w)
         for i, w in enumerate(plan.read_windows)

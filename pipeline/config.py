@@ -463,8 +463,7 @@ class Config:
 
     @property
     def plans_flights(self) -> bool:
-        """Whether a run plans re-flights (holes found and ``flightplan.enabled``): then stage 1 also sums the
-        ground points' heights for the take-off (:class:`pipeline.parameters.ReadParams`)."""
+        """Whether a run plans re-flights for the holes it finds (``holes.enabled`` and ``flightplan.enabled``)."""
         return self.holes.enabled and self.flightplan.enabled
 
     def replace(self, section: str, *, source: str = "replace()", **values: Any) -> Config:

@@ -67,7 +67,7 @@ class ReadParams:
     voxel_height: float  # z units
     chunk_points: int
     sensor: bool  # decode the pulses' fields and sum them for the flight lines' trajectories
-    ground: bool  # sum the ground points' heights per pixel: the take-off height where flights are planned
+    ground: bool  # sum the ground points' heights per pixel: the take-off height of flight plans
     pdal: bool = False  # read through PDAL (read.reader = "pdal"), else laspy
     pdal_pipeline: pdal_reader.UserPipeline | None = None  # the user's filter stages, checked
 
@@ -101,8 +101,10 @@ def read_params(config: Config, *, vertical_unit_m: float) -> ReadParams:
         chunk_points=config.rasterize.chunk_points,
         sensor=config.holes.enabled and config.sensor.enabled,
         # summed while the points are decoded anyway, the planner need not decode the files near the
-        # take-off again (1.4 s of a 42 M-point run's client, 4.9 s at 211 M: the run's serial tail)
-        ground=config.plans_flights,
+        # take-off again (1.4 s of a 42 M-point run's client, 4.9 s at 211 M: the run's serial tail);
+        # kept wherever holes are sought, so that turning flight plans on or off in an incremental
+        # run does not decode every tile again
+        ground=config.holes.enabled,
         pdal=pdal,
         pdal_pipeline=_user_pipeline(config) if pdal else None,
     )

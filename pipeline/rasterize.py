@@ -114,7 +114,7 @@ class PixelStatistics:
 class GroundSums:
     """Ground-class points (ASPRS 2, not withheld) of a window: the sum of their heights and their number per pixel.
 
-    Kept with stage 1's statistics where flights are planned: the take-off height is the
+    Kept with stage 1's statistics where holes are sought: a flight plan's take-off height is the
     ground's mean height at the take-off pixel (:mod:`pipeline.flightplan.takeoff`), and
     summing it while the points are decoded anyway spares the planner a second decoding of
     the files near the take-off. Every ground point counts, whatever the class filter keeps:
