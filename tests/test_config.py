@@ -158,3 +158,21 @@ def test_a_network_path_in_a_configuration_needs_an_opt_in(tmp_path, value):
         load_config(tmp_path / "run.toml")
     allowed = load_config(tmp_path / "run.toml", overrides=["read.allow_network=true"])
     assert allowed.holes.water == value  # left as written, never joined to the file's folder
+
+
+@pytest.mark.parametrize(
+    ("overrides", "ground", "plans"),
+    [
+        ([], True, True),
+        (["flightplan.enabled=false"], True, False),  # the same tiles: an incremental run reuses them
+        (["holes.enabled=false"], False, False),  # the DSM alone: no sums
+    ],
+)
+def test_stage_1_keeps_the_ground_s_sums_wherever_holes_are_sought(overrides, ground, plans):
+    """The take-off's ground sums follow ``holes.enabled`` alone: flight plans turned on or off keep
+    every tile's stage-1 result (its fingerprint holds the flag), a DSM-only run sums nothing."""
+    from pipeline.parameters import read_params
+
+    config = load_config(overrides=overrides)
+    assert read_params(config, vertical_unit_m=1.0).ground is ground
+    assert config.plans_flights is plans
