@@ -104,24 +104,28 @@ def write_cog(
                         [2**level for level in range(1, overview_count + 1)], Resampling[resampling]
                     )
                 # copied from the dataset still open: opening the memory file again parsed its
-                # header and CRS once more (11.0 -> 9.0 ms a 250 x 250 tile, the same bytes written)
-                rasterio.shutil.copy(
-                    dataset,
-                    tmp,
-                    driver="COG",
-                    COMPRESS=options.compress.upper(),
-                    BLOCKSIZE=options.blocksize,
-                    OVERVIEWS="FORCE_USE_EXISTING" if overview_count else "NONE",
-                    RESAMPLING=resampling.upper(),
-                    PREDICTOR="YES" if options.compress != "none" else "NO",
-                    **({"LEVEL": options.compress_level} if options.compress in ("deflate", "zstd") else {}),
-                    BIGTIFF="IF_SAFER",
-                )
+                # header and CRS once more (11.0 -> 9.0 ms a 250 x 250 tile, the same pixels; the
+                # CRS is now the WKT given, not its GeoTIFF round trip)
+                rasterio.shutil.copy(dataset, tmp, **_cog_settings(options, resampling, overviews=overview_count > 0))
         os.replace(tmp, path)
     except (OSError, rasterio.errors.RasterioError) as e:
         tmp.unlink(missing_ok=True)
         raise OutputError(f"{path}: cannot write raster: {e}") from None
     return path
+
+
+def _cog_settings(options: RasterOptions, resampling: str, *, overviews: bool) -> dict[str, Any]:
+    """GDAL's COG driver settings: compression, blocks, and the overviews built in memory copied as they are."""
+    return {
+        "driver": "COG",
+        "COMPRESS": options.compress.upper(),
+        "BLOCKSIZE": options.blocksize,
+        "OVERVIEWS": "FORCE_USE_EXISTING" if overviews else "NONE",
+        "RESAMPLING": resampling.upper(),
+        "PREDICTOR": "YES" if options.compress != "none" else "NO",
+        **({"LEVEL": options.compress_level} if options.compress in ("deflate", "zstd") else {}),
+        "BIGTIFF": "IF_SAFER",
+    }
 
 
 def write_vrt(
