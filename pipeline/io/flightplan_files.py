@@ -29,6 +29,7 @@ from shapely.geometry import LineString, Point
 from ..errors import CRSError, InputDataError, OutputError
 from ..flightplan.mission import FlightPlan, HoleInput
 from ..grid import PixelWindow
+from ..rasterize import merge_ground_sums
 from .flightplan_formats import write_kml, write_kmz, write_plan, write_waypoints
 from .intermediate import load_cell_ground
 from .las import header_bounds, iter_point_chunks
@@ -277,28 +278,19 @@ def read_cell_ground(
     if not (math.isclose(col, round(col), abs_tol=1e-6) and math.isclose(row, round(row), abs_tol=1e-6)):
         return None
     box = PixelWindow(round(row), round(col), *shape)
-    total = np.zeros(shape)
-    count = np.zeros(shape)
+    parts = []
     water = np.zeros(shape)
     for path, core in source.cells:
         overlap = core.intersection(box)
         if overlap.is_empty:
             continue
         kept = load_cell_ground(path)
-        if kept is None:
+        if kept is None or kept[0].window != core:
             return None
         ground, cell_water = kept
-        within = ground.window.intersection(overlap)
-        if within != overlap:
-            return None
-        part = ground.crop(overlap)
-        target = overlap.slices_within(box)
-        total[target] = part.height_sum
-        count[target] = part.count
-        water[target] = cell_water[overlap.slices_within(ground.window)]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(count > 0, total / np.maximum(count, 1.0), np.nan)
-    return mean, water
+        parts.append(ground)
+        water[overlap.slices_within(box)] = cell_water[overlap.slices_within(core)]
+    return merge_ground_sums(box, parts).mean_height(), water
 
 
 def _lattice_of(transform: Any):

@@ -136,7 +136,7 @@ def merge_cell(task: CellTask, *tiles: TileResult | TileFailure) -> CellResult:
             ground_parts.append(load_tile_ground(tile.output_dir, tile.window, in_core))
     shared = shared_pixel_mask(window, task.planned_windows)
     merged = merge_statistics(window, parts, shared=shared, grid_width=grid.width)
-    # the core's ground sums for the take-off (a run planning flights), where every tile kept them
+    # the core's ground sums for a flight plan's take-off (holes sought), where every tile kept them
     ground = None
     if task.ground and all(part is not None for part in ground_parts):
         ground = merge_ground_sums(cell.window, [part for part in ground_parts if part is not None])
