@@ -267,7 +267,8 @@ def fill_cell_holes(task: FillTask) -> list[HoleFill]:
             # coarse pixel also held data (the shore) is painted from the water beside it
             nearest = ndi.distance_transform_edt(filled_ids == 0, return_distances=False, return_indices=True)
             filled_ids, heights, codes, distance = (a[tuple(nearest)] for a in (filled_ids, heights, codes, distance))
-        save_task_fill(task.result_path, window, filled_ids, heights, codes, distance, factor=factor)
+        cells = [(source.cell_id, source.core) for source in task.sources]
+        save_task_fill(task.result_path, window, filled_ids, heights, codes, distance, cells=cells, factor=factor)
     return [results[hole.hole_id] for hole in task.holes]
 
 

@@ -183,28 +183,16 @@ def _paint_fills(task: WriteTask, stats: PixelStatistics, core: PixelStatistics)
     labels, _ = load_labels(fill.labels_path)
     cell_holes = hole_ids_of_labels(labels, fill.hole_of_label)
     for path in fill.hole_results:
-        hole_window, hole_ids, heights, hole_codes, hole_distance, factor = load_task_fill(path)
-        overlap = hole_window.intersection(window)
-        if overlap.is_empty:
+        piece = load_task_fill(path, task.cell.id, window)
+        if piece is None:
             continue
-        here, there = overlap.slices_within(window), overlap.slices_within(hole_window)
-        if factor > 1:
-            # a coarse result (a water surface wider than a fill window): each of the holes' own
-            # pixels takes the value of the coarse pixel it lies in
-            rows = (np.arange(overlap.row_off, overlap.row_end) - hole_window.row_off) // factor
-            cols = (np.arange(overlap.col_off, overlap.col_end) - hole_window.col_off) // factor
-            hole_ids, heights, hole_codes, hole_distance = (
-                a[np.ix_(rows, cols)] for a in (hole_ids, heights, hole_codes, hole_distance)
-            )
-            paint = (hole_ids > 0) & (cell_holes[here] == hole_ids)
-        else:
-            hole_ids, heights, hole_codes, hole_distance = (
-                a[there] for a in (hole_ids, heights, hole_codes, hole_distance)
-            )
-            paint = hole_ids > 0
-        dsm[here] = np.where(paint, heights, dsm[here])
-        codes[here] = np.where(paint, hole_codes, codes[here])
-        distance[here] = np.where(paint, hole_distance * fill.unit_m, distance[here])
+        here = piece.window.slices_within(window)
+        # a coarse result (a water surface wider than a fill window) covers the shore's measured
+        # pixels too: only the holes' own pixels take its values
+        paint = (piece.hole_ids > 0) & (cell_holes[here] == piece.hole_ids)
+        dsm[here] = np.where(paint, piece.heights, dsm[here])
+        codes[here] = np.where(paint, piece.codes, codes[here])
+        distance[here] = np.where(paint, piece.distance * fill.unit_m, distance[here])
     settled = cell_holes == -1
     if settled.any():
         seen = load_seen_voids(fill.labels_path)
