@@ -265,7 +265,6 @@ def save_task_fill(
     strip); read whole by each of them, the 211 M-point bench survey's writers read 4.5 GB of
     fills for 1 M filled pixels. A coarse pixel across a cell's edge is kept in both cells.
     """
-    rows, cols = np.nonzero(hole_ids > 0)
     pieces: dict[str, np.ndarray] = {}
     kept_cells = []
     for cell_id, core in cells:
@@ -273,10 +272,10 @@ def save_task_fill(
         if overlap.is_empty:
             continue
         first_row, last_row, first_col, last_col = _lattice_range(window, overlap, factor)
-        inside = np.flatnonzero((rows >= first_row) & (rows <= last_row) & (cols >= first_col) & (cols <= last_col))
-        if not len(inside):
+        r, c = np.nonzero(hole_ids[first_row : last_row + 1, first_col : last_col + 1] > 0)
+        if not len(r):
             continue
-        r, c = rows[inside], cols[inside]
+        r, c = r + first_row, c + first_col
         prefix = f"p{len(kept_cells)}_"
         pieces |= {
             prefix + "rows": r.astype(np.int32),

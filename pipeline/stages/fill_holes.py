@@ -393,8 +393,14 @@ def _coarse_blocks(row: int, col: int, shape: tuple[int, int], factor: int):
         buffer[row - r0 * factor : row - r0 * factor + shape[0], col - c0 * factor : col - c0 * factor + shape[1]] = (
             values
         )
-        blocks = buffer.reshape(r1 - r0, factor, c1 - c0, factor)
-        return reduce.reduce(reduce.reduce(blocks, axis=3), axis=1)
+        # the factor x factor strided views reduced pairwise: numpy's reduce over a short axis
+        # of a 4-d view cost 0.25 ms a call (1.4 s of the 211 M-point bench survey's water fill)
+        out = buffer[::factor, ::factor].copy()
+        for i in range(factor):
+            for j in range(factor):
+                if i or j:
+                    reduce(out, buffer[i::factor, j::factor], out=out)
+        return out
 
     return (slice(r0, r1), slice(c0, c1)), put
 
