@@ -290,3 +290,24 @@ def test_a_lane_over_a_void_wider_than_its_swath_flies_above_the_surface_beside_
             np.full((10, 10), np.nan), transform, (0.0, 0.0), (5.0, 5.0),
             half_width_m=2.0, altitude_agl_m=50.0, max_gradient=0.1, slope_gain_m=5.0,
         )  # fmt: skip
+
+
+def test_patterns_are_placed_neighbour_after_neighbour():
+    """The DSM's blocks are cached while they fit: the patterns are visited in Z order of their centres."""
+    from pipeline.flightplan.mission import _z_order
+
+    rng = np.random.default_rng(5)
+    corners = [(0, 0), (0, 9000), (9000, 0), (9000, 9000)]
+    points, cluster = [], []
+    for k, (x, y) in enumerate(corners):
+        for _ in range(6):
+            points.append(shapely.Point(x + rng.uniform(0, 500), y + rng.uniform(0, 500)))
+            cluster.append(k)
+    shuffled = rng.permutation(len(points))
+    order = _z_order([points[i] for i in shuffled])
+    visited = [cluster[shuffled[i]] for i in order]
+    assert sorted(order) == list(range(len(points)))
+    # each corner's patterns in one run, whatever order they came in
+    runs = [visited[0]] + [b for a, b in zip(visited, visited[1:]) if a != b]
+    assert sorted(runs) == [0, 1, 2, 3]
+    assert _z_order([]) == [] and _z_order([shapely.Point(1, 2)]) == [0]

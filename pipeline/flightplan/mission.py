@@ -363,16 +363,36 @@ def _placed_patterns(
         min_gain_m2=params.min_area_m2,
     )
     by_id = {h.hole_id: h for h in selected}
-    placed, shares = [], {}
-    for pattern in patterns:
+    placed: list[CoveragePattern | None] = [None] * len(patterns)
+    shares = {}
+    # placed in Z order of their centres, the results kept in the patterns' order: the DSM is read
+    # in blocks kept while they fit in a cache, and patterns met neighbour after neighbour find
+    # their blocks still there (each pattern's placement is its own; the order changes no result)
+    for index in _z_order([p.area.centroid for p in patterns]):
+        pattern = patterns[index]
         members = [by_id[i] for i in pattern.hole_ids]
         rescan = any(h.cause == "occlusion" for h in members)
         keep = any(h.cause != "occlusion" for h in members)  # their lanes keep their spacing and overlap
         geometries = [h.geometry for h in members]
         found = place_pattern(pattern, geometries, dsm, transform, params=sight, rescan=rescan, keep_lanes=keep)
-        placed.append(found.pattern)
+        placed[index] = found.pattern
         shares.update(found.shares)
-    return placed, shares
+    return [p for p in placed if p is not None], shares
+
+
+def _z_order(points: list) -> list[int]:
+    """Indices of ``points`` (shapely points) along a Z-order (Morton) curve over their bounding box:
+    points close together come close together in the list, at every scale."""
+    if len(points) < 2:
+        return list(range(len(points)))
+    xy = np.array([(p.x, p.y) for p in points], dtype=np.float64)
+    low, span = xy.min(axis=0), np.ptp(xy, axis=0)
+    scaled = np.floor((xy - low) / np.where(span > 0, span, 1.0) * 65535).astype(np.uint64)
+    key = np.zeros(len(points), np.uint64)
+    for bit in range(16):
+        for axis in range(2):
+            key |= ((scaled[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(2 * bit + axis)
+    return [int(i) for i in np.argsort(key, kind="stable")]
 
 
 def _choose_home(
