@@ -266,7 +266,7 @@ def save_task_fill(
     fills for 1 M filled pixels. A coarse pixel across a cell's edge is kept in both cells.
     """
     pieces: dict[str, np.ndarray] = {}
-    kept_cells = []
+    kept_cells: list[str] = []
     for cell_id, core in cells:
         overlap = window.intersection(core)
         if overlap.is_empty:
