@@ -13,8 +13,8 @@ knows how each kind of result is stored:
 - detection, per cell: the part-label raster of the cell core (``.npz``);
 - linking, per survey: the hole catalog, and every task's small result: data-only files
   (:mod:`pipeline.io.plain_data`, never a pickle);
-- filling, per fill task: the filled holes' ids, heights, method codes and
-  distances over the task's window (``.npz``).
+- filling, per fill task: the filled pixels' hole ids, heights, method codes and
+  distances, apart for each cell they fall in (``.npz``, a member each).
 """
 
 from __future__ import annotations
@@ -235,7 +235,7 @@ class TaskFill:
     """A fill task's result over one window, at the pixels of the cell that asked for it.
 
     ``hole_ids`` is the hole each pixel was filled for (0: none); ``heights``, ``codes``
-    and ``distance`` (pixels to measured data) hold where it is > 0.
+    and ``distance`` (to measured data, survey units) hold where it is > 0.
     """
 
     window: PixelWindow
