@@ -295,3 +295,25 @@ def window_union_mask(window: PixelWindow, windows: list[PixelWindow] | tuple[Pi
         if not overlap.is_empty:
             mask[overlap.slices_within(window)] = True
     return mask
+
+
+def z_order(columns: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Indices that put lattice positions along a Z-order (Morton) curve: positions close together
+    come close together in the order, at every scale.
+
+    ``columns``, ``rows``: integers (any offset: they are taken from their minima), under 2**31
+    apart. Used to visit cells neighbour after neighbour, so that what a task reads of the cells
+    around it is still in a cache the previous tasks filled.
+    """
+    columns = np.asarray(columns, np.int64)
+    rows = np.asarray(rows, np.int64)
+    if columns.size == 0:
+        return np.empty(0, np.int64)
+    x = (columns - columns.min()).astype(np.uint64)
+    y = (rows - rows.min()).astype(np.uint64)
+    key = np.zeros(len(x), np.uint64)
+    for bit in range(31):
+        one = np.uint64(1)
+        key |= ((x >> np.uint64(bit)) & one) << np.uint64(2 * bit)
+        key |= ((y >> np.uint64(bit)) & one) << np.uint64(2 * bit + 1)
+    return np.argsort(key, kind="stable")

@@ -87,3 +87,20 @@ def test_center_alignment_puts_pixel_centres_on_the_lattice(rng):
     assert np.array_equal(acc.statistics.count, expected)
     # cells are still aligned to multiples of the cell size, shifted by half a pixel
     assert {c.id for c in grid.cells()} >= {"770499p75_6277499p75"}
+
+
+def test_z_order_visits_each_block_of_cells_before_the_next():
+    """Cells in Z order: every aligned 2^k x 2^k block is visited in one run, at any offset of the indices."""
+    from pipeline.grid import z_order
+
+    rng = np.random.default_rng(3)
+    cols, rows = np.meshgrid(np.arange(-8, 8), np.arange(5, 21))  # 16 x 16 cells, negative indices too
+    cols, rows = cols.ravel(), rows.ravel()
+    shuffled = rng.permutation(len(cols))
+    order = shuffled[z_order(cols[shuffled], rows[shuffled])]
+    assert sorted(order.tolist()) == list(range(len(cols)))
+    for size in (2, 4, 8):
+        blocks = ((cols[order] + 8) // size) * 100 + (rows[order] - 5) // size
+        runs = [blocks[0]] + [b for a, b in zip(blocks, blocks[1:]) if a != b]
+        assert len(runs) == len(set(runs)) == (16 // size) ** 2
+    assert z_order(np.array([], np.int64), np.array([], np.int64)).size == 0

@@ -23,6 +23,7 @@ import numpy as np
 import pyproj
 import shapely
 
+from ..grid import z_order
 from .altitude import AffineLike, Surface, height_at, lane_with_turns, max_height_along, nearest_data_point
 from .clearance import flight_time_s, leg_clearance
 from .coverage import CoverageParams, CoveragePattern, Lane, Point2, cluster_holes, plan_pattern, split_pattern
@@ -381,18 +382,13 @@ def _placed_patterns(
 
 
 def _z_order(points: list) -> list[int]:
-    """Indices of ``points`` (shapely points) along a Z-order (Morton) curve over their bounding box:
-    points close together come close together in the list, at every scale."""
+    """Indices of ``points`` (shapely points) along a Z-order curve over their bounding box (:func:`pipeline.grid.z_order`)."""
     if len(points) < 2:
         return list(range(len(points)))
     xy = np.array([(p.x, p.y) for p in points], dtype=np.float64)
     low, span = xy.min(axis=0), np.ptp(xy, axis=0)
-    scaled = np.floor((xy - low) / np.where(span > 0, span, 1.0) * 65535).astype(np.uint64)
-    key = np.zeros(len(points), np.uint64)
-    for bit in range(16):
-        for axis in range(2):
-            key |= ((scaled[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(2 * bit + axis)
-    return [int(i) for i in np.argsort(key, kind="stable")]
+    scaled = np.floor((xy - low) / np.where(span > 0, span, 1.0) * 65535).astype(np.int64)
+    return [int(i) for i in z_order(scaled[:, 0], scaled[:, 1])]
 
 
 def _choose_home(

@@ -16,7 +16,7 @@ import scipy.ndimage as ndi
 import shapely
 
 from ..config import HOLE_CONTEXT_PX, Config
-from ..grid import Cell, Grid, PixelWindow, window_union_mask
+from ..grid import Cell, Grid, PixelWindow, window_union_mask, z_order
 from ..holes import CellEvidence, CellHoles, DetectParams, detect_cell_holes
 from ..holes.coverage import (
     IN_GAP,
@@ -172,7 +172,12 @@ def detect_tasks(
     gaps: CoverageGaps | None = None,
     sight: dict[str, SightInputs] | None = None,
 ) -> list[DetectTask]:
-    """One task per merged cell, in plan order.
+    """One task per merged cell, neighbour after neighbour (:func:`pipeline.grid.z_order`).
+
+    A cell's lines of sight read the cells around it through each worker's cache of cell
+    statistics (:func:`pipeline.io.intermediate.load_shared_cell_statistics`); visited west to
+    east, a survey 40 cells wide outgrew it (the 211 M-point bench survey: 870 reads missed of
+    2,222, against 320 for 320 cells in Z order). The results are gathered in plan order.
 
     The survey area is the ``--aoi`` polygon or the tile grid's squares (a polygon),
     else the windows of the tiles; tiles that stage 1 skipped are left out of it
@@ -185,7 +190,9 @@ def detect_tasks(
     area_wkb = shapely.to_wkb(plan.area_without(failed)) if polygon else None
     water_wkb = shapely.to_wkb(water) if water is not None else None
     tasks = []
-    for result in merged:
+    indices = np.array([(cells[r.cell_id].index_x, cells[r.cell_id].index_y) for r in merged], np.int64).reshape(-1, 2)
+    for k in z_order(indices[:, 0], indices[:, 1]):
+        result = merged[k]
         cell = cells[result.cell_id]
         tasks.append(
             DetectTask(
