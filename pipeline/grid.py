@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from affine import Affine
+from numpy.typing import ArrayLike
 
 
 @dataclass(frozen=True, order=True)
@@ -297,7 +298,7 @@ def window_union_mask(window: PixelWindow, windows: list[PixelWindow] | tuple[Pi
     return mask
 
 
-def z_order(columns: np.ndarray, rows: np.ndarray) -> np.ndarray:
+def z_order(columns: ArrayLike, rows: ArrayLike) -> np.ndarray:
     """Indices that put lattice positions along a Z-order (Morton) curve: positions close together
     come close together in the order, at every scale.
 

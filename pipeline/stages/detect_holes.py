@@ -190,10 +190,9 @@ def detect_tasks(
     area_wkb = shapely.to_wkb(plan.area_without(failed)) if polygon else None
     water_wkb = shapely.to_wkb(water) if water is not None else None
     tasks = []
-    indices = np.array([(cells[r.cell_id].index_x, cells[r.cell_id].index_y) for r in merged], np.int64).reshape(-1, 2)
-    for k in z_order(indices[:, 0], indices[:, 1]):
-        result = merged[k]
-        cell = cells[result.cell_id]
+    located = [cells[result.cell_id] for result in merged]
+    for k in z_order([cell.index_x for cell in located], [cell.index_y for cell in located]):
+        result, cell = merged[k], located[k]
         tasks.append(
             DetectTask(
                 cell=cell,
