@@ -53,8 +53,12 @@ class GridConfig:
         gt=0,
         auto=True,
     )
-    cell_size_m: float = _opt(
-        250.0, "Side of a square processing cell in metres; rounded to a whole multiple (>= 16) of the pixel.", gt=0
+    cell_size_m: float | str = _opt(
+        "auto",
+        "Side of a square processing cell in metres, rounded to a whole multiple (>= 16) of the pixel, or 'auto': "
+        "500 pixels.",
+        gt=0,
+        auto=True,
     )
     halo_px: int = _opt(8, "Pixels of neighbouring cells read around each cell.", ge=0)
     align: str = _opt(

@@ -87,8 +87,8 @@ class Sizing:
         Pixels per cell side.
     resolution_source : str
         ``"auto"`` (chosen from the density) or ``"set"`` (``grid.resolution_m``).
-    cell_size_requested_m : float
-        ``grid.cell_size_m`` as set; ``cell_size_m`` differs when it was rounded.
+    cell_size_requested_m : float or str
+        ``grid.cell_size_m`` as set (a number or ``"auto"``); ``cell_size_m`` differs when it was rounded.
     supported_resolution_m : float
         The finest pixel size the density supports (not rounded to a standard size).
     align : str
@@ -101,7 +101,7 @@ class Sizing:
     cell_size_m: float
     cell_px: int
     resolution_source: str
-    cell_size_requested_m: float
+    cell_size_requested_m: float | str
     supported_resolution_m: float
     align: str
     density: Density
@@ -411,7 +411,9 @@ def plan_sizing(density: Density, config: Config, *, quiet: bool = False) -> Siz
                 auto_resolution_m(density.pulses_per_m2),
             )
     cell_size, cell_px = round_cell_size(grid.cell_size_m, resolution)
-    if not math.isclose(cell_size, grid.cell_size_m, rel_tol=1e-9):
+    if grid.cell_size_m == AUTO:
+        info("cells of %d x %d pixels: %g m (grid.cell_size_m = %r)", cell_px, cell_px, cell_size, AUTO)
+    elif not math.isclose(cell_size, float(grid.cell_size_m), rel_tol=1e-9):
         info(
             "grid.cell_size_m = %g m is not a whole multiple (at least 16) of the %g m pixel: cells are %g m (%d pixels)",
             grid.cell_size_m,

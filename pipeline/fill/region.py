@@ -238,8 +238,7 @@ def _withhold(problem: Problem, offset: int = 0) -> tuple[Problem, np.ndarray, n
     uniq, counts = np.unique(rim_i, return_counts=True)
     shared = np.isin(rim_i, uniq[counts > 1])
     rr, rc = np.divmod(rim_i, w)
-    cen = ndi.center_of_mass(np.ones(problem.labels.shape), problem.labels, np.arange(1, problem.n_labels + 1))
-    cen = np.asarray(cen, float).reshape(-1, 2)
+    cen = problem.centroids()
     ang = np.arctan2(rr - cen[rim_l - 1, 0], rc - cen[rim_l - 1, 1])
     sector = np.floor((ang + np.pi) / (2 * np.pi) * st.holdout_sectors).astype(np.int64) % st.holdout_sectors
     held = (sector % st.holdout_every == offset % st.holdout_every) & ~shared

@@ -51,6 +51,13 @@ MIN_AREA_FLOOR_M2 = 4.0
 
 #: A cell is at least this many pixels wide.
 MIN_CELL_PX = 16
+#: Pixels per cell side for ``grid.cell_size_m = "auto"``. Every cell costs a few fixed
+#: milliseconds in each stage (reading its statistics, writing its COG tiles, the scheduler's
+#: work on its tasks), and a worker holds a cell with its halo and the cells around it: sized in
+#: pixels, both are the same at every pixel size. On the bench survey at 1 m (211 M points, 2
+#: workers) cells of 250, 500 and 1,000 pixels ran the default command in 73.2, 61.7 and 62.9 s
+#: (docs/performance.md, tenth session); 500 pixels at 1 m are 500 m, the common tile size.
+AUTO_CELL_PX = 500
 
 
 @dataclass(frozen=True)
@@ -148,15 +155,20 @@ def supported_resolution_m(pulses_per_m2: float, *, per_pixel: float = AUTO_PULS
     return math.sqrt(per_pixel / pulses_per_m2)
 
 
-def round_cell_size(cell_size: float, resolution: float, *, min_px: int = MIN_CELL_PX) -> tuple[float, int]:
+def round_cell_size(cell_size: float | str, resolution: float, *, min_px: int = MIN_CELL_PX) -> tuple[float, int]:
     """A cell size that is a whole multiple (at least ``min_px``) of the pixel size, nearest the one asked.
 
-    Returns the size (same unit as the inputs) and its number of pixels.
+    ``"auto"``: :data:`AUTO_CELL_PX` pixels. Returns the size (same unit as the inputs) and its
+    number of pixels.
 
     >>> round_cell_size(250.0, 4.0), round_cell_size(250.0, 0.5), round_cell_size(50.0, 10.0)
     ((248.0, 62), (250.0, 500), (160.0, 16))
+    >>> round_cell_size("auto", 1.0), round_cell_size("auto", 0.25)
+    ((500.0, 500), (125.0, 500))
     """
-    pixels = max(min_px, round(cell_size / resolution))
+    if cell_size == "auto":
+        return AUTO_CELL_PX * resolution, AUTO_CELL_PX
+    pixels = max(min_px, round(float(cell_size) / resolution))
     return pixels * resolution, pixels
 
 

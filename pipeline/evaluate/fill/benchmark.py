@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from ...cluster import dask_client
-from ...config import Config
+from ...config import AUTO, Config
 from ...errors import ConfigError, HolefillError
 from .alternatives import ALTERNATIVES, AlternativeUnavailable, _hole_windows
 from .cutting import _write_cut_holes, align, cut_points
@@ -256,11 +256,14 @@ def _scan(
         area_m2 = area * survey.horizontal_unit_m**2
         resolution_m = choose_resolution(sum(t.header.point_count for t in survey.tiles), area_m2)
     result.resolution_m = resolution_m
-    if resolution_m != config.grid.resolution_m:  # the cell stays about as large, on the new lattice
-        cell_px = max(16, round(config.grid.cell_size_m / resolution_m))
-        config = config.replace(
-            "grid", source="fill benchmark", resolution_m=resolution_m, cell_size_m=cell_px * resolution_m
-        )
+    if resolution_m != config.grid.resolution_m:
+        if config.grid.cell_size_m == AUTO:  # cells of so many pixels at any pixel size
+            config = config.replace("grid", source="fill benchmark", resolution_m=resolution_m)
+        else:  # the cell stays about as large, on the new lattice
+            cell_px = max(16, round(float(config.grid.cell_size_m) / resolution_m))
+            config = config.replace(
+                "grid", source="fill benchmark", resolution_m=resolution_m, cell_size_m=cell_px * resolution_m
+            )
     return survey, config
 
 
