@@ -59,7 +59,9 @@ def fill_tin(problem: Problem, labels: np.ndarray, out: np.ndarray) -> list[Comp
     records = []
     large = [int(k) for k in labels if solvable[k] and sizes[k] > st.tin_direct_max_px]
     if solvable.any():
-        rows, cols = np.nonzero(solvable[problem.labels])
+        rows, cols, label = problem.labelled
+        chosen = solvable[label]
+        rows, cols = rows[chosen], cols[chosen]
         keep = solvable[rim_l]
         values = _solve(problem, rows, cols, rim_l[keep], rim_i[keep], st.tin_order, large)
         out[rows, cols] = values
