@@ -7,9 +7,11 @@ import math
 import numpy as np
 import pytest
 from affine import Affine
+from scipy import sparse
+from scipy.sparse import csgraph
 
 from pipeline.holes import height_jumps
-from pipeline.holes.walls import WallParams, find_walls, fit_wall, wall_segments
+from pipeline.holes.walls import WallParams, _group_jump_pixels, find_walls, fit_wall, wall_segments
 
 LOW, HIGH = 10.0, 22.0
 
@@ -328,3 +330,37 @@ def test_a_segment_s_middle_pixel_is_numpy_s_median_truncated():
     for _ in range(2000):
         indices = rng.integers(0, int(rng.integers(1, 3000)), int(rng.integers(1, 60)))
         assert _median_index(indices) == int(np.median(indices))
+
+
+def test_jump_pixel_groups_are_scipys_connected_components_in_the_same_numbering():
+    # the union-find numbers groups by their lowest pixel, as csgraph does: segments sort by size
+    # with ties kept in group order, so the numbering reaches the walls layer
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        shape = tuple(int(v) for v in rng.integers(5, 80, 2))
+        jumps = rng.random(shape) < rng.uniform(0.05, 0.7)
+        rows, cols = np.nonzero(jumps)
+        gxs, gys = rng.normal(size=len(rows)), rng.normal(size=len(rows))
+        gxs[rng.random(len(rows)) < 0.1] = 0.0
+        gys[gxs == 0.0] = 0.0  # flat pixels join no group
+        tol = math.radians(20.0)
+        index = np.full(shape, -1, np.int64)
+        index[rows, cols] = np.arange(len(rows))
+        angle = np.mod(np.arctan2(gys, gxs), np.pi)
+        strong = np.hypot(gxs, gys) > 0
+        a_all, b_all = [], []
+        for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            r2, c2 = rows + dr, cols + dc
+            ok = (r2 >= 0) & (r2 < shape[0]) & (c2 >= 0) & (c2 < shape[1])
+            other = np.full(len(rows), -1, np.int64)
+            other[ok] = index[r2[ok], c2[ok]]
+            a, b = np.flatnonzero(other >= 0), other[other >= 0]
+            diff = np.abs(angle[a] - angle[b])
+            keep = (np.minimum(diff, np.pi - diff) < tol) & strong[a] & strong[b]
+            a_all.append(a[keep])
+            b_all.append(b[keep])
+        a, b = np.concatenate(a_all), np.concatenate(b_all)
+        graph = sparse.coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(len(rows), len(rows)))
+        expected_n, expected = csgraph.connected_components(graph, directed=False)
+        n, groups = _group_jump_pixels(jumps, rows, cols, gxs, gys, tol)
+        assert n == expected_n and np.array_equal(groups, expected)

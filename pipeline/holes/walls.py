@@ -36,11 +36,10 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import numba
 import numpy as np
 import scipy.ndimage as ndi
 from affine import Affine
-from scipy import sparse
-from scipy.sparse import csgraph
 
 from ..quantiles import linear_quantiles
 from .masks import height_jumps
@@ -182,27 +181,58 @@ def _group_jump_pixels(
     jumps: np.ndarray, rows: np.ndarray, cols: np.ndarray, gxs: np.ndarray, gys: np.ndarray, tol: float
 ) -> tuple[int, np.ndarray]:
     """Connected groups of 8-adjacent jump pixels whose uphill directions differ by less than ``tol``."""
-    h, w = jumps.shape
     index = np.full(jumps.shape, -1, np.int64)
     index[rows, cols] = np.arange(len(rows))
     angle = np.mod(np.arctan2(gys, gxs), np.pi)  # undirected: a wall's two sides agree
     strong = np.hypot(gxs, gys) > 0
-    a_list, b_list = [], []
-    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        r2, c2 = rows + dr, cols + dc
-        ok = (r2 >= 0) & (r2 < h) & (c2 >= 0) & (c2 < w)
-        other = np.full(len(rows), -1, np.int64)
-        other[ok] = index[r2[ok], c2[ok]]
-        ok = other >= 0
-        a, b = np.flatnonzero(ok), other[ok]
-        diff = np.abs(angle[a] - angle[b])
-        diff = np.minimum(diff, np.pi - diff)
-        keep = (diff < tol) & strong[a] & strong[b]
-        a_list.append(a[keep])
-        b_list.append(b[keep])
-    a, b = np.concatenate(a_list), np.concatenate(b_list)
-    graph = sparse.coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(len(rows), len(rows)))
-    return csgraph.connected_components(graph, directed=False)
+    return _joined_groups(index, rows, cols, angle, strong, tol)
+
+
+@numba.njit(cache=True, nogil=True)
+def _root(parent, i):  # pragma: no cover - compiled
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]  # path halving
+        i = parent[i]
+    return i
+
+
+@numba.njit(cache=True, nogil=True)
+def _joined_groups(index, rows, cols, angle, strong, tol):  # pragma: no cover - compiled
+    """Union-find over the pixels' east, south, south-east and south-west neighbours that agree.
+
+    Groups are numbered by their lowest pixel, as ``scipy.sparse.csgraph.connected_components``
+    numbers them (it built and sorted a sparse graph of the pairs first: 0.6 of a 211 M-point
+    survey's 1.6 s of grouping).
+    """
+    height, width = index.shape
+    n = len(rows)
+    parent = np.arange(n)
+    for i in range(n):
+        if not strong[i]:
+            continue
+        for step in range(4):
+            r2 = rows[i] + (0 if step == 0 else 1)
+            c2 = cols[i] + (1 if step == 0 else (0 if step == 1 else (1 if step == 2 else -1)))
+            if r2 < 0 or r2 >= height or c2 < 0 or c2 >= width:
+                continue
+            j = index[r2, c2]
+            if j < 0 or not strong[j]:
+                continue
+            diff = abs(angle[i] - angle[j])
+            if min(diff, math.pi - diff) < tol:
+                a, b = _root(parent, i), _root(parent, j)
+                if a != b:
+                    parent[max(a, b)] = min(a, b)
+    group = np.empty(n, np.int64)
+    number = np.full(n, -1, np.int64)
+    count = 0
+    for v in range(n):
+        r = _root(parent, v)
+        if number[r] < 0:
+            number[r] = count
+            count += 1
+        group[v] = number[r]
+    return count, group
 
 
 #: Lengths and thicknesses of a group within this of a limit meet it (floating-point rounding of exact ties).
