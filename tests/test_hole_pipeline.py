@@ -60,7 +60,7 @@ def test_synthetic_holes_and_causes_match_the_truth(tmp_path, dask_client):
 
 @pytest.mark.parametrize("area", ["footprint", "auto"])
 def test_holes_do_not_depend_on_cell_size(tmp_path, dask_client, area):
-    """The same holes (pixel sets, areas, causes), ids aside, with cells of 50 m to 1000 m.
+    """The same holes (pixel sets, areas, causes, ids) with cells of 50 m to 1000 m.
 
     With the tile extents, and with the tile grid's squares (``auto``: the tiles lie
     on a 100 m grid; the missed strip at the east edge opens to the outside and stays
@@ -84,11 +84,14 @@ def test_holes_do_not_depend_on_cell_size(tmp_path, dask_client, area):
                 tuple(np.flatnonzero(geometry_mask(g, survey.transform, shape))),
                 round(area, 3),
                 cause,
+                hole_id,
             )
-            for g, area, cause in zip(holes.geometry, holes["area_m2"], holes["cause"])
+            for g, area, cause, hole_id in zip(holes.geometry, holes["area_m2"], holes["cause"], holes["hole_id"])
         )
         results[cell_m] = masks
     assert len(results[64.0]) > 5
+    # the listed holes are numbered first: 1..L in raster order of their first pixels
+    assert sorted(m[3] for m in results[64.0]) == list(range(1, len(results[64.0]) + 1))
     assert "occlusion" in {m[2] for m in results[64.0]} and len({m[2] for m in results[64.0]}) >= 2
     for cell_m in sizes[1:]:
         assert [m[0] for m in results[sizes[0]]] == [m[0] for m in results[cell_m]], cell_m

@@ -64,7 +64,7 @@ from __future__ import annotations
 
 from .causes import CAUSE_DTYPE, CAUSES, CauseRules, classify_causes, strip_joins
 from .detect import PART_DTYPE, SIDE_BITS, SIDES, CellEvidence, CellHoles, DetectParams, EdgeStrip, detect_cell_holes
-from .link import HoleCatalog, PartRecord, link_holes, mark_sampling_gaps
+from .link import HoleCatalog, PartRecord, link_holes, mark_sampling_gaps, number_listed_first
 from .masks import height_jumps, hole_mask, vertical_holes
 from .stats import STATS_COLUMNS, HoleStats, merge_hole_stats, ring_metrics, shape_metrics
 
@@ -89,6 +89,7 @@ __all__ = [
     "hole_mask",
     "link_holes",
     "mark_sampling_gaps",
+    "number_listed_first",
     "merge_hole_stats",
     "ring_metrics",
     "shape_metrics",

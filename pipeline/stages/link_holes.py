@@ -15,7 +15,15 @@ from functools import partial
 import numpy as np
 
 from ..config import Config
-from ..holes import HoleCatalog, classify_causes, link_holes, mark_sampling_gaps, ring_metrics, strip_joins
+from ..holes import (
+    HoleCatalog,
+    classify_causes,
+    link_holes,
+    mark_sampling_gaps,
+    number_listed_first,
+    ring_metrics,
+    strip_joins,
+)
 from ..holes.coverage import line_bands
 from ..holes.flight_lines import line_azimuths, strip_azimuths
 from ..io.intermediate import save_object
@@ -92,6 +100,8 @@ def link_cells(
             catalog, np.where(footprint_steps(catalog, causes, plan.block_px), np.inf, 0)
         )
         gaps |= steps
+    catalog, order = number_listed_first(catalog)
+    causes, gaps = causes[order], gaps[order]
     if sight_known:
         assert geometry is not None
         # to 0.01 degree: the fit's last digits follow the order the reads summed in (a split COPC file)
