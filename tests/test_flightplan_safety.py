@@ -380,6 +380,32 @@ def test_take_off_windows_labelled_by_box_groups_are_the_whole_grid_labelling(se
     assert grouped == merged_boxes(whole)  # the merge is shared: the labelling is what differs
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_the_take_off_s_targets_held_by_area_are_the_whole_grid_mask(seed):
+    """AreaMask: any slice (and the mean target pixel) as the whole grid's mask gives it, overlapping,
+    rotated and far-apart areas and areas off the grid included, without that mask."""
+    from pipeline.flightplan.takeoff_search import AreaMask, _mean_pixel, rasterize_areas
+
+    rng = np.random.default_rng(100 + seed)
+    shape, transform = (500, 700), Affine(1.0, 0, 0, 0, -1.0, 500)
+    areas = []
+    for _ in range(rng.integers(1, 8)):
+        x, y = rng.uniform(-50, 690), rng.uniform(-50, 490)
+        w, h = rng.uniform(1, 150), rng.uniform(1, 80)
+        areas.append(shapely.affinity.rotate(shapely.box(x, y, x + w, y + h), rng.uniform(0, 90)))
+    whole = rasterize_areas(areas, shape, transform)
+    held = AreaMask(areas, shape, transform)
+    assert held.shape == shape
+    for _ in range(30):
+        r0, c0 = int(rng.integers(0, shape[0])), int(rng.integers(0, shape[1]))
+        r1, c1 = int(rng.integers(r0, shape[0] + 20)), int(rng.integers(c0, shape[1] + 20))
+        assert np.array_equal(held[r0:r1, c0:c1], whole[r0:r1, c0:c1])
+    assert np.array_equal(held[:, :], whole)
+    rows, cols = np.nonzero(whole)
+    expected = (float(rows.mean()), float(cols.mean())) if len(rows) else None
+    assert _mean_pixel(held, held.boxes) == expected
+
+
 @pytest.mark.parametrize("density", [0.0005, 0.01, 0.2, 0.7])
 def test_the_take_off_s_rounded_distances_are_scipy_s(density):
     """rounded_distance: the whole-pixel distance to the nearest target, as scipy's EDT rounded, on

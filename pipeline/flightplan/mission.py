@@ -40,7 +40,7 @@ from .route import (
     split_sorties,
 )
 from .takeoff import Takeoff, TakeoffParams, check_home
-from .takeoff_search import GroundGrid, area_boxes, nearest_open_ground, rasterize_areas
+from .takeoff_search import AreaMask, GroundGrid, nearest_open_ground
 
 __all__ = ["FlightParams", "FlightPlan", "HoleDecision", "HoleInput", "Sortie", "Waypoint", "plan_mission"]
 
@@ -408,10 +408,8 @@ def _choose_home(
         return check_home(dsm, ground.height, transform, home, params=params.takeoff)
     if home is None and ground is not None and patterns:
         areas = [p.area for p in patterns]
-        targets = rasterize_areas(areas, dsm.shape, transform)
-        found = nearest_open_ground(
-            dsm, transform, targets, ground, params.takeoff, within=area_boxes(areas, dsm.shape, transform)
-        )
+        targets = AreaMask(areas, dsm.shape, transform)  # held near the holes, not over the survey's span
+        found = nearest_open_ground(dsm, transform, targets, ground, params.takeoff, within=targets.boxes)
         if found is not None:
             return found
     # warned only where a take-off was sought: with no hole to re-fly there is no flight to take off for

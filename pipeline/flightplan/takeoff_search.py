@@ -30,6 +30,7 @@ from .takeoff import Takeoff, TakeoffParams, choose_takeoff
 __all__ = [
     "TAKEOFF_MAX_M",
     "TAKEOFF_SEARCH_M",
+    "AreaMask",
     "BoxGrid",
     "GroundGrid",
     "area_boxes",
@@ -120,7 +121,7 @@ class GroundGrid:
 def nearest_open_ground(
     dsm: Surface,
     transform: AffineLike,
-    targets: np.ndarray,
+    targets: Any,
     ground: GroundGrid,
     params: TakeoffParams,
     *,
@@ -136,19 +137,20 @@ def nearest_open_ground(
     DSM too, so the DSM's choice is at least as near), and judged there alone; then the whole
     window. Of the windows' choices the one nearest to its holes wins (ties: nearest to the
     centre of all of them, then the first in row order), as one search over the whole grid would
-    choose. ``within``: boxes that hold every target pixel (:func:`target_windows`).
+    choose. ``targets``: the holes' pixels, a boolean array or an :class:`AreaMask` (which holds
+    them near the holes alone); ``within``: boxes that hold every target pixel (:func:`target_windows`).
     """
-    rows, cols = np.nonzero(targets)
-    if len(rows) == 0:
+    centre = _mean_pixel(targets, within)
+    if centre is None:
         return None
-    centre = (float(rows.mean()), float(cols.mean()))
     reach = int(math.ceil(TAKEOFF_MAX_M / max(abs(transform.a), 1e-9)))
     best: tuple[tuple[float, float, int, int], Takeoff] | None = None
     for r0, c0, r1, c1 in target_windows(targets, reach, within):
         window = _affine(transform) @ Affine.translation(c0, r0)
         local = (slice(r0, r1), slice(c0, c1))
-        distance = rounded_distance(targets[local])
-        found = _open_ground_in(dsm[local], transform, targets[local], ground, (r0, c0), params, distance, centre)
+        local_targets = targets[local]
+        distance = rounded_distance(local_targets)
+        found = _open_ground_in(dsm[local], transform, local_targets, ground, (r0, c0), params, distance, centre)
         if found is None:
             continue
         r = int((found.xy[1] - window.f) / window.e)  # north-up (open_dsm refuses rotated rasters)
@@ -279,7 +281,7 @@ def _affine(transform: AffineLike) -> Affine:
 
 
 def target_windows(
-    targets: np.ndarray, reach: int, within: list[tuple[int, int, int, int]]
+    targets: Any, reach: int, within: list[tuple[int, int, int, int]]
 ) -> list[tuple[int, int, int, int]]:
     """Boxes ``(r0, c0, r1, c1)`` around the clusters of ``targets``, grown by ``reach`` pixels, overlapping ones merged.
 
@@ -344,13 +346,68 @@ def area_boxes(
     return boxes
 
 
+def _mean_pixel(targets: Any, within: list[tuple[int, int, int, int]]) -> tuple[float, float] | None:
+    """Mean row and column of the target pixels (None: none), read group of boxes by group.
+
+    The boxes' groups (grown by a pixel and merged, as :func:`target_windows` groups them) hold
+    every target pixel once; the sums are exact integers, so the mean is the whole grid's
+    ``np.nonzero`` mean to the bit.
+    """
+    rows, cols = targets.shape
+    groups = merged_boxes(
+        [[max(b[0] - 1, 0), max(b[1] - 1, 0), min(b[2] + 1, rows), min(b[3] + 1, cols)] for b in within]
+    )
+    count = row_sum = col_sum = 0
+    for g0, h0, g1, h1 in groups:
+        r, c = np.nonzero(targets[g0:g1, h0:h1])
+        count += len(r)
+        row_sum += int(r.sum()) + g0 * len(r)
+        col_sum += int(c.sum()) + h0 * len(c)
+    return None if count == 0 else (row_sum / count, col_sum / count)
+
+
+class AreaMask:
+    """The pixels whose centres lie in any of ``areas``, held area by area within each one's box.
+
+    Sliced by rows and columns as the boolean array :func:`rasterize_areas` makes, without that
+    array over the grid's span: the planned holes of a 10 x 10 km survey (1 B points at 1 m) made a
+    100 MB mask for the take-off search, holes on two continents an impossible one. Each area is
+    rasterized once; a slice ORs the areas' masks it meets.
+    """
+
+    def __init__(self, areas: list[shapely.Geometry], shape: tuple[int, ...], transform: AffineLike) -> None:
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.boxes = area_boxes(areas, shape, transform)  # one per area that meets the grid
+        self._masks = [
+            _area_pixels(area, box, transform)
+            for area in areas
+            for box in area_boxes([area], shape, transform)
+        ]  # fmt: skip
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
+        rows, cols = key
+        r0, r1, _ = rows.indices(self.shape[0])
+        c0, c1, _ = cols.indices(self.shape[1])
+        out = np.zeros((max(r1 - r0, 0), max(c1 - c0, 0)), dtype=bool)
+        for (b0, d0, b1, d1), mask in zip(self.boxes, self._masks, strict=True):
+            i0, i1, j0, j1 = max(b0, r0), min(b1, r1), max(d0, c0), min(d1, c1)
+            if i0 < i1 and j0 < j1:
+                out[i0 - r0 : i1 - r0, j0 - c0 : j1 - c0] |= mask[i0 - b0 : i1 - b0, j0 - d0 : j1 - d0]
+        return out
+
+
+def _area_pixels(area: shapely.Geometry, box: tuple[int, int, int, int], transform: AffineLike) -> np.ndarray:
+    """Within ``box``, the pixels whose centres lie in ``area``."""
+    r0, c0, r1, c1 = box
+    t = transform
+    rr, cc = np.mgrid[r0:r1, c0:c1]
+    return shapely.contains_xy(area, t.a * (cc + 0.5) + t.c, t.e * (rr + 0.5) + t.f)
+
+
 def rasterize_areas(areas: list[shapely.Geometry], shape: tuple[int, ...], transform: AffineLike) -> np.ndarray:
     """True at the pixels whose centres lie in any of the areas (an axis-aligned DSM grid)."""
     mask = np.zeros(shape[:2], dtype=bool)
-    t = transform
     for area in areas:
         for r0, c0, r1, c1 in area_boxes([area], shape, transform):
-            rr, cc = np.mgrid[r0:r1, c0:c1]
-            inside = shapely.contains_xy(area, t.a * (cc + 0.5) + t.c, t.e * (rr + 0.5) + t.f)
-            mask[r0:r1, c0:c1] |= inside
+            mask[r0:r1, c0:c1] |= _area_pixels(area, (r0, c0, r1, c1), transform)
     return mask
