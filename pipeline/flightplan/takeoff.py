@@ -170,7 +170,8 @@ def choose_takeoff(
         rows, cols = np.nonzero(targets)
         distance, centre = ndi.distance_transform_edt(~targets), (float(rows.mean()), float(cols.mean()))
     rows_n, cols_n = dsm.shape
-    rank = np.round(distance).astype(np.float32)  # whole pixels: exact in float32, half the memory
+    # whole pixels: exact in float32, half the memory (and no second copy of a float32 window's)
+    rank = np.round(distance).astype(np.float32, copy=False)
     # ties go to the pixel nearest the centre, scaled by the largest such distance (a corner's)
     corners = np.hypot(np.array([0, rows_n - 1])[:, None] - centre[0], np.array([0, cols_n - 1])[None, :] - centre[1])
     tie_scale = 1 + corners.max()
