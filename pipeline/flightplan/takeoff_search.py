@@ -121,7 +121,7 @@ class GroundGrid:
 def nearest_open_ground(
     dsm: Surface,
     transform: AffineLike,
-    targets: Any,
+    targets: np.ndarray | AreaMask,
     ground: GroundGrid,
     params: TakeoffParams,
     *,
@@ -281,7 +281,7 @@ def _affine(transform: AffineLike) -> Affine:
 
 
 def target_windows(
-    targets: Any, reach: int, within: list[tuple[int, int, int, int]]
+    targets: np.ndarray | AreaMask, reach: int, within: list[tuple[int, int, int, int]]
 ) -> list[tuple[int, int, int, int]]:
     """Boxes ``(r0, c0, r1, c1)`` around the clusters of ``targets``, grown by ``reach`` pixels, overlapping ones merged.
 
@@ -346,7 +346,7 @@ def area_boxes(
     return boxes
 
 
-def _mean_pixel(targets: Any, within: list[tuple[int, int, int, int]]) -> tuple[float, float] | None:
+def _mean_pixel(targets: np.ndarray | AreaMask, within: list[tuple[int, int, int, int]]) -> tuple[float, float] | None:
     """Mean row and column of the target pixels (None: none), read group of boxes by group.
 
     The boxes' groups (grown by a pixel and merged, as :func:`target_windows` groups them) hold
