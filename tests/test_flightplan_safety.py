@@ -406,6 +406,29 @@ def test_the_take_off_s_targets_held_by_area_are_the_whole_grid_mask(seed):
     assert _mean_pixel(held, held.boxes) == expected
 
 
+def test_a_window_of_a_surface_reads_what_the_window_array_holds():
+    """WindowOf: pixels and slices (clipped at the window's edges, empty ones included) as the
+    window cut from the surface gives them; outside the window, an error, not a wrap-around."""
+    from pipeline.flightplan.takeoff_search import WindowOf
+
+    rng = np.random.default_rng(5)
+    surface = rng.normal(size=(120, 90))
+    surface[rng.random(surface.shape) < 0.1] = np.nan
+    box = (17, 9, 101, 70)
+    window, view = surface[17:101, 9:70], WindowOf(surface, box)
+    assert view.shape == window.shape and view.size == window.size
+    for _ in range(50):
+        a, b = sorted(int(v) for v in rng.integers(-5, 95, 2))
+        c, d = sorted(int(v) for v in rng.integers(-5, 70, 2))
+        a, c = max(a, 0), max(c, 0)
+        assert np.array_equal(view[a:b, c:d], window[a:b, c:d], equal_nan=True)
+    assert np.array_equal(view[:, :], window, equal_nan=True)
+    r, c = 40, 33
+    assert np.array_equal(view[r, c], window[r, c], equal_nan=True)
+    with pytest.raises(IndexError):
+        view[-1, 0]
+
+
 @pytest.mark.parametrize("density", [0.0005, 0.01, 0.2, 0.7])
 def test_the_take_off_s_rounded_distances_are_scipy_s(density):
     """rounded_distance: the whole-pixel distance to the nearest target, as scipy's EDT rounded, on

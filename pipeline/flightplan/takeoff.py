@@ -141,8 +141,8 @@ def ground_height_at(ground: Surface, transform: AffineLike, point: Point2, *, s
 
 
 def choose_takeoff(
-    dsm: np.ndarray,
-    ground: np.ndarray,
+    dsm: np.ndarray | Surface,
+    ground: np.ndarray | Surface,
     water: np.ndarray | None,
     transform: AffineLike,
     targets: np.ndarray,
@@ -186,7 +186,7 @@ def choose_takeoff(
             index = np.flatnonzero(fit)
             r_all, c_all = np.divmod(index, cols_n)
             offset = np.hypot(r_all - centre[0], c_all - centre[1])
-            score = rank.ravel()[index].astype(np.float64) * (1 + dsm.size) + offset / tie_scale
+            score = rank.ravel()[index].astype(np.float64) * (1 + rows_n * cols_n) + offset / tie_scale
             best = int(index[int(np.argmin(score))])
             r, c = divmod(best, cols_n)
             t = transform
@@ -204,8 +204,8 @@ class _BlockedOpenGround:
 
     def __init__(
         self,
-        dsm: np.ndarray,
-        ground: np.ndarray,
+        dsm: np.ndarray | Surface,
+        ground: np.ndarray | Surface,
         water: np.ndarray | None,
         transform: AffineLike,
         params: TakeoffParams,

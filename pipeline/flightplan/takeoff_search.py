@@ -31,6 +31,7 @@ __all__ = [
     "TAKEOFF_MAX_M",
     "TAKEOFF_SEARCH_M",
     "AreaMask",
+    "WindowOf",
     "BoxGrid",
     "GroundGrid",
     "area_boxes",
@@ -150,7 +151,8 @@ def nearest_open_ground(
         local = (slice(r0, r1), slice(c0, c1))
         local_targets = targets[local]
         distance = rounded_distance(local_targets)
-        found = _open_ground_in(dsm[local], transform, local_targets, ground, (r0, c0), params, distance, centre)
+        surface = WindowOf(dsm, (r0, c0, r1, c1))  # read where the search looks, not the whole window
+        found = _open_ground_in(surface, transform, local_targets, ground, (r0, c0), params, distance, centre)
         if found is None:
             continue
         r = int((found.xy[1] - window.f) / window.e)  # north-up (open_dsm refuses rotated rasters)
@@ -234,7 +236,7 @@ def _rounded_distance(targets):  # pragma: no cover - compiled
 
 
 def _open_ground_in(
-    dsm: np.ndarray,
+    dsm: np.ndarray | WindowOf,
     transform: AffineLike,
     targets: np.ndarray,
     ground: GroundGrid,
@@ -344,6 +346,40 @@ def area_boxes(
         if c0 < c1 and r0 < r1:
             boxes.append((r0, c0, r1, c1))
     return boxes
+
+
+class WindowOf:
+    """The box ``(r0, c0, r1, c1)`` of a surface, indexed in its own pixels and read where indexed.
+
+    ``view[r, c]`` and ``view[a:b, c:d]`` give what the same index of ``surface[r0:r1, c0:c1]``
+    gives, without that array: the take-off search's window around the 1 B-point bench survey's
+    largest cluster of holes was 31 M pixels, 248 MB of float64, of which the search reads the
+    blocks near the holes (:class:`pipeline.flightplan.takeoff._BlockedOpenGround`).
+    """
+
+    def __init__(self, surface: Surface, box: tuple[int, int, int, int]) -> None:
+        self._surface = surface
+        self._r0, self._c0 = box[0], box[1]
+        self.shape = (box[2] - box[0], box[3] - box[1])
+
+    @property
+    def size(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+    def __getitem__(self, key: tuple[Any, Any]) -> Any:
+        rows, cols = key
+        if isinstance(rows, slice) and isinstance(cols, slice):
+            a0, a1, step_r = rows.indices(self.shape[0])
+            b0, b1, step_c = cols.indices(self.shape[1])
+            if step_r != 1 or step_c != 1:
+                raise IndexError("WindowOf reads contiguous windows only")
+            a1, b1 = max(a1, a0), max(b1, b0)
+            return self._surface[self._r0 + a0 : self._r0 + a1, self._c0 + b0 : self._c0 + b1]
+        if isinstance(rows, (int, np.integer)) and isinstance(cols, (int, np.integer)):
+            if not (0 <= rows < self.shape[0] and 0 <= cols < self.shape[1]):
+                raise IndexError(f"pixel {rows}, {cols} is outside the window's {self.shape}")
+            return self._surface[self._r0 + int(rows), self._c0 + int(cols)]
+        raise IndexError("WindowOf reads single pixels and contiguous windows only")
 
 
 def _mean_pixel(targets: np.ndarray | AreaMask, within: list[tuple[int, int, int, int]]) -> tuple[float, float] | None:
