@@ -294,11 +294,8 @@ def target_windows(
     one labelling of the whole grid.
     """
     rows, cols = targets.shape
-    groups = merged_boxes(
-        [[max(b[0] - 1, 0), max(b[1] - 1, 0), min(b[2] + 1, rows), min(b[3] + 1, cols)] for b in within]
-    )
     boxes = []
-    for g0, h0, g1, h1 in groups:
+    for g0, h0, g1, h1 in _box_groups(within, targets.shape):
         labels, _ = ndi.label(targets[g0:g1, h0:h1])
         boxes += [
             [max(sl[0].start + g0 - reach, 0), max(sl[1].start + h0 - reach, 0),
@@ -306,6 +303,15 @@ def target_windows(
             for sl in ndi.find_objects(labels) if sl is not None
         ]  # fmt: skip
     return merged_boxes(boxes)
+
+
+def _box_groups(within: list[tuple[int, int, int, int]], shape: tuple[int, ...]) -> list[tuple[int, int, int, int]]:
+    """The boxes grown by a pixel and merged: disjoint groups, each holding its boxes' target
+    pixels and every pixel touching them (so a cluster of targets never leaves its group)."""
+    rows, cols = shape[0], shape[1]
+    return merged_boxes(
+        [[max(b[0] - 1, 0), max(b[1] - 1, 0), min(b[2] + 1, rows), min(b[3] + 1, cols)] for b in within]
+    )
 
 
 def merged_boxes(boxes: list[list[int]]) -> list[tuple[int, int, int, int]]:
@@ -389,12 +395,8 @@ def _mean_pixel(targets: np.ndarray | AreaMask, within: list[tuple[int, int, int
     every target pixel once; the sums are exact integers, so the mean is the whole grid's
     ``np.nonzero`` mean to the bit.
     """
-    rows, cols = targets.shape
-    groups = merged_boxes(
-        [[max(b[0] - 1, 0), max(b[1] - 1, 0), min(b[2] + 1, rows), min(b[3] + 1, cols)] for b in within]
-    )
     count = row_sum = col_sum = 0
-    for g0, h0, g1, h1 in groups:
+    for g0, h0, g1, h1 in _box_groups(within, targets.shape):
         r, c = np.nonzero(targets[g0:g1, h0:h1])
         count += len(r)
         row_sum += int(r.sum()) + g0 * len(r)
@@ -413,12 +415,12 @@ class AreaMask:
 
     def __init__(self, areas: list[shapely.Geometry], shape: tuple[int, ...], transform: AffineLike) -> None:
         self.shape = (int(shape[0]), int(shape[1]))
-        self.boxes = area_boxes(areas, shape, transform)  # one per area that meets the grid
-        self._masks = [
-            _area_pixels(area, box, transform)
-            for area in areas
-            for box in area_boxes([area], shape, transform)
-        ]  # fmt: skip
+        self.boxes: list[tuple[int, int, int, int]] = []  # one per area that meets the grid (area_boxes')
+        self._masks: list[np.ndarray] = []
+        for area in areas:
+            for box in area_boxes([area], shape, transform):
+                self.boxes.append(box)
+                self._masks.append(_area_pixels(area, box, transform))
 
     def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
         rows, cols = key
@@ -441,7 +443,11 @@ def _area_pixels(area: shapely.Geometry, box: tuple[int, int, int, int], transfo
 
 
 def rasterize_areas(areas: list[shapely.Geometry], shape: tuple[int, ...], transform: AffineLike) -> np.ndarray:
-    """True at the pixels whose centres lie in any of the areas (an axis-aligned DSM grid)."""
+    """True at the pixels whose centres lie in any of the areas (an axis-aligned DSM grid).
+
+    The whole grid's mask, assembled apart from :class:`AreaMask`'s slices (which the take-off
+    search uses): the reference its tests compare them with.
+    """
     mask = np.zeros(shape[:2], dtype=bool)
     for area in areas:
         for r0, c0, r1, c1 in area_boxes([area], shape, transform):
