@@ -364,3 +364,89 @@ def test_jump_pixel_groups_are_scipys_connected_components_in_the_same_numbering
         expected_n, expected = csgraph.connected_components(graph, directed=False)
         n, groups = _group_jump_pixels(jumps, rows, cols, gxs, gys, tol)
         assert n == expected_n and np.array_equal(groups, expected)
+
+
+def _observations_by_arrays(zmax, zmin, count, segment, support_px, k_fixed, empty_is_low):
+    """The fit's observations and starting levels as whole-array numpy code computes them (the
+    reference of the compiled pass: pixels within ``support_px`` of the initial line, row by row)."""
+    from pipeline.quantiles import linear_quantiles
+
+    n0 = np.asarray(segment.normal, dtype=np.float64)
+    pts = np.stack([segment.cols + 0.5, segment.rows + 0.5], axis=1)
+    rho0 = float((pts @ n0).mean())
+    along0 = np.array([n0[1], -n0[0]])
+    t = pts @ along0
+    t_lo, t_hi = float(t.min()) + 1.0, float(t.max()) - 1.0
+    pad = int(math.ceil(support_px)) + 2
+    h, w = zmax.shape
+    r0, r1 = max(int(segment.rows.min()) - pad, 0), min(int(segment.rows.max()) + pad + 1, h)
+    c0, c1 = max(int(segment.cols.min()) - pad, 0), min(int(segment.cols.max()) + pad + 1, w)
+    xc, yc = (np.arange(c0, c1) + 0.5)[None, :], (np.arange(r0, r1) + 0.5)[:, None]
+    d0 = xc * n0[0] + yc * n0[1] - rho0
+    tt = xc * along0[0] + yc * along0[1]
+    rows, cols = np.nonzero((np.abs(d0) <= support_px) & (tt >= t_lo) & (tt <= t_hi))
+    x, y, d = xc[0, cols], yc[rows, 0], d0[rows, cols]
+    zx = zmax[r0:r1, c0:c1][rows, cols]
+    zn = zmin[r0:r1, c0:c1][rows, cols] if zmin is not None else np.full(len(zx), np.nan)
+    k = count[r0:r1, c0:c1][rows, cols].astype(np.float64) if count is not None else np.full(len(zx), k_fixed)
+    measured = np.isfinite(zx)
+    if measured.sum() < 6 or (d[measured] < 0).sum() < 3 or (d[measured] > 0).sum() < 3:
+        return None
+    lows = np.concatenate([zn[measured & (d < -0.5)], zx[measured & (d < -0.5)]])
+    lows = lows[np.isfinite(lows)]
+    highs = zx[measured & (d > 0.5)]
+    low0 = linear_quantiles(lows, (0.2,))[0] if len(lows) else float(np.nanmin(zx))
+    high0 = linear_quantiles(highs, (0.8,))[0] if len(highs) else float(np.nanmax(zx))
+    has_min = measured & np.isfinite(zn)
+    empty = ~measured if empty_is_low else np.zeros(len(zx), bool)
+    arrays = (
+        x[measured], y[measured], np.maximum(k[measured], 1.0), zx[measured],
+        x[has_min], y[has_min], np.maximum(k[has_min], 1.0), zn[has_min],
+        x[empty], y[empty],
+    )  # fmt: skip
+    return arrays, low0, high0, int(measured.sum() + has_min.sum()), len(zx)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_compiled_observations_are_the_array_versions(seed):
+    """The compiled support pass gives, bit for bit, the pixels, values and levels of whole-array
+    numpy code, with and without lowest points and counts, empty pixels low or not; walls along
+    the rows and columns put pixel centres exactly at the support's edge."""
+    from pipeline.holes import walls as W
+
+    rng = np.random.default_rng(seed)
+    angle = float(rng.uniform(0, 360)) if seed % 2 else 90.0 * (seed // 2)
+    zmax, zmin, count = binned_points(40, angle, centred_offset(angle), density=float(rng.uniform(1, 12)), seed=seed)
+    segments = wall_segments(height_jumps(zmax, zmin, jump_threshold=2.0), zmax)
+    assert segments
+    checked = 0
+    for segment in segments:
+        n0 = np.asarray(segment.normal, dtype=np.float64)
+        rho0 = W._initial_line(segment)[2]
+        cases = [(zmin, count, True, 3.0), (None, None, False, 2.5), (zmin, None, False, 2.0), (zmin, count, True, 2.5)]
+        for low_points, counts, empty_is_low, support_px in cases:
+            want = _observations_by_arrays(zmax, low_points, counts, segment, support_px, 8.0, empty_is_low)
+            got = W._observe(
+                zmax, low_points, counts, segment, n0, rho0, support_px=support_px, pixel_values="extremes",
+                points_per_pixel=8.0, empty_is_low=empty_is_low,
+            )  # fmt: skip
+            if want is None or not want[2] > want[1]:
+                assert got is None
+                continue
+            arrays, low0, high0, n_measured, n_support = got
+            assert (low0, high0, n_measured, n_support) == want[1:]
+            assert len(arrays) == 11 and arrays[10] is W.LOGISTIC_NODES
+            for a, b in zip(arrays[:10], want[0], strict=True):
+                assert a.dtype == np.float64 and np.array_equal(a, b)
+            checked += 1
+    assert checked
+
+
+def test_compiled_quantile_is_numpys():
+    from pipeline.holes.walls import _linear_quantile
+
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 5, 17, 100):
+        values = rng.normal(0, 10, n).round(rng.integers(0, 3))  # ties too
+        for q in (0.0, 0.2, 0.5, 0.8, 1.0):
+            assert _linear_quantile(values, q) == np.quantile(values, q)

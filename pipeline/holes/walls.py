@@ -354,21 +354,17 @@ def fit_wall(
     if pixel_values not in ("extremes", "centre"):
         raise ValueError(f"pixel_values must be 'extremes' or 'centre', got {pixel_values!r}")
     n0, pts, rho0 = _initial_line(segment)
-    sp = _support(
-        zmax,
-        zmin,
-        count,
-        segment,
-        n0,
-        rho0,
-        support_px=support_px,
-        pixel_values=pixel_values,
-        points_per_pixel=points_per_pixel,
-    )
-    fit, n_measured = _fit_support(sp, n0, rho0, support_px=support_px, empty_is_low=empty_is_low)
+    observed = _observe(
+        zmax, zmin, count, segment, n0, rho0, support_px=support_px, pixel_values=pixel_values,
+        points_per_pixel=points_per_pixel, empty_is_low=empty_is_low,
+    )  # fmt: skip
+    if observed is None:
+        return None
+    observations, low0, high0, n_measured, n_support = observed
+    fit = _fit_support(observations, n0, rho0, low0, high0, support_px=support_px)
     if fit is None or not fit.x[3] - fit.x[2] > min_height:
         return None
-    return _wall(fit, segment, pts, n_measured=n_measured, n_support=len(sp.zx), transform=transform)
+    return _wall(fit, segment, pts, n_measured=n_measured, n_support=n_support, transform=transform)
 
 
 def _initial_line(segment: WallSegment) -> tuple[np.ndarray, np.ndarray, float]:
@@ -379,57 +375,12 @@ def _initial_line(segment: WallSegment) -> tuple[np.ndarray, np.ndarray, float]:
     return n0, pts, rho0
 
 
-def _fit_support(
-    sp: _Support, n0: np.ndarray, rho0: float, *, support_px: float, empty_is_low: bool
-) -> tuple[_StepFit | None, int]:
-    """Fit the step to the support's observations, from a start at the initial line.
-
-    Returns the fit (None when there is too little support on either side,
-    no step, or the fit fails) and the number of measured values (highest plus lowest
-    points), which come first among the residuals.
-    """
-    measured = np.isfinite(sp.zx)
-    d0 = sp.d0
-    if measured.sum() < 6 or (d0[measured] < 0).sum() < 3 or (d0[measured] > 0).sum() < 3:
-        return None, 0
-    lows = np.concatenate([sp.zn[measured & (d0 < -0.5)], sp.zx[measured & (d0 < -0.5)]])
-    highs = sp.zx[measured & (d0 > 0.5)]
-    lows = lows[np.isfinite(lows)]
-    # np.nanpercentile(lows, 20) and np.percentile(highs, 80), value for value, without numpy's set-up per call
-    (low0,) = linear_quantiles(lows, (0.2,)) if len(lows) else (float(np.nanmin(sp.zx)),)
-    (high0,) = linear_quantiles(highs, (0.8,)) if len(highs) else (float(np.nanmax(sp.zx)),)
-    if not high0 > low0:
-        return None, 0
-    step0 = high0 - low0
-    has_min = measured & np.isfinite(sp.zn)
-    empty = ~measured if empty_is_low else np.zeros(len(sp.zx), bool)
-    k_hi, k_lo = np.maximum(sp.k[measured], 1.0), np.maximum(sp.k[has_min], 1.0)
-    phi0 = math.atan2(n0[1], n0[0])
-    # observations: highest points (measured), lowest points (has_min), empty pixels (low side)
-    observations = (
-        sp.xc[measured], sp.yc[measured], k_hi, sp.zx[measured],
-        sp.xc[has_min], sp.yc[has_min], k_lo, sp.zn[has_min],
-        sp.xc[empty], sp.yc[empty], LOGISTIC_NODES,
-    )  # fmt: skip
-    x0 = np.array([phi0, rho0, low0, high0, math.log(0.2)])
-    lower = [phi0 - 0.6, rho0 - support_px, low0 - step0, low0, math.log(0.001)]
-    upper = [phi0 + 0.6, rho0 + support_px, high0, high0 + step0, math.log(support_px)]
-    fit = _fit_step(observations, x0, lower, upper, step0)
-    return fit, int(measured.sum() + has_min.sum())
+#: Observation arrays of a fit, in the order :func:`.wall_step.step_residuals` takes them: the
+#: highest points (x, y, points per pixel, height), the lowest points (likewise), the empty pixels (x, y).
+_Observations = tuple[np.ndarray, ...]
 
 
-class _Support(NamedTuple):
-    """The pixels of a wall fit: centres (x = column, y = row), initial signed distance, values, points."""
-
-    xc: np.ndarray
-    yc: np.ndarray
-    d0: np.ndarray
-    zx: np.ndarray  # zmax
-    zn: np.ndarray  # zmin (NaN where not given)
-    k: np.ndarray  # points per pixel
-
-
-def _support(
+def _observe(
     zmax: np.ndarray,
     zmin: np.ndarray | None,
     count: np.ndarray | None,
@@ -440,10 +391,16 @@ def _support(
     support_px: float,
     pixel_values: str,
     points_per_pixel: float,
-) -> _Support:
-    """Pixels whose centre lies within ``support_px`` of the initial line, beside the segment."""
+    empty_is_low: bool,
+) -> tuple[_Observations, float, float, int, int] | None:
+    """The fit's observations: the pixels whose centre lies within ``support_px`` of the initial line, beside the segment.
+
+    Returns the observations, the starting low and high levels (the 20th percentile of the low
+    side's heights, the 80th of the high side's), the number of measured values (highest plus
+    lowest points, which come first among the residuals) and of support pixels; None when
+    there is too little support on either side, or no step.
+    """
     zmax = np.asarray(zmax, dtype=np.float64)
-    zmin_arr = None if zmin is None else np.asarray(zmin, dtype=np.float64)
     h, w = zmax.shape
     along0 = np.array([n0[1], -n0[0]])
     t = np.stack([segment.cols + 0.5, segment.rows + 0.5], axis=1) @ along0
@@ -451,21 +408,127 @@ def _support(
     pad = int(math.ceil(support_px)) + 2
     r0, r1 = max(int(segment.rows.min()) - pad, 0), min(int(segment.rows.max()) + pad + 1, h)
     c0, c1 = max(int(segment.cols.min()) - pad, 0), min(int(segment.cols.max()) + pad + 1, w)
-    # pixel centres of the box as a row and a column, broadcast: the same values as a full grid of them
-    xc, yc = (np.arange(c0, c1) + 0.5)[None, :], (np.arange(r0, r1) + 0.5)[:, None]
-    d0 = xc * n0[0] + yc * n0[1] - rho0
-    tt = xc * along0[0] + yc * along0[1]
-    near = (np.abs(d0) <= support_px) & (tt >= t_lo) & (tt <= t_hi)
-    near_rows, near_cols = np.nonzero(near)  # row by row, as the box's pixels are ordered
-    zx = zmax[r0:r1, c0:c1][near_rows, near_cols]
-    zn = zmin_arr[r0:r1, c0:c1][near_rows, near_cols] if zmin_arr is not None else np.full(len(zx), np.nan)
+    no_values = np.empty((0, 0))
+    zmin_arr = no_values if zmin is None else np.asarray(zmin, dtype=np.float64)
     if pixel_values == "centre":
-        k = np.ones(len(zx))
+        count_arr, k_fixed = no_values, 1.0
     elif count is not None:
-        k = np.asarray(count, dtype=np.float64)[r0:r1, c0:c1][near_rows, near_cols]
+        count_arr, k_fixed = np.asarray(count, dtype=np.float64), math.nan
     else:
-        k = np.full(len(zx), float(points_per_pixel))
-    return _Support(xc[0, near_cols], yc[near_rows, 0], d0[near_rows, near_cols], zx, zn, k)
+        count_arr, k_fixed = no_values, float(points_per_pixel)
+    found = _support_observations(
+        zmax, zmin_arr, count_arr, k_fixed, r0, r1, c0, c1, float(n0[0]), float(n0[1]), rho0, t_lo, t_hi,
+        float(support_px), empty_is_low,
+    )  # fmt: skip
+    low0, high0, n_measured, n_support = found[10:]
+    if n_measured < 0 or not high0 > low0:
+        return None
+    return (*found[:10], LOGISTIC_NODES), low0, high0, n_measured, n_support
+
+
+@numba.njit(cache=True, nogil=True)
+def _support_observations(
+    zmax, zmin, count, k_fixed, r0, r1, c0, c1, n0x, n0y, rho0, t_lo, t_hi, support_px, empty_is_low
+):  # pragma: no cover - compiled
+    """:func:`_observe`'s pixels and levels in one compiled pass over the segment's box.
+
+    The box's pixels are visited row by row, as ``np.nonzero`` orders them; distances are
+    computed in numpy's order of operations, so every value is the one the array version gave.
+    ``zmin`` and ``count`` may be empty (0 x 0): no lowest points, ``k_fixed`` points per pixel.
+    ``n_measured`` is -1 when a side has too little support.
+    """
+    size = (r1 - r0) * (c1 - c0)
+    xc, yc, d0 = np.empty(size), np.empty(size), np.empty(size)
+    zx, zn, k = np.empty(size), np.empty(size), np.empty(size)
+    has_zmin, has_count = zmin.shape[0] > 0, count.shape[0] > 0
+    ax, ay = n0y, -n0x
+    n = 0
+    for r in range(r0, r1):
+        y = r + 0.5
+        for c in range(c0, c1):
+            x = c + 0.5
+            d = x * n0x + y * n0y - rho0
+            along = x * ax + y * ay
+            if abs(d) <= support_px and along >= t_lo and along <= t_hi:
+                xc[n], yc[n], d0[n] = x, y, d
+                zx[n] = zmax[r, c]
+                zn[n] = zmin[r, c] if has_zmin else np.nan
+                k[n] = count[r, c] if has_count else k_fixed
+                n += 1
+    n_high = n_low = n_empty = n_below = n_above = n_lows = n_highs = 0
+    for i in range(n):
+        if np.isfinite(zx[i]):
+            n_high += 1
+            n_below += d0[i] < 0
+            n_above += d0[i] > 0
+            n_low += np.isfinite(zn[i])
+            if d0[i] < -0.5:
+                n_lows += 1 + np.isfinite(zn[i])
+            elif d0[i] > 0.5:
+                n_highs += 1
+        else:
+            n_empty += 1
+    empty = np.empty(0)
+    if n_high < 6 or n_below < 3 or n_above < 3:
+        return empty, empty, empty, empty, empty, empty, empty, empty, empty, empty, 0.0, 0.0, -1, n
+    lows, highs = np.empty(n_lows), np.empty(n_highs)
+    x_high, y_high, k_high, z_high = np.empty(n_high), np.empty(n_high), np.empty(n_high), np.empty(n_high)
+    x_low, y_low, k_low, z_low = np.empty(n_low), np.empty(n_low), np.empty(n_low), np.empty(n_low)
+    n_empty = n_empty if empty_is_low else 0
+    x_empty, y_empty = np.empty(n_empty), np.empty(n_empty)
+    i_high = i_low = i_empty = i_lows = i_highs = 0
+    for i in range(n):
+        if np.isfinite(zx[i]):
+            x_high[i_high], y_high[i_high], k_high[i_high], z_high[i_high] = xc[i], yc[i], max(k[i], 1.0), zx[i]
+            i_high += 1
+            if np.isfinite(zn[i]):
+                x_low[i_low], y_low[i_low], k_low[i_low], z_low[i_low] = xc[i], yc[i], max(k[i], 1.0), zn[i]
+                i_low += 1
+            if d0[i] < -0.5:
+                lows[i_lows] = zx[i]
+                i_lows += 1
+                if np.isfinite(zn[i]):
+                    lows[i_lows] = zn[i]
+                    i_lows += 1
+            elif d0[i] > 0.5:
+                highs[i_highs] = zx[i]
+                i_highs += 1
+        elif empty_is_low:
+            x_empty[i_empty], y_empty[i_empty] = xc[i], yc[i]
+            i_empty += 1
+    # np.nanpercentile(lows, 20) and np.percentile(highs, 80), value for value
+    low0 = _linear_quantile(lows, 0.2) if n_lows else np.min(z_high)
+    high0 = _linear_quantile(highs, 0.8) if n_highs else np.max(z_high)
+    return (
+        x_high, y_high, k_high, z_high, x_low, y_low, k_low, z_low, x_empty, y_empty,
+        low0, high0, n_high + n_low, n,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _linear_quantile(values, q):  # pragma: no cover - compiled
+    """:func:`pipeline.quantiles.linear_quantiles` of one quantile, compiled: numpy's linear method."""
+    ordered = np.sort(values)
+    last = len(ordered) - 1
+    virtual = last * q
+    if virtual >= last:
+        return ordered[last]
+    below = math.floor(virtual)
+    a, b, t = ordered[below], ordered[below + 1], virtual - below
+    step = b - a
+    return b - step * (1 - t) if t >= 0.5 else a + step * t
+
+
+def _fit_support(
+    observations: _Observations, n0: np.ndarray, rho0: float, low0: float, high0: float, *, support_px: float
+) -> _StepFit | None:
+    """Fit the step to the observations, from a start at the initial line and levels; None when the fit fails."""
+    step0 = high0 - low0
+    phi0 = math.atan2(n0[1], n0[0])
+    x0 = np.array([phi0, rho0, low0, high0, math.log(0.2)])
+    lower = [phi0 - 0.6, rho0 - support_px, low0 - step0, low0, math.log(0.001)]
+    upper = [phi0 + 0.6, rho0 + support_px, high0, high0 + step0, math.log(support_px)]
+    return _fit_step(observations, x0, lower, upper, step0)
 
 
 class _StepFit(NamedTuple):
