@@ -444,3 +444,22 @@ def test_the_take_off_s_rounded_distances_are_scipy_s(density):
             targets[rng.integers(shape[0]), rng.integers(shape[1])] = True
         expected = np.round(ndi.distance_transform_edt(~targets)).astype(np.float32)
         assert np.array_equal(rounded_distance(targets), expected)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_area_pixels_are_the_areas_pixel_centres(seed):
+    """A box's pixels whose centres lie in an area: the centres tested one by one on a grid of each
+    (rotated areas, a DSM whose pixels are not 1 m, a box outside the area, an empty box)."""
+    from pipeline.flightplan.takeoff_search import _area_pixels
+
+    rng = np.random.default_rng(seed)
+    transform = Affine(0.5, 0, 1000.0, 0, -0.5, 2000.0)
+    area = shapely.affinity.rotate(shapely.box(1010, 1960, 1010 + rng.uniform(3, 20), 1975), rng.uniform(0, 90))
+    for box in [(0, 0, 120, 110), (10, 15, 60, 70), (100, 100, 110, 110), (5, 5, 5, 9)]:
+        r0, c0, r1, c1 = box
+        rows, cols = np.mgrid[r0:r1, c0:c1]
+        x, y = transform.a * (cols + 0.5) + transform.c, transform.e * (rows + 0.5) + transform.f
+        expected = shapely.contains_xy(area, x, y)
+        got = _area_pixels(area, box, transform)
+        assert got.shape == (r1 - r0, c1 - c0) and np.array_equal(got, expected)
+    assert _area_pixels(area, (0, 0, 120, 110), transform).any()

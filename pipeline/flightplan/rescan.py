@@ -293,7 +293,7 @@ def _window(
         d0, d1 = max(int((hx0 - x_left) / pixel) - 1, 0), min(int(math.ceil((hx1 - x_left) / pixel)) + 1, c1 - c0)
         if b0 >= b1 or d0 >= d1:
             continue
-        rr, cc = np.mgrid[b0:b1, d0:d1]
+        rr, cc = np.ogrid[b0:b1, d0:d1]  # a column and a row: the centres broadcast, not a grid of each
         shapely.prepare(hole)
         inside_hole = shapely.contains_xy(hole, x_left + (cc + 0.5) * pixel, y_top - (rr + 0.5) * pixel)
         box = labels[b0:b1, d0:d1]

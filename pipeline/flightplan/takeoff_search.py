@@ -438,7 +438,7 @@ def _area_pixels(area: shapely.Geometry, box: tuple[int, int, int, int], transfo
     """Within ``box``, the pixels whose centres lie in ``area``."""
     r0, c0, r1, c1 = box
     t = transform
-    rr, cc = np.mgrid[r0:r1, c0:c1]
+    rr, cc = np.ogrid[r0:r1, c0:c1]  # a column and a row: the centres broadcast, not a grid of each
     return shapely.contains_xy(area, t.a * (cc + 0.5) + t.c, t.e * (rr + 0.5) + t.f)
 
 
