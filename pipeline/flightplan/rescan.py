@@ -304,9 +304,10 @@ def _window(
     # the ground at a hole pixel: the fill, or the lowest surface beside it where lower (a fill
     # that leans on a wall is no ground); a lower target only makes a seen ray less likely
     measured = np.isfinite(surface) & ~inside
-    low = ground_targets(surface, measured, inside, step=ground_step_m, pixel_size=pixel)
-    targets = np.where(inside, np.fmin(surface, low), np.nan)
+    # NaN but at the hole pixels, where it is set in place: no window-sized temporaries (a 10 km strip's)
+    targets = ground_targets(surface, measured, inside, step=ground_step_m, pixel_size=pixel)
+    targets[inside] = np.fmin(surface[inside], targets[inside])
     floor = np.nanmin(surface[measured]) if measured.any() else np.nan
-    targets = np.where(inside & np.isnan(targets), floor, targets)
+    targets[inside & np.isnan(targets)] = floor
     surface[inside] = np.nan  # the hole's own fill is a guess, and ground blocks no ray rising from ground
     return _Window(surface, targets, labels, x_left, y_top, pixel)

@@ -60,7 +60,7 @@ def ground_targets(
     rows, cols = np.nonzero(where)
     if len(rows) == 0:
         return out
-    values = np.where(measured, zmin, np.inf).astype(np.float64)
+    values = np.where(measured, zmin, np.inf).astype(np.float64, copy=False)
     current = np.full(len(rows), np.inf)
     radii = sorted({max(1, round(r / pixel_size)) for r in TARGET_RADII_M})
     for radius in radii:
