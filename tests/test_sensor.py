@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+import scipy.ndimage as ndi
 import shapely
 
 from pipeline.sensor.sight import (
@@ -376,3 +377,42 @@ def test_a_recorded_angle_the_returns_exceed_is_not_the_scanner_s():
     assert _largest_angle(23.0, 23.7) == 23.5
     assert _largest_angle(20.5, 21.5) == 20.5  # within the slack: the record stands
     assert math.isnan(_largest_angle(math.nan, math.nan))
+
+
+def _ground_targets_whole_box(zmin, measured, where, *, step, pixel_size):
+    """ground_targets with each radius's minimum filter over the whole box of the pixels asked for."""
+    from pipeline.sensor.sight import TARGET_RADII_M
+
+    out = np.full(zmin.shape, np.nan)
+    rows, cols = np.nonzero(where)
+    if len(rows) == 0:
+        return out
+    values = np.where(measured, zmin, np.inf).astype(np.float64)
+    current = np.full(len(rows), np.inf)
+    for radius in sorted({max(1, round(r / pixel_size)) for r in TARGET_RADII_M}):
+        r0, r1 = max(rows.min() - radius, 0), min(rows.max() + radius + 1, zmin.shape[0])
+        c0, c1 = max(cols.min() - radius, 0), min(cols.max() + radius + 1, zmin.shape[1])
+        low = ndi.minimum_filter(values[r0:r1, c0:c1], size=2 * radius + 1, mode="constant", cval=np.inf)
+        here = low[rows - r0, cols - c0]
+        lower = np.isfinite(here) & (~np.isfinite(current) | (here < current - step))
+        current = np.where(lower, here, current)
+    out[rows, cols] = np.where(np.isfinite(current), current, np.nan)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_ground_targets_band_by_band_are_the_whole_box_s(seed, monkeypatch):
+    """The ground under the pixels asked for, filtered band by band of rows, is the whole box's, value
+    for value (bands of 1 row to wider than the box, float32 and float64 heights, any pixel size)."""
+    from pipeline.sensor import sight
+
+    rng = np.random.default_rng(seed)
+    monkeypatch.setattr(sight, "TARGET_BAND_ROWS", int(rng.choice([1, 3, 7, 16, 512])))
+    h, w = rng.integers(5, 160, 2)
+    zmin = rng.normal(10, 5, (h, w)).astype(np.float32 if seed % 2 else np.float64)
+    measured = rng.random((h, w)) < rng.uniform(0.05, 0.95)
+    where = (rng.random((h, w)) < rng.uniform(0.002, 0.3)) & ~measured
+    pixel_size = float(rng.choice([0.25, 0.5, 1.0, 2.0]))
+    got = sight.ground_targets(zmin, measured, where, step=2.5, pixel_size=pixel_size)
+    want = _ground_targets_whole_box(zmin, measured, where, step=2.5, pixel_size=pixel_size)
+    assert np.array_equal(got, want, equal_nan=True)
