@@ -413,26 +413,15 @@ def write_wall_layers(gpkg: Path, plan: SurveyPlan, walls: Sequence[WallResult])
     built at once (a 1 B point survey's 209,208 vertical holes were the client's largest
     moment, 500 MB over what it held before)."""
     crs = plan.grid.crs_wkt
-    counts = {"vertical_holes": 0, "walls": 0}
     for layer, geometry_type in (("vertical_holes", "MultiPolygon"), ("walls", "LineString")):
-        parts = _layer_parts(plan, walls, layer, counts)
+        records_of = _vertical_records if layer == "vertical_holes" else _wall_records
+        parts = (records_of(plan, group) for group in _cell_groups(walls, layer))
         write_layer_in_parts(gpkg, layer, parts, crs_wkt=crs, geometry_type=geometry_type, fields=LAYER_FIELDS[layer])
-    return {
-        "vertical_hole_groups": counts["vertical_holes"],
-        "walls": counts["walls"],
+    return {  # a record per vertical-hole group and per wall
+        "vertical_hole_groups": sum(len(w.vertical_holes) for w in walls),
+        "walls": sum(len(w.walls) for w in walls),
         "height_jump_px": int(sum(w.jump_px for w in walls)),
     }
-
-
-def _layer_parts(
-    plan: SurveyPlan, walls: Sequence[WallResult], layer: str, counts: dict[str, int]
-) -> Iterator[tuple[list, list]]:
-    """``(records, geometries)`` of a wall layer, a few cells at a time; ``counts[layer]`` counts the features."""
-    records_of = _vertical_records if layer == "vertical_holes" else _wall_records
-    for group in _cell_groups(walls, layer):
-        records, geometries = records_of(plan, group)
-        counts[layer] += len(records)
-        yield records, geometries
 
 
 def _cell_groups(walls: Sequence[WallResult], layer: str) -> Iterator[list[WallResult]]:
